@@ -1,0 +1,272 @@
+"""``SafeEnv``: the one TorchRL base class behind every sg_torchrl task.
+
+A safe environment is a constrained MDP: each step yields a reward *and* a cost, and an agent
+must keep its expected episodic cost under a limit (Safety-Gymnasium paper, section 3). The base
+class owns everything tasks share:
+
+* ``N`` simulators stepped in one process (``batch_size=[N]``), so the TorchRL per-call overhead
+  and the policy forward are paid once per batch, not once per simulator;
+* the TensorDict layout: ``observation``; ``reward``, ``cost`` of shape ``(N, 1)`` in the same
+  dtype; a ``cost_info`` sub-TensorDict with one ``(N, 1)`` entry per constraint so users can see
+  *which* constraint fired; ``terminated`` / ``truncated`` / ``done``;
+* partial resets through the ``"_reset"`` mask, the episode step counter and time-limit
+  truncation;
+* seeding with one generator per simulator (``SeedSequence(seed).spawn``), so simulator ``i`` with
+  seed ``s`` produces the same trajectory whatever ``N`` is;
+* action validation (shape, finiteness) with errors that name the problem, clipping to the
+  action bounds as the reference does, and isolation of a diverged simulator (it is reset and
+  reported ``truncated``, the rest of the batch carries on).
+
+Where ``cost`` is declared
+--------------------------
+``cost`` and ``cost_info`` live in the **observation spec**, not the reward spec. A second reward
+key makes ``env.reward_key`` raise and breaks every transform that reads it (``FrameSkipTransform``,
+``UnsqueezeTransform``, ...), whereas observation entries flow through collectors, ``StepCounter``,
+``VecNorm`` (which only touches its ``in_keys``) and ``check_env_specs`` untouched. It has the same
+shape and dtype as ``reward``, so the same ``GAE`` code path estimates cost advantages
+(``GAE.set_keys(reward="cost", ...)``). Use :class:`sg_torchrl.envs.transforms.EpisodeSum` for
+per-episode cost sums: TorchRL's ``RewardSum`` only looks in the reward spec.
+
+Subclasses implement the numpy hooks ``_reset_sims``, ``_advance``, ``_observe``,
+``_compute_reward``, ``_compute_cost`` and, if the task can end early, ``_compute_terminated``.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+__all__ = ["SafeEnv", "CostMode"]
+
+CostMode = Literal["indicator", "raw"]
+
+
+class SafeEnv(EnvBase, abc.ABC):
+    """Batched constrained-MDP environment emitting ``reward`` and ``cost``.
+
+    Args:
+        num_envs: number of simulators ``N`` stepped by this env (``batch_size=[N]``).
+        observation_dim: length of the flat observation vector.
+        action_low / action_high: per-dimension action bounds; actions outside are clipped.
+        constraint_names: names of the ``cost_info`` entries, one per constraint.
+        max_episode_steps: episodes are truncated after this many steps.
+        frame_skip: physics steps per env step (done inside the env, see ``_has_frame_skip``).
+        cost_mode: ``"indicator"`` (default, Safety-Gymnasium's ``constrain_indicator``): every
+            per-constraint cost and their sum become 1.0 if positive else 0.0, so ``cost`` is in
+            {0, 1} and two simultaneous violations still cost 1. ``"raw"``: the continuous values.
+        device: device of the emitted tensors (simulation runs on the CPU).
+        seed: seed for the per-simulator generators; ``None`` draws one from the OS.
+
+    Keys emitted after a step (``td["next"]``): ``observation`` ``(N, obs_dim)`` float32,
+    ``reward`` and ``cost`` ``(N, 1)`` float32, ``("cost_info", name)`` ``(N, 1)`` float32,
+    ``terminated``/``truncated``/``done`` ``(N, 1)`` bool.
+    """
+
+    # Frame skipping happens inside the env: without this flag TorchRL wraps any env with a
+    # ``frame_skip`` attribute in a FrameSkipTransform, skipping frames twice.
+    _has_frame_skip = True
+    _batch_locked = True
+
+    def __init__(
+        self,
+        *,
+        num_envs: int,
+        observation_dim: int,
+        action_low: np.ndarray,
+        action_high: np.ndarray,
+        constraint_names: Sequence[str],
+        max_episode_steps: int,
+        frame_skip: int = 1,
+        cost_mode: CostMode = "indicator",
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+    ) -> None:
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        if frame_skip < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+        if cost_mode not in ("indicator", "raw"):
+            raise ValueError(f"cost_mode must be 'indicator' or 'raw', got {cost_mode!r}")
+        if not constraint_names:
+            raise ValueError("a safe env needs at least one constraint name")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self.num_envs = num_envs
+        self.frame_skip = frame_skip
+        self.max_episode_steps = int(max_episode_steps)
+        self.cost_mode: CostMode = cost_mode
+        self.constraint_names = tuple(constraint_names)
+        self._action_low = np.asarray(action_low, dtype=np.float64)
+        self._action_high = np.asarray(action_high, dtype=np.float64)
+        self._elapsed = np.zeros(num_envs, dtype=np.int64)
+        self.physics_errors = 0  # simulators isolated and reset after diverging, since construction
+        self._make_specs(observation_dim)
+        self._rngs: list[np.random.Generator] = []
+        self._set_seed(seed)
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self, observation_dim: int) -> None:
+        n = self.num_envs
+        scalar = dict(shape=(n, 1), dtype=torch.float32, device=self.device)
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(n, observation_dim), dtype=torch.float32, device=self.device),
+            cost=Unbounded(**scalar),
+            cost_info=Composite(
+                {name: Unbounded(**scalar) for name in self.constraint_names}, shape=(n,), device=self.device
+            ),
+            shape=(n,),
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            low=torch.as_tensor(self._action_low, dtype=torch.float32).expand(n, -1).clone(),
+            high=torch.as_tensor(self._action_high, dtype=torch.float32).expand(n, -1).clone(),
+            shape=(n, len(self._action_low)),
+            dtype=torch.float32,
+            device=self.device,
+        )
+        self.reward_spec = Unbounded(**scalar)
+        flag = dict(n=2, shape=(n, 1), dtype=torch.bool, device=self.device)
+        self.full_done_spec = Composite(
+            done=Categorical(**flag), terminated=Categorical(**flag), truncated=Categorical(**flag),
+            shape=(n,), device=self.device,
+        )
+
+    @property
+    def observation_dim(self) -> int:
+        return int(self.observation_spec["observation"].shape[-1])
+
+    @property
+    def action_dim(self) -> int:
+        return len(self._action_low)
+
+    # ------------------------------------------------------------------ hooks for tasks
+    @abc.abstractmethod
+    def _reset_sims(self, indices: np.ndarray) -> None:
+        """Reset the simulators ``indices``, drawing randomness from ``self._rngs[i]`` only."""
+
+    @abc.abstractmethod
+    def _advance(self, action: np.ndarray) -> None:
+        """Apply the (clipped) ``(N, act_dim)`` action and step every simulator ``frame_skip`` times."""
+
+    @abc.abstractmethod
+    def _observe(self) -> np.ndarray:
+        """Current observations, ``(N, obs_dim)``."""
+
+    @abc.abstractmethod
+    def _compute_reward(self, action: np.ndarray) -> np.ndarray:
+        """Reward of the step just taken, ``(N,)``; ``action`` is the action as given."""
+
+    @abc.abstractmethod
+    def _compute_cost(self) -> dict[str, np.ndarray]:
+        """Raw non-negative cost of each constraint for the step just taken, each ``(N,)``."""
+
+    def _compute_terminated(self) -> np.ndarray:
+        """Which simulators reached a terminal state, ``(N,)`` bool. Default: never."""
+        return np.zeros(self.num_envs, dtype=bool)
+
+    def _before_step(self) -> None:
+        """Record anything the reward or cost needs from the pre-step state (e.g. positions)."""
+
+    def _diverged(self, observation: np.ndarray) -> np.ndarray:
+        """Which simulators hold a non-finite state after stepping, ``(N,)`` bool."""
+        return ~np.isfinite(observation).all(axis=1)
+
+    # ------------------------------------------------------------------ TorchRL API
+    def _set_seed(self, seed: int | None) -> None:
+        sequence = np.random.SeedSequence(seed)
+        # Child i depends only on (seed, i): simulator i replays identically whatever N is.
+        self._rngs = [np.random.default_rng(child) for child in sequence.spawn(self.num_envs)]
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        if mask is None:
+            indices = np.arange(self.num_envs)
+        else:
+            indices = np.flatnonzero(mask.reshape(self.num_envs).cpu().numpy())
+        if len(indices):
+            self._reset_sims(indices)
+            self._elapsed[indices] = 0
+        observation = self._observe()
+        zeros = np.zeros(self.num_envs)
+        return self._pack(observation, reward=None, costs={name: zeros for name in self.constraint_names},
+                          terminated=np.zeros(self.num_envs, dtype=bool),
+                          truncated=np.zeros(self.num_envs, dtype=bool))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = self._validated_action(tensordict.get("action"))
+        clipped = np.clip(action, self._action_low, self._action_high)
+        self._before_step()
+        self._advance(clipped)
+        observation = self._observe()
+        reward = self._compute_reward(action)
+        costs = self._compute_cost()
+        terminated = self._compute_terminated()
+        self._elapsed += 1
+        truncated = self._elapsed >= self.max_episode_steps
+        diverged = self._diverged(observation)
+        if diverged.any():
+            observation, reward, costs, terminated, truncated = self._isolate(
+                diverged, observation, reward, costs, terminated, truncated
+            )
+        return self._pack(observation, reward, costs, terminated, truncated)
+
+    # ------------------------------------------------------------------ helpers
+    def _validated_action(self, action: torch.Tensor | None) -> np.ndarray:
+        expected = (self.num_envs, self.action_dim)
+        if action is None:
+            raise KeyError("the input TensorDict has no 'action' entry")
+        if tuple(action.shape) != expected:
+            raise ValueError(
+                f"{type(self).__name__}: action has shape {tuple(action.shape)}, expected {expected} "
+                f"(num_envs={self.num_envs}, action_dim={self.action_dim})"
+            )
+        array = action.detach().to("cpu", torch.float64).numpy()
+        finite = np.isfinite(array).all(axis=1)
+        if not finite.all():
+            bad = np.flatnonzero(~finite).tolist()
+            raise ValueError(f"{type(self).__name__}: non-finite action (NaN or inf) for simulators {bad}")
+        return array
+
+    def _isolate(self, diverged, observation, reward, costs, terminated, truncated):
+        """Reset diverged simulators and report them truncated with zero reward and cost."""
+        self.physics_errors += int(diverged.sum())
+        indices = np.flatnonzero(diverged)
+        self._reset_sims(indices)
+        observation = np.where(diverged[:, None], 0.0, observation)
+        reward = np.where(diverged, 0.0, reward)
+        costs = {name: np.where(diverged, 0.0, value) for name, value in costs.items()}
+        return observation, reward, costs, terminated & ~diverged, truncated | diverged
+
+    def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        total = sum(costs.values())
+        if self.cost_mode == "indicator":
+            return (total > 0).astype(np.float32), {k: (v > 0).astype(np.float32) for k, v in costs.items()}
+        return total, costs
+
+    def _pack(self, observation, reward, costs, terminated, truncated) -> TensorDictBase:
+        cost, cost_info = self._aggregate_cost(costs)
+        n = self.num_envs
+
+        def column(array: np.ndarray, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+            return torch.as_tensor(array, dtype=dtype).reshape(n, 1)
+
+        source = {
+            "observation": torch.as_tensor(observation, dtype=torch.float32),
+            "cost": column(cost),
+            "cost_info": {name: column(value) for name, value in cost_info.items()},
+            "terminated": column(terminated, torch.bool),
+            "truncated": column(truncated, torch.bool),
+            "done": column(terminated | truncated, torch.bool),
+        }
+        if reward is not None:
+            source["reward"] = column(reward)
+        out = TensorDict(source, batch_size=self.batch_size)
+        return out if self.device is None or self.device.type == "cpu" else out.to(self.device)

@@ -1,0 +1,128 @@
+"""The env registry: an explicit table from Safety-Gymnasium env id to constructor.
+
+Ids are Safety-Gymnasium's, unchanged, so results and configs carry over. The table is
+explicit (no class names derived from id strings), which lets the registry-wide tests iterate
+it and lets an unknown id get a helpful error listing the closest valid ids.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from sg_torchrl.envs.base import SafeEnv
+
+__all__ = ["EnvEntry", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+
+
+class UnknownEnvError(KeyError):
+    """Raised by :func:`make` for an id that is not registered."""
+
+    def __str__(self) -> str:  # KeyError would quote the whole message
+        return str(self.args[0])
+
+
+@dataclass(frozen=True)
+class EnvEntry:
+    """One registered env id.
+
+    Args:
+        env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
+        constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
+        family: ``"velocity"``, ``"navigation"``, ...
+        robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
+            family has no levels).
+        max_episode_steps: the reference's episode length.
+        kwargs: fixed constructor arguments for this id (user options override them).
+    """
+
+    env_id: str
+    constructor: Callable[..., SafeEnv]
+    family: str
+    robot: str
+    task: str
+    max_episode_steps: int
+    level: int | None = None
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+_REGISTRY: dict[str, EnvEntry] = {}
+
+
+def register(entry: EnvEntry) -> None:
+    """Add an id to the registry; re-registering an id is an error."""
+    if entry.env_id in _REGISTRY:
+        raise ValueError(f"env id {entry.env_id!r} is already registered")
+    _REGISTRY[entry.env_id] = entry
+
+
+def registry_entry(env_id: str) -> EnvEntry:
+    """The :class:`EnvEntry` for ``env_id``; unknown ids raise :class:`UnknownEnvError`."""
+    try:
+        return _REGISTRY[env_id]
+    except KeyError:
+        close = difflib.get_close_matches(env_id, list(_REGISTRY), n=3, cutoff=0.5)
+        hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+        raise UnknownEnvError(
+            f"unknown env id {env_id!r}.{hint} `sg_torchrl.list_envs()` lists the {len(_REGISTRY)} registered ids."
+        ) from None
+
+
+def list_envs(family: str | None = None, robot: str | None = None) -> list[str]:
+    """Registered env ids, sorted, optionally filtered by family and robot."""
+    entries: Iterable[EnvEntry] = _REGISTRY.values()
+    return sorted(
+        e.env_id for e in entries if (family is None or e.family == family) and (robot is None or e.robot == robot)
+    )
+
+
+def make(
+    env_id: str,
+    num_envs: int = 1,
+    device: torch.device | str = "cpu",
+    seed: int | None = None,
+    **options: Any,
+) -> SafeEnv:
+    """Build the env registered as ``env_id`` with ``num_envs`` simulators in one process.
+
+    Args:
+        env_id: a Safety-Gymnasium id (see :func:`list_envs`).
+        num_envs: simulators stepped by the returned env (its ``batch_size`` is ``[num_envs]``).
+        device: device of the emitted TensorDicts.
+        seed: seed of the per-simulator generators (``None``: fresh OS entropy).
+        **options: task options, e.g. ``cost_mode="raw"`` or ``max_episode_steps=500``.
+
+    Example:
+        >>> env = make("SafetyHalfCheetahVelocity-v1", num_envs=8, seed=0)
+        >>> rollout = env.rollout(10)
+        >>> rollout["next", "cost"].shape
+        torch.Size([8, 10, 1])
+    """
+    entry = registry_entry(env_id)
+    kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **options}
+    return entry.constructor(num_envs=num_envs, device=device, seed=seed, **kwargs)
+
+
+def _register_velocity() -> None:
+    from sg_torchrl.envs.velocity import ROBOTS, VelocityEnv
+
+    for robot in ROBOTS.values():
+        for version in sorted(robot.thresholds):
+            register(
+                EnvEntry(
+                    env_id=f"Safety{robot.name}Velocity-v{version}",
+                    constructor=VelocityEnv,
+                    family="velocity",
+                    robot=robot.name,
+                    task="Velocity",
+                    max_episode_steps=1000,
+                    kwargs={"robot": robot.name, "version": version},
+                )
+            )
+
+
+_register_velocity()

@@ -1,0 +1,153 @@
+"""Velocity-constrained locomotion: ``Safety{Robot}Velocity-v{0,1}``.
+
+The robot is rewarded for running forward exactly as in gymnasium's v4 MuJoCo env and pays a
+cost of 1 on every step whose measured velocity exceeds a threshold (Safety-Gymnasium paper,
+section 4.2, "Safe Velocity"): the agent must learn to run fast, but not too fast. ``N``
+simulators share one compiled model; observation, reward, termination and reset noise match
+gymnasium's v4 env for the same state (checked against gymnasium in the tests), so results
+compare with the paper's.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import torch
+
+from sg_torchrl.envs.base import CostMode, SafeEnv
+from sg_torchrl.envs.physics import MujocoBatch
+from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
+
+__all__ = ["VelocityEnv"]
+
+
+class VelocityEnv(SafeEnv):
+    """A gymnasium-v4 locomotion robot with Safety-Gymnasium's velocity cost, batched.
+
+    Args:
+        robot: a key of :data:`~sg_torchrl.envs.velocity.robots.ROBOTS` (``"HalfCheetah"``, ...).
+        version: env version; selects the cost threshold (and, for the Swimmer, whether the
+            cost uses planar speed (v0) or x velocity (v1)).
+        velocity_threshold: override the version's threshold.
+        num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
+
+    The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
+    available as attributes after a step: :attr:`last_velocity` (the measured speed, ``(N,)``).
+    """
+
+    def __init__(
+        self,
+        robot: str,
+        version: int = 1,
+        *,
+        num_envs: int = 1,
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+        cost_mode: CostMode = "indicator",
+        max_episode_steps: int = 1000,
+        velocity_threshold: float | None = None,
+    ) -> None:
+        if robot not in ROBOTS:
+            raise ValueError(f"unknown velocity robot {robot!r}; choose from {sorted(ROBOTS)}")
+        spec: LocomotionRobot = ROBOTS[robot]
+        if version not in spec.thresholds:
+            raise ValueError(f"{robot} velocity task has versions {sorted(spec.thresholds)}, got {version}")
+        self.robot = spec
+        self.version = version
+        self.velocity_threshold = float(spec.thresholds[version] if velocity_threshold is None else velocity_threshold)
+        self.physics = MujocoBatch(
+            load_model(spec.xml_file), num_envs, post_constraint="cfrc_ext" in spec.extra_observations
+        )
+        model = self.physics.model
+        self._init_qpos = model.qpos0.copy()
+        self._init_qvel = np.zeros(model.nv)
+        self._dt = model.opt.timestep * spec.frame_skip
+        self._planar_cost = version in spec.planar_cost_versions
+        self._torso_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
+        self._body_mass = model.body_mass[:, None] / model.body_mass.sum()
+        self._position_before = np.zeros((num_envs, 2 if spec.planar else 1))
+        self.last_velocity = np.zeros(num_envs)
+        self._velocity = np.zeros((num_envs, 2))
+        low, high = self.physics.ctrl_range
+        super().__init__(
+            num_envs=num_envs,
+            observation_dim=self._observation_size(model),
+            action_low=low,
+            action_high=high,
+            constraint_names=("velocity",),
+            max_episode_steps=max_episode_steps,
+            frame_skip=spec.frame_skip,
+            cost_mode=cost_mode,
+            device=device,
+            seed=seed,
+        )
+
+    # ------------------------------------------------------------------ layout
+    def _observation_size(self, model: mujoco.MjModel) -> int:
+        data = self.physics.datas[0]
+        extra = sum(getattr(data, name).size for name in self.robot.extra_observations)
+        return model.nq - self.robot.qpos_skip + model.nv + extra
+
+    # ------------------------------------------------------------------ hooks
+    def _reset_sims(self, indices: np.ndarray) -> None:
+        spec, scale = self.robot, self.robot.reset_noise_scale
+        qpos = np.empty((len(indices), self.physics.model.nq))
+        qvel = np.empty((len(indices), self.physics.model.nv))
+        for row, index in enumerate(indices):
+            rng = self._rngs[index]
+            # Same draw order and distributions as gymnasium's v4 ``reset_model``.
+            qpos[row] = self._init_qpos + rng.uniform(-scale, scale, size=qpos.shape[1])
+            if spec.qvel_noise == "normal":
+                qvel[row] = self._init_qvel + scale * rng.standard_normal(qvel.shape[1])
+            else:
+                qvel[row] = self._init_qvel + rng.uniform(-scale, scale, size=qvel.shape[1])
+        self.physics.reset(indices, qpos, qvel)
+
+    def _position(self) -> np.ndarray:
+        """The position whose finite difference is the robot's velocity, ``(N, 1 or 2)``."""
+        width = 2 if self.robot.planar else 1
+        source = self.robot.position_source
+        if source == "qpos":
+            return self.physics.qpos()[:, :width].copy()
+        if source == "torso":
+            return self.physics.body_xpos(self._torso_id)[:, :width]
+        return (self.physics.gather("xipos") * self._body_mass).sum(axis=1)[:, :width]
+
+    def _before_step(self) -> None:
+        self._position_before[:] = self._position()
+
+    def _advance(self, action: np.ndarray) -> None:
+        self.physics.step(action, self.frame_skip)
+        velocity = (self._position() - self._position_before) / self._dt
+        self._velocity[:, : velocity.shape[1]] = velocity
+
+    def _observe(self) -> np.ndarray:
+        qvel = self.physics.qvel()
+        if self.robot.qvel_clip is not None:
+            qvel = np.clip(qvel, -self.robot.qvel_clip, self.robot.qvel_clip)
+        parts = [self.physics.qpos()[:, self.robot.qpos_skip:], qvel]
+        parts += [self.physics.gather(name).reshape(self.num_envs, -1) for name in self.robot.extra_observations]
+        return np.concatenate(parts, axis=1)
+
+    def _compute_reward(self, action: np.ndarray) -> np.ndarray:
+        # gymnasium v4 penalises the action as given (MuJoCo clamps it only inside the physics).
+        spec = self.robot
+        penalty_ctrl = spec.ctrl_cost_weight * np.square(action).sum(axis=1)
+        return spec.forward_reward_weight * self._velocity[:, 0] + spec.healthy_reward - penalty_ctrl
+
+    def _compute_cost(self) -> dict[str, np.ndarray]:
+        if self._planar_cost:
+            self.last_velocity = np.hypot(self._velocity[:, 0], self._velocity[:, 1])
+        else:
+            self.last_velocity = self._velocity[:, 0].copy()
+        return {"velocity": (self.last_velocity > self.velocity_threshold).astype(np.float64)}
+
+    def _compute_terminated(self) -> np.ndarray:
+        health = self.robot.health
+        if health is None:
+            return np.zeros(self.num_envs, dtype=bool)
+        return ~health(self.physics.qpos(), self.physics.qvel())
+
+    def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
+        """The cost this task assigns to a measured velocity (for documentation and tests)."""
+        return (np.asarray(velocity) > self.velocity_threshold).astype(np.float64)

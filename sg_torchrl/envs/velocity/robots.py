@@ -1,0 +1,170 @@
+"""The six locomotion robots of the velocity-constrained tasks, as data.
+
+Safety-Gymnasium's velocity tasks (paper section 4.2) subclass gymnasium's **v4** MuJoCo envs:
+reward, observation and reset are gymnasium's, and a cost of 1 is paid whenever the robot moves
+faster than a threshold. Each robot here is one :class:`LocomotionRobot` record holding exactly
+those facts (the numbers are gymnasium v4's defaults and Safety-Gymnasium's thresholds, see
+``reference/safety_gymnasium_semantics.md`` sections 8 and 10); :class:`~.env.VelocityEnv`
+interprets the record. Adding a robot is adding a record, not a class.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+import gymnasium.envs.mujoco
+import mujoco
+import numpy as np
+
+__all__ = ["HealthCheck", "LocomotionRobot", "ROBOTS", "load_model"]
+
+ASSETS = Path(gymnasium.envs.mujoco.__file__).parent / "assets"
+
+
+@dataclass(frozen=True)
+class HealthCheck:
+    """Gymnasium's ``is_healthy`` rule: the episode terminates when it fails.
+
+    Args:
+        z_index: qpos index of the torso height.
+        z_range: allowed torso height.
+        angle_index / angle_range: optional torso pitch bound (Hopper, Walker2d).
+        state_range: optional bound on ``concat(qpos, qvel)[2:]`` (Hopper).
+        inclusive: bounds are ``<=`` (Ant) rather than strict ``<`` (the others).
+    """
+
+    z_index: int
+    z_range: tuple[float, float]
+    angle_index: int | None = None
+    angle_range: tuple[float, float] | None = None
+    state_range: tuple[float, float] | None = None
+    inclusive: bool = False
+
+    def __call__(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        """Healthy flags, ``(N,)``; non-finite states are never healthy."""
+        within = _within_inclusive if self.inclusive else _within_strict
+        healthy = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
+        healthy &= within(qpos[:, self.z_index], self.z_range)
+        if self.angle_index is not None:
+            healthy &= within(qpos[:, self.angle_index], self.angle_range)
+        if self.state_range is not None:
+            state = np.concatenate([qpos, qvel], axis=1)[:, 2:]
+            healthy &= within(state, self.state_range).all(axis=1)
+        return healthy
+
+
+def _within_strict(x: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+    return (bounds[0] < x) & (x < bounds[1])
+
+
+def _within_inclusive(x: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+    return (bounds[0] <= x) & (x <= bounds[1])
+
+
+@dataclass(frozen=True)
+class LocomotionRobot:
+    """Everything that distinguishes one velocity-task robot from another.
+
+    Args:
+        name: robot name as it appears in the env id (``HalfCheetah``).
+        xml_file: gymnasium asset file.
+        frame_skip: physics steps per env step.
+        qpos_skip: leading qpos entries excluded from the observation (world x, and y for
+            robots that move in the plane).
+        qvel_clip: observations clip qvel to ``[-clip, clip]`` (Hopper, Walker2d).
+        forward_reward_weight / ctrl_cost_weight / healthy_reward: gymnasium v4 reward terms.
+        reset_noise_scale: half-width of the uniform qpos reset noise.
+        qvel_noise: ``"uniform"`` (same half-width) or ``"normal"`` (scale times N(0, 1)).
+        position_source: what the forward velocity differentiates: joint ``"qpos"`` (x, y), the
+            ``"torso"`` body position, or the ``"mass_center"`` (gymnasium v4 per robot).
+        planar: the position is 2-D (x, y) rather than x only.
+        health: termination rule, or ``None`` for robots that never terminate.
+        extra_observations: ``MjData`` arrays appended to the observation (Humanoid v4).
+        thresholds: Safety-Gymnasium's cost threshold per env version.
+        planar_cost_versions: versions whose cost uses the planar speed instead of the signed
+            x velocity (Ant, Humanoid; Swimmer only in v0).
+    """
+
+    name: str
+    xml_file: str
+    frame_skip: int
+    qpos_skip: int
+    forward_reward_weight: float
+    ctrl_cost_weight: float
+    reset_noise_scale: float
+    thresholds: dict[int, float]
+    qvel_clip: float | None = None
+    healthy_reward: float = 0.0
+    qvel_noise: Literal["uniform", "normal"] = "uniform"
+    position_source: Literal["qpos", "torso", "mass_center"] = "qpos"
+    planar: bool = False
+    health: HealthCheck | None = None
+    extra_observations: tuple[str, ...] = ()
+    planar_cost_versions: frozenset[int] = field(default_factory=frozenset)
+
+
+ROBOTS: dict[str, LocomotionRobot] = {
+    robot.name: robot
+    for robot in (
+        LocomotionRobot(
+            name="HalfCheetah", xml_file="half_cheetah.xml", frame_skip=5, qpos_skip=1,
+            forward_reward_weight=1.0, ctrl_cost_weight=0.1, reset_noise_scale=0.1, qvel_noise="normal",
+            thresholds={0: 2.8795, 1: 3.2096},
+        ),
+        LocomotionRobot(
+            name="Hopper", xml_file="hopper.xml", frame_skip=4, qpos_skip=1, qvel_clip=10.0,
+            forward_reward_weight=1.0, ctrl_cost_weight=1e-3, healthy_reward=1.0, reset_noise_scale=5e-3,
+            health=HealthCheck(z_index=1, z_range=(0.7, float("inf")), angle_index=2, angle_range=(-0.2, 0.2),
+                               state_range=(-100.0, 100.0)),
+            thresholds={0: 0.37315, 1: 0.7402},
+        ),
+        LocomotionRobot(
+            name="Walker2d", xml_file="walker2d.xml", frame_skip=4, qpos_skip=1, qvel_clip=10.0,
+            forward_reward_weight=1.0, ctrl_cost_weight=1e-3, healthy_reward=1.0, reset_noise_scale=5e-3,
+            health=HealthCheck(z_index=1, z_range=(0.8, 2.0), angle_index=2, angle_range=(-1.0, 1.0)),
+            thresholds={0: 1.7075, 1: 2.3415},
+        ),
+        LocomotionRobot(
+            name="Swimmer", xml_file="swimmer.xml", frame_skip=4, qpos_skip=2, planar=True,
+            forward_reward_weight=1.0, ctrl_cost_weight=1e-4, reset_noise_scale=0.1,
+            thresholds={0: 0.04845, 1: 0.2282}, planar_cost_versions=frozenset({0}),
+        ),
+        LocomotionRobot(
+            name="Ant", xml_file="ant.xml", frame_skip=5, qpos_skip=2, planar=True, position_source="torso",
+            forward_reward_weight=1.0, ctrl_cost_weight=0.5, healthy_reward=1.0, reset_noise_scale=0.1,
+            qvel_noise="normal", health=HealthCheck(z_index=2, z_range=(0.2, 1.0), inclusive=True),
+            thresholds={0: 2.5745, 1: 2.6222}, planar_cost_versions=frozenset({0, 1}),
+        ),
+        LocomotionRobot(
+            name="Humanoid", xml_file="humanoid.xml", frame_skip=5, qpos_skip=2, planar=True,
+            position_source="mass_center", forward_reward_weight=1.25, ctrl_cost_weight=0.1, healthy_reward=5.0,
+            reset_noise_scale=1e-2, health=HealthCheck(z_index=2, z_range=(1.0, 2.0)),
+            extra_observations=("cinert", "cvel", "qfrc_actuator", "cfrc_ext"),
+            thresholds={0: 2.3475, 1: 1.4149}, planar_cost_versions=frozenset({0, 1}),
+        ),
+    )
+}
+
+_TOTAL_MASS = re.compile(r'\s+settotalmass="([0-9.eE+-]+)"')
+
+
+@lru_cache(maxsize=None)
+def load_model(xml_file: str) -> mujoco.MjModel:
+    """Compile a gymnasium asset once per process.
+
+    ``settotalmass`` is deprecated in MuJoCo 4 and makes the compiler print a warning on every
+    load, so the attribute is stripped and the same rescaling is applied with
+    ``mj_setTotalmass`` + ``mj_setConst``: the compiled model is identical to what the attribute would give.
+    The cached model is shared read-only by every env and simulator.
+    """
+    xml = (ASSETS / xml_file).read_text()
+    total_mass = _TOTAL_MASS.search(xml)
+    model = mujoco.MjModel.from_xml_string(_TOTAL_MASS.sub("", xml))
+    if total_mass is not None:
+        mujoco.mj_setTotalmass(model, float(total_mass.group(1)))
+        mujoco.mj_setConst(model, mujoco.MjData(model))  # refresh constants derived from masses
+    return model
