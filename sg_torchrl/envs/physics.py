@@ -9,6 +9,17 @@ Tasks never touch ``MjData`` directly, which keeps the door open for an array-na
 Why not one env object per simulator: on a 2-core machine the per-call overhead of TorchRL's
 ``EnvBase.step`` and of a policy forward dominates small MuJoCo models, so one env stepping N
 simulators amortises it N times (Safety-Gymnasium uses one subprocess per simulator instead).
+
+State cache: the one Python loop over the simulators that stepping needs anyway also copies
+``qpos``, ``qvel`` and the task's ``fields`` into preallocated ``(N, ...)`` arrays. Tasks then read
+observations, positions and health checks from those arrays as often as they like, without
+another loop over the ``MjData``. The cache is refreshed by :meth:`step`, :meth:`reset` and
+:meth:`set_state`; code that writes into ``MjData`` directly must call :meth:`refresh`.
+
+Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises one of its
+``BADQPOS``/``BADQVEL``/``BADQACC`` warnings and silently resets that ``MjData`` to the model's
+initial state. :meth:`step` reports which simulators this happened to, so the env can end their
+episode instead of presenting the jump as a transition.
 """
 
 from __future__ import annotations
@@ -20,6 +31,10 @@ import numpy as np
 
 __all__ = ["MujocoBatch"]
 
+# MuJoCo's instability warnings (contiguous in mjtWarning): each comes with an automatic reset.
+_UNSTABLE = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
+assert int(mujoco.mjtWarning.mjWARN_BADQVEL) == _UNSTABLE.start + 1
+
 
 class MujocoBatch:
     """``num_sims`` MuJoCo simulators stepping one shared model.
@@ -30,9 +45,13 @@ class MujocoBatch:
         post_constraint: also run ``mj_rnePostConstraint`` after stepping, which fills
             ``cfrc_ext``/``cacc`` (needed only by observations that read contact forces,
             e.g. the Humanoid's; gymnasium's MuJoCo envs always run it).
+        fields: ``MjData`` arrays besides ``qpos``/``qvel`` to keep in the state cache
+            (``"xpos"``, ``"cinert"``, ...), read with :meth:`field`.
     """
 
-    def __init__(self, model: mujoco.MjModel, num_sims: int, *, post_constraint: bool = False) -> None:
+    def __init__(
+        self, model: mujoco.MjModel, num_sims: int, *, post_constraint: bool = False, fields: Sequence[str] = ()
+    ) -> None:
         if num_sims < 1:
             raise ValueError(f"num_sims must be >= 1, got {num_sims}")
         self.model = model
@@ -41,21 +60,36 @@ class MujocoBatch:
         self.datas = [mujoco.MjData(model) for _ in range(num_sims)]
         for data in self.datas:
             mujoco.mj_forward(model, data)
-        # Preallocated read buffers: gathering state never allocates in the hot path.
+        # The state cache (see the module docstring): filled in place, never reallocated.
         self._qpos = np.zeros((num_sims, model.nq))
         self._qvel = np.zeros((num_sims, model.nv))
+        self._fields = {name: np.zeros((num_sims, *getattr(self.datas[0], name).shape)) for name in fields}
+        self._field_items = tuple(self._fields.items())
+        self._warnings = np.zeros((num_sims, len(self.datas[0].warning.number)), dtype=np.int64)
+        self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
+        self.refresh()
 
     # ------------------------------------------------------------------ stepping
-    def step(self, ctrl: np.ndarray, nstep: int) -> None:
-        """Write ``ctrl`` (``(N, nu)``) to every simulator and advance each by ``nstep`` steps."""
-        model, post = self.model, self.post_constraint
-        for data, row in zip(self.datas, ctrl):
-            data.ctrl[:] = row
+    def step(self, ctrl: np.ndarray, nstep: int) -> np.ndarray:
+        """Write ``ctrl`` (``(N, nu)``) to every simulator and advance each by ``nstep`` steps.
+
+        Returns:
+            ``(N,)`` bool: the simulators MuJoCo found unstable during this step (and reset to
+            the model's initial state, see the module docstring).
+        """
+        model, post, copy_out = self.model, self.post_constraint, self._copy_out
+        for i, data in enumerate(self.datas):
+            data.ctrl[:] = ctrl[i]
             mujoco.mj_step(model, data, nstep)
             if post:
                 mujoco.mj_rnePostConstraint(model, data)
+            copy_out(i, data)
+        counts = self._warnings[:, _UNSTABLE].sum(axis=1)
+        unstable = counts != self._unstable_counts
+        self._unstable_counts[:] = counts
+        return unstable
 
     def reset(self, indices: Sequence[int], qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Reset simulators ``indices`` to the given joint state (rows of ``qpos``/``qvel``).
@@ -73,6 +107,44 @@ class MujocoBatch:
             mujoco.mj_forward(model, data)
             if self.post_constraint:
                 mujoco.mj_rnePostConstraint(model, data)
+        self.refresh(indices)
+
+    def refresh(self, indices: Sequence[int] | None = None) -> None:
+        """Re-read the state cache from ``MjData`` (all simulators, or ``indices``).
+
+        Only needed after writing into ``self.datas[i]`` directly.
+        """
+        indices = range(self.num_sims) if indices is None else [int(i) for i in indices]
+        for i in indices:
+            self._copy_out(i, self.datas[i])
+        rows = list(indices)
+        self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
+
+    def _copy_out(self, i: int, data: mujoco.MjData) -> None:
+        self._qpos[i] = data.qpos
+        self._qvel[i] = data.qvel
+        for name, buffer in self._field_items:
+            buffer[i] = getattr(data, name)
+        self._warnings[i] = data.warning.number
+
+    # ------------------------------------------------------------------ snapshots
+    def get_state(self) -> np.ndarray:
+        """Full physics state of every simulator, ``(N, nstate)`` (``mjSTATE_FULLPHYSICS``)."""
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        state = np.empty((self.num_sims, mujoco.mj_stateSize(self.model, spec)))
+        for row, data in zip(state, self.datas):
+            mujoco.mj_getState(self.model, data, row, spec)
+        return state
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Restore :meth:`get_state` output (checkpoint/resume); derived quantities are recomputed."""
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        for row, data in zip(state, self.datas):
+            mujoco.mj_setState(self.model, data, row, spec)
+            mujoco.mj_forward(self.model, data)
+            if self.post_constraint:
+                mujoco.mj_rnePostConstraint(self.model, data)
+        self.refresh()
 
     # ------------------------------------------------------------------ state views
     @property
@@ -85,24 +157,23 @@ class MujocoBatch:
         return self._ctrl_low, self._ctrl_high
 
     def qpos(self) -> np.ndarray:
-        """Joint positions, ``(N, nq)``; the returned buffer is overwritten by the next call."""
-        for i, data in enumerate(self.datas):
-            self._qpos[i] = data.qpos
+        """Joint positions, ``(N, nq)``, from the state cache (updated in place; do not write)."""
         return self._qpos
 
     def qvel(self) -> np.ndarray:
-        """Joint velocities, ``(N, nv)``; the returned buffer is overwritten by the next call."""
-        for i, data in enumerate(self.datas):
-            self._qvel[i] = data.qvel
+        """Joint velocities, ``(N, nv)``, from the state cache (updated in place; do not write)."""
         return self._qvel
 
-    def gather(self, field: str) -> np.ndarray:
-        """Stack any ``MjData`` array attribute (``"xpos"``, ``"cinert"``, ...) into ``(N, ...)``."""
-        return np.stack([getattr(data, field) for data in self.datas])
+    def field(self, name: str) -> np.ndarray:
+        """A cached ``MjData`` array (one of ``fields``), ``(N, ...)`` (updated in place; do not write)."""
+        try:
+            return self._fields[name]
+        except KeyError:
+            raise KeyError(f"{name!r} is not cached; pass it in `fields` (cached: {list(self._fields)})") from None
 
-    def body_xpos(self, body_id: int) -> np.ndarray:
-        """World position of one body in every simulator, ``(N, 3)``."""
-        return np.stack([data.xpos[body_id] for data in self.datas])
+    def gather(self, field: str) -> np.ndarray:
+        """Stack any ``MjData`` array attribute (``"xpos"``, ``"cinert"``, ...) into a new ``(N, ...)`` array."""
+        return np.stack([getattr(data, field) for data in self.datas])
 
     def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
         """How often each simulator raised ``warning`` (MuJoCo resets a diverged simulator itself)."""

@@ -32,7 +32,8 @@ class VelocityEnv(SafeEnv):
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
-    available as attributes after a step: :attr:`last_velocity` (the measured speed, ``(N,)``).
+    available as attributes after a step: :attr:`last_velocity` (the measured speed, ``(N,)``;
+    overwritten in place by every step, copy it to keep it).
     """
 
     def __init__(
@@ -55,8 +56,12 @@ class VelocityEnv(SafeEnv):
         self.robot = spec
         self.version = version
         self.velocity_threshold = float(spec.thresholds[version] if velocity_threshold is None else velocity_threshold)
+        position_field = {"qpos": (), "torso": ("xpos",), "mass_center": ("xipos",)}[spec.position_source]
         self.physics = MujocoBatch(
-            load_model(spec.xml_file), num_envs, post_constraint="cfrc_ext" in spec.extra_observations
+            load_model(spec.xml_file),
+            num_envs,
+            post_constraint="cfrc_ext" in spec.extra_observations,
+            fields=position_field + spec.extra_observations,
         )
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
@@ -68,6 +73,10 @@ class VelocityEnv(SafeEnv):
         self._position_before = np.zeros((num_envs, 2 if spec.planar else 1))
         self.last_velocity = np.zeros(num_envs)
         self._velocity = np.zeros((num_envs, 2))
+        self._unstable = np.zeros(num_envs, dtype=bool)
+        # Hot-path buffers are filled in place: assigning an attribute of an EnvBase (an nn.Module)
+        # costs microseconds, and SafeEnv copies what it emits.
+        self._observation = np.zeros((num_envs, self._observation_size(model)))
         low, high = self.physics.ctrl_range
         super().__init__(
             num_envs=num_envs,
@@ -108,26 +117,39 @@ class VelocityEnv(SafeEnv):
         width = 2 if self.robot.planar else 1
         source = self.robot.position_source
         if source == "qpos":
-            return self.physics.qpos()[:, :width].copy()
+            return self.physics.qpos()[:, :width]
         if source == "torso":
-            return self.physics.body_xpos(self._torso_id)[:, :width]
-        return (self.physics.gather("xipos") * self._body_mass).sum(axis=1)[:, :width]
+            return self.physics.field("xpos")[:, self._torso_id, :width]
+        return (self.physics.field("xipos") * self._body_mass).sum(axis=1)[:, :width]
 
     def _before_step(self) -> None:
         self._position_before[:] = self._position()
 
     def _advance(self, action: np.ndarray) -> None:
-        self.physics.step(action, self.frame_skip)
-        velocity = (self._position() - self._position_before) / self._dt
-        self._velocity[:, : velocity.shape[1]] = velocity
+        self._unstable[:] = self.physics.step(action, self.frame_skip)
+        width = self._position_before.shape[1]
+        np.subtract(self._position(), self._position_before, out=self._velocity[:, :width])
+        self._velocity[:, :width] /= self._dt
 
     def _observe(self) -> np.ndarray:
-        qvel = self.physics.qvel()
-        if self.robot.qvel_clip is not None:
-            qvel = np.clip(qvel, -self.robot.qvel_clip, self.robot.qvel_clip)
-        parts = [self.physics.qpos()[:, self.robot.qpos_skip:], qvel]
-        parts += [self.physics.gather(name).reshape(self.num_envs, -1) for name in self.robot.extra_observations]
-        return np.concatenate(parts, axis=1)
+        # One reused buffer, filled from the physics state cache; SafeEnv copies it when emitting.
+        physics, robot, obs = self.physics, self.robot, self._observation
+        qpos = physics.qpos()[:, robot.qpos_skip:]
+        end = qpos.shape[1] + physics.model.nv
+        obs[:, : qpos.shape[1]] = qpos
+        if robot.qvel_clip is None:
+            obs[:, qpos.shape[1] : end] = physics.qvel()
+        else:
+            np.clip(physics.qvel(), -robot.qvel_clip, robot.qvel_clip, out=obs[:, qpos.shape[1] : end])
+        for name in robot.extra_observations:
+            values = physics.field(name).reshape(self.num_envs, -1)
+            obs[:, end : end + values.shape[1]] = values
+            end += values.shape[1]
+        return obs
+
+    def _diverged(self, observation: np.ndarray) -> np.ndarray:
+        # MuJoCo resets an unstable simulator by itself, so its observation is finite: ask the physics.
+        return super()._diverged(observation) | self._unstable
 
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
         # gymnasium v4 penalises the action as given (MuJoCo clamps it only inside the physics).
@@ -137,9 +159,9 @@ class VelocityEnv(SafeEnv):
 
     def _compute_cost(self) -> dict[str, np.ndarray]:
         if self._planar_cost:
-            self.last_velocity = np.hypot(self._velocity[:, 0], self._velocity[:, 1])
+            np.hypot(self._velocity[:, 0], self._velocity[:, 1], out=self.last_velocity)
         else:
-            self.last_velocity = self._velocity[:, 0].copy()
+            self.last_velocity[:] = self._velocity[:, 0]
         return {"velocity": (self.last_velocity > self.velocity_threshold).astype(np.float64)}
 
     def _compute_terminated(self) -> np.ndarray:

@@ -1,0 +1,38 @@
+"""Closed-form KL divergence between diagonal Gaussian policies.
+
+SafePO's first-order loop (PPO, PPO-Lag, CPPO-PID, FOCOPS, CUP) stops the epoch's passes early
+once :math:`\\mathrm{KL}(\\pi_{\\text{old}} \\,\\|\\, \\pi_\\theta)` on the whole batch exceeds
+``target_kl`` (0.02 in the Safety-Gymnasium paper); the second-order methods use the same
+divergence as their trust region. Policies are diagonal Gaussians, so the KL has a closed form.
+"""
+from __future__ import annotations
+
+from torch import Tensor
+
+__all__ = ["gaussian_kl"]
+
+
+def gaussian_kl(loc_old: Tensor, scale_old: Tensor, loc_new: Tensor, scale_new: Tensor) -> Tensor:
+    """:math:`\\mathrm{KL}(\\mathcal N(\\mu_o, \\sigma_o) \\,\\|\\, \\mathcal N(\\mu_n, \\sigma_n))` summed over the action dim.
+
+    Per action dimension,
+
+    .. math::
+
+        \\log\\frac{\\sigma_n}{\\sigma_o} + \\frac{\\sigma_o^2 + (\\mu_o - \\mu_n)^2}{2\\sigma_n^2} - \\frac12 ,
+
+    summed over the last (action) dimension, which is the KL of the two independent
+    (diagonal) Gaussians. Average the result over samples for SafePO's early-stop statistic.
+
+    Args:
+        loc_old (Tensor): mean of the old policy, shape ``[*B, A]``.
+        scale_old (Tensor): standard deviation of the old policy (> 0), broadcastable to ``loc_old``.
+        loc_new (Tensor): mean of the new policy.
+        scale_new (Tensor): standard deviation of the new policy (> 0).
+
+    Returns:
+        The per-sample KL, shape ``[*B]``; differentiable in all arguments.
+    """
+    var_ratio = (scale_old / scale_new).pow(2)
+    mean_term = ((loc_old - loc_new) / scale_new).pow(2)
+    return 0.5 * (var_ratio + mean_term - 1.0 - var_ratio.log()).sum(-1)

@@ -1,0 +1,469 @@
+"""PPO-Lagrangian (and CPPO-PID) as a thin :class:`~torchrl.objectives.ClipPPOLoss` subclass.
+
+PPO-Lag (Ray et al. 2019, "Benchmarking Safe Exploration in Deep Reinforcement Learning"; the
+SafePO implementation benchmarked in Ji et al. 2023, "Safety-Gymnasium: A Unified Safe
+Reinforcement Learning Benchmark") optimises the PPO clipped surrogate on the Lagrangian
+advantage
+
+.. math::
+
+    A = \\frac{A_r - \\lambda A_c}{1 + \\lambda},
+
+trains a reward critic and a cost critic, and adapts :math:`\\lambda \\ge 0` once per epoch from the
+mean episode cost. In sg_torchrl the three concerns are separate objects:
+
+* :class:`PPOLagLoss` (this module) computes the surrogate and both critic losses; it reads the
+  multiplier's current :attr:`~sg_torchrl.objectives.Multiplier.value` and never updates it;
+* :class:`~sg_torchrl.objectives.LagrangeMultiplier` /
+  :class:`~sg_torchrl.objectives.PIDLagrangeMultiplier` hold :math:`\\lambda` and its update rule
+  (the trainer calls ``multiplier.update(mean_episode_cost)`` once per epoch);
+* :func:`~sg_torchrl.objectives.make_gae`, :func:`~sg_torchrl.objectives.make_cost_gae` and
+  :func:`~sg_torchrl.objectives.normalize_advantages` produce the advantages on the whole batch.
+
+**CPPO-PID** (Stooke et al. 2020, "Responsive Safety in Reinforcement Learning by PID Lagrangian
+Methods") is the same loss with the PID multiplier, not a separate class::
+
+    loss = PPOLagLoss(actor, critic, cost_critic, multiplier=PIDLagrangeMultiplier(cost_limit=25.0))
+
+Everything that differs between the two algorithms lives in the multiplier, including how the
+advantages are combined (``multiplier.sum_norm`` / ``multiplier.diff_norm``).
+"""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.utils import NestedKey
+from torch import nn, Tensor
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.utils import distance_loss
+from torchrl.objectives.value import GAE
+
+from sg_torchrl.objectives.multipliers import Multiplier
+from sg_torchrl.objectives.value import make_cost_gae
+
+__all__ = ["PPOLagLoss"]
+
+
+def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
+    if isinstance(keys, list):
+        return list(keys)
+    return [keys]
+
+
+class PPOLagLoss(ClipPPOLoss):
+    """PPO-Lagrangian loss: clipped PPO on the Lagrangian advantage, plus reward and cost critics.
+
+    With :math:`r_t(\\theta) = \\pi_\\theta(a_t|s_t) / \\pi_{\\text{old}}(a_t|s_t)` and
+    :math:`\\lambda` = ``multiplier.value``, the objective is
+
+    .. math::
+
+        L^{\\text{obj}} = -\\mathbb E\\left[\\min\\big(r_t A_t,\\ \\mathrm{clip}(r_t, 1-\\epsilon, 1+\\epsilon) A_t\\big)\\right],
+        \\qquad A_t = \\frac{A^r_t - \\lambda A^c_t}{1 + \\lambda}
+
+    (``multiplier.sum_norm``; :math:`A^r - \\lambda A^c` without it, and
+    :math:`(1 - \\lambda) A^r - \\lambda A^c` with ``multiplier.diff_norm``). The combination is the
+    single hook :meth:`_combined_advantage`, which other Lagrangian losses (FOCOPS, CUP, ...)
+    override; the clipped surrogate, ratio diagnostics and reward-critic loss are
+    :class:`~torchrl.objectives.ClipPPOLoss`'s own, fed the combined advantage.
+
+    Critic losses follow SafePO: mean squared error to the GAE targets plus an L2 penalty
+    ``critic_l2_coeff * sum(p ** 2)`` over *all* parameters (weights and biases) of the network
+    ("critic norm", coefficient 0.001):
+
+    .. math::
+
+        L^{\\text{critic}} = c_v\\,\\mathrm{MSE}(V, V^{\\text{targ}}) + \\beta \\sum_p \\|p\\|^2,\\qquad
+        L^{\\text{cost\\_critic}} = c_c\\,\\mathrm{MSE}(V^c, V^{c,\\text{targ}}) + \\beta \\sum_{p^c} \\|p^c\\|^2 .
+
+    Defaults match SafePO / the Safety-Gymnasium paper: clip 0.2, no entropy bonus, MSE critic
+    losses, no advantage normalisation inside the loss (SafePO normalises once per batch: use
+    :func:`~sg_torchrl.objectives.normalize_advantages` before the minibatch loop).
+
+    The loss does **not** run value estimators: both advantages and both value targets must be in
+    the input (compute them on the whole batch with :func:`~sg_torchrl.objectives.make_gae` /
+    :func:`~sg_torchrl.objectives.make_cost_gae`, or :meth:`make_cost_value_estimator`).
+
+    Args:
+        actor_network (ProbabilisticTensorDictSequential): the policy; must write the action
+            log-probability when sampling (``return_log_prob=True``). With torchrl 0.14 the
+            log-prob key is ``"action_log_prob"``; the loss picks up the actor's own key.
+        critic_network (TensorDictModule): reward critic writing ``"state_value"``.
+        cost_critic_network (TensorDictModule): cost critic writing ``"cost_value"``. Registered
+            functionally like the reward critic, so its parameters are in ``loss.parameters()``.
+        multiplier (Multiplier): the Lagrange multiplier whose :attr:`~Multiplier.value` is used.
+            Registered as a sub-module (its buffers are in ``loss.state_dict()``; it has no
+            parameters, so optimisers over ``loss.parameters()`` never touch it).
+
+    Keyword Args:
+        clip_epsilon (float): PPO ratio clip. Defaults to ``0.2``.
+        entropy_bonus (bool, optional): add ``loss_entropy``. ``None`` (default) means "only if
+            ``entropy_coeff`` is non-zero"; SafePO uses no entropy bonus.
+        entropy_coeff (float or mapping): entropy weight. Defaults to ``0.0``.
+        critic_l2_coeff (float, optional): weight :math:`\\beta` of the squared-parameter penalty
+            added to both critic losses. Defaults to ``0.001`` (SafePO). ``None`` disables it.
+        cost_critic_coeff (float, optional): weight :math:`c_c` of the cost-critic MSE. ``None``
+            (default) uses the reward critic's ``critic_coeff`` (1.0 by default).
+        loss_critic_type (str): ``"l2"`` (default, SafePO's MSE), ``"l1"`` or ``"smooth_l1"``;
+            used for both critics.
+        **kwargs: forwarded to :class:`~torchrl.objectives.ClipPPOLoss` (``critic_coeff``,
+            ``normalize_advantage``, ``clip_value``, ``separate_losses``, ``reduction``, ...).
+            ``clip_value`` also clips the cost critic (against the stored ``"cost_value"``).
+
+    Input keys (all configurable with :meth:`set_keys`, see :class:`_AcceptedKeys`):
+        the actor's and both critics' ``in_keys`` (e.g. ``"observation"``), ``"action"``,
+        ``"action_log_prob"``, ``"advantage"``, ``"value_target"``, ``"cost_advantage"``,
+        ``"cost_value_target"``; ``"state_value"`` / ``"cost_value"`` only with ``clip_value``.
+
+    Output keys:
+        ``loss_objective``, ``loss_critic``, ``loss_cost_critic`` (and ``loss_entropy`` with an
+        entropy bonus) are the terms to sum. Detached diagnostics: ``lagrange_multiplier``,
+        ``clip_fraction``, ``kl_approx``, ``ESS``, ``max_ratio``, ``mean_ratio``,
+        ``explained_variance`` and ``cost_explained_variance`` (with ``log_explained_variance``),
+        ``entropy`` (with an entropy bonus), ``value_clip_fraction`` and
+        ``cost_value_clip_fraction`` (with ``clip_value``).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+        >>> from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, ValueOperator
+        >>> from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss
+        >>> actor = ProbabilisticActor(
+        ...     TensorDictModule(
+        ...         torch.nn.Sequential(MLP(in_features=5, out_features=2, num_cells=[8]),
+        ...                             AddStateIndependentNormalScale(2)),
+        ...         in_keys=["observation"], out_keys=["loc", "scale"]),
+        ...     in_keys=["loc", "scale"], distribution_class=IndependentNormal, return_log_prob=True)
+        >>> critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+        ...                        in_keys=["observation"])
+        >>> cost_critic = ValueOperator(MLP(in_features=5, out_features=1, num_cells=[8]),
+        ...                             in_keys=["observation"], out_keys=["cost_value"])
+        >>> loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier(cost_limit=25.0))
+        >>> data = actor(TensorDict(observation=torch.randn(16, 5), batch_size=[16])).detach()
+        >>> _ = data.update({k: torch.randn(16, 1) for k in
+        ...     ("advantage", "value_target", "cost_advantage", "cost_value_target")})
+        >>> out = loss(data)
+        >>> total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        >>> total.backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys(ClipPPOLoss._AcceptedKeys):
+        """Configurable tensordict keys: :class:`~torchrl.objectives.PPOLoss`'s plus the cost ones.
+
+        Attributes:
+            cost (NestedKey): the per-step cost signal, under ``"next"``. Not read by the loss
+                itself; used by :meth:`PPOLagLoss.make_cost_value_estimator`. Defaults to
+                ``"cost"``.
+            cost_value (NestedKey): output key of the cost critic (and the stored rollout cost
+                value used for value clipping). Defaults to ``"cost_value"``.
+            cost_advantage (NestedKey): the cost advantage :math:`A^c` (input). Defaults to
+                ``"cost_advantage"``.
+            cost_value_target (NestedKey): the cost critic's regression target (input). Defaults
+                to ``"cost_value_target"``.
+        """
+
+        cost: NestedKey = "cost"
+        cost_value: NestedKey = "cost_value"
+        cost_advantage: NestedKey = "cost_advantage"
+        cost_value_target: NestedKey = "cost_value_target"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    _schedulable_buffers = frozenset({"critic_l2_coeff", "cost_critic_coeff"})
+
+    cost_critic_network: TensorDictModule
+    cost_critic_network_params: TensorDictParams
+    target_cost_critic_network_params: TensorDictParams
+    multiplier: Multiplier
+    critic_l2_coeff: Tensor | None
+    cost_critic_coeff: Tensor
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        critic_network: TensorDictModule,
+        cost_critic_network: TensorDictModule,
+        multiplier: Multiplier,
+        *,
+        clip_epsilon: float = 0.2,
+        entropy_bonus: bool | None = None,
+        entropy_coeff: float | Mapping[NestedKey, float] = 0.0,
+        critic_l2_coeff: float | None = 0.001,
+        cost_critic_coeff: float | None = None,
+        loss_critic_type: str = "l2",
+        **kwargs: Any,
+    ) -> None:
+        if not isinstance(multiplier, Multiplier):
+            raise TypeError(
+                f"multiplier must be a sg_torchrl Multiplier (LagrangeMultiplier, "
+                f"PIDLagrangeMultiplier, ...), got {type(multiplier).__name__}."
+            )
+        if cost_critic_network is None:
+            raise TypeError("PPOLagLoss needs a cost_critic_network.")
+        if critic_network is None:
+            raise TypeError("PPOLagLoss needs a critic_network.")
+        if entropy_bonus is None:
+            if isinstance(entropy_coeff, Mapping):
+                entropy_bonus = any(float(c) != 0.0 for c in entropy_coeff.values())
+            else:
+                entropy_bonus = float(entropy_coeff) != 0.0
+        super().__init__(
+            actor_network,
+            critic_network,
+            clip_epsilon=clip_epsilon,
+            entropy_bonus=entropy_bonus,
+            entropy_coeff=entropy_coeff,
+            loss_critic_type=loss_critic_type,
+            **kwargs,
+        )
+        device = next(iter(self.buffers()), torch.empty(())).device
+        if self.functional:
+            # Same treatment as the reward critic in PPOLoss: with separate_losses, parameters
+            # shared with the actor are kept out of the critic's gradient path.
+            policy_params = list(actor_network.parameters()) if self.separate_losses else None
+            self.convert_to_functional(
+                cost_critic_network, "cost_critic_network", compare_against=policy_params
+            )
+        else:
+            self.cost_critic_network = cost_critic_network
+            self.cost_critic_network_params = None
+            self.target_cost_critic_network_params = None
+        self.multiplier = multiplier
+        self.register_coeff_buffer("critic_l2_coeff", critic_l2_coeff, device=device)
+        if cost_critic_coeff is None:
+            cost_critic_coeff = float(self.critic_coeff) if self.critic_coeff is not None else 1.0
+        self.register_coeff_buffer("cost_critic_coeff", cost_critic_coeff, device=device)
+        # in_keys / out_keys were cached by the parent before the cost critic existed.
+        self._in_keys = None
+        self._out_keys = None
+
+    # ------------------------------------------------------------------ keys
+    def _set_in_keys(self) -> None:
+        # The parent lists the value-estimation inputs ("next" reward, done, observation); this
+        # loss never runs an estimator, so its inputs are the networks' inputs and the entries
+        # below. Called by the parent constructor before the cost critic is registered.
+        keys: list[NestedKey] = []
+        for name in ("actor_network", "critic_network", "cost_critic_network"):
+            module = getattr(self, name, None)
+            if module is not None:
+                keys.extend(module.in_keys)
+        names = ["action", "sample_log_prob", "advantage", "value_target"]
+        names += ["cost_advantage", "cost_value_target"]
+        if getattr(self, "clip_value", None) is not None:
+            names += ["value", "cost_value"]
+        for name in names:
+            keys.extend(_as_key_list(getattr(self.tensor_keys, name)))
+        self._in_keys = list(dict.fromkeys(keys))
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        if self._out_keys is None:
+            keys = list(ClipPPOLoss.out_keys.fget(self))
+            keys.extend(["loss_cost_critic", "lagrange_multiplier"])
+            if self.clip_value is not None:
+                keys.append("cost_value_clip_fraction")
+            self._out_keys = keys
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values: list[NestedKey]) -> None:
+        self._out_keys = values
+
+    # ------------------------------------------------------------------ hook
+    def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
+        """The advantage fed to the clipped surrogate: the Lagrangian mix of :math:`A^r` and :math:`A^c`.
+
+        This is the one hook Lagrangian variants override. The default is SafePO's
+        :math:`(A^r - \\lambda A^c) / (1 + \\lambda)` when ``multiplier.sum_norm`` (PPO-Lag,
+        CPPO-PID), :math:`(1 - \\lambda) A^r - \\lambda A^c` when ``multiplier.diff_norm`` (Stooke
+        et al. 2020) and :math:`A^r - \\lambda A^c` otherwise, with :math:`\\lambda` =
+        ``multiplier.value`` (no gradient flows into the multiplier).
+
+        Args:
+            tensordict (TensorDictBase): the input batch, holding ``tensor_keys.advantage`` and
+                ``tensor_keys.cost_advantage`` (same shape, typically ``[*B, 1]``).
+
+        Returns:
+            The combined advantage, same shape and dtype as the reward advantage.
+
+        Raises:
+            KeyError: if an advantage is missing.
+            ValueError: if the two advantages have different shapes.
+        """
+        adv = self._get_required(tensordict, self.tensor_keys.advantage, "make_gae(critic)")
+        cost_adv = self._get_required(
+            tensordict, self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)"
+        )
+        if adv.shape != cost_adv.shape:
+            raise ValueError(
+                f"The reward advantage {self.tensor_keys.advantage!r} has shape "
+                f"{tuple(adv.shape)} but the cost advantage {self.tensor_keys.cost_advantage!r} "
+                f"has shape {tuple(cost_adv.shape)}; they must match (no silent broadcasting)."
+            )
+        lam = self.multiplier.value.to(device=adv.device, dtype=adv.dtype)
+        if self.multiplier.diff_norm:
+            return (1 - lam) * adv - lam * cost_adv
+        if self.multiplier.sum_norm:
+            return (adv - lam * cost_adv) / (1 + lam)
+        return adv - lam * cost_adv
+
+    @staticmethod
+    def _get_required(tensordict: TensorDictBase, key: NestedKey, producer: str) -> Tensor:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"PPOLagLoss did not find {key!r} in the input. It does not run value estimators: "
+                f"compute it on the whole batch first (e.g. with {producer} and "
+                f"normalize_advantages), or remap the key with loss.set_keys(...)."
+            )
+        return value
+
+    # --------------------------------------------------------------- critics
+    def _squared_param_norm(self, network_name: str) -> Tensor | None:
+        """Sum of squared parameters (weights and biases) of a critic; ``None`` if it has none."""
+        if self.functional:
+            params_td = getattr(self, network_name + "_params")
+            params = [p for p in params_td.values(True, True) if isinstance(p, nn.Parameter)]
+        else:
+            params = list(getattr(self, network_name).parameters())
+        if not params:
+            return None
+        return torch.stack([p.pow(2).sum() for p in params]).sum()
+
+    def loss_cost_critic(
+        self, tensordict: TensorDictBase
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """Cost-critic regression loss, before reduction and without the L2 penalty.
+
+        Mirrors :meth:`~torchrl.objectives.PPOLoss.loss_critic` for the cost critic: distance
+        (``loss_critic_type``) between the cost critic's prediction and
+        ``tensor_keys.cost_value_target``, optionally value-clipped around the stored
+        ``tensor_keys.cost_value``, times ``cost_critic_coeff``. The reward critic's
+        ``_critic_loss_inputs`` hook (e.g. PopArt value normalisation) is deliberately not applied:
+        its statistics belong to the reward.
+
+        Args:
+            tensordict (TensorDictBase): the input batch.
+
+        Returns:
+            ``(loss, clip_fraction, explained_variance)``; ``loss`` is per sample, the other two
+            are ``None`` when value clipping / explained-variance logging is off.
+        """
+        if self.separate_losses:
+            tensordict = tensordict.detach()
+        target = self._get_required(
+            tensordict, self.tensor_keys.cost_value_target, "make_cost_gae(cost_critic)"
+        )
+        old_value = None
+        if self.clip_value is not None:
+            old_value = self._get_required(
+                tensordict, self.tensor_keys.cost_value, "make_cost_gae(cost_critic)"
+            )
+        with (
+            self.cost_critic_network_params.to_module(
+                self.cost_critic_network, preserve_module_state=False
+            )
+            if self.functional
+            else contextlib.nullcontext()
+        ):
+            out = self.cost_critic_network(tensordict.copy())
+        value = out.get(self.tensor_keys.cost_value, None)
+        if value is None:
+            raise KeyError(
+                f"The cost critic did not write {self.tensor_keys.cost_value!r}; check its out_keys "
+                f"or call loss.set_keys(cost_value=...)."
+            )
+        loss = distance_loss(target, value, loss_function=self.loss_critic_type)
+        clip_fraction = None
+        if old_value is not None:
+            delta = value - old_value
+            clipped = delta.clamp(-self.clip_value, self.clip_value)
+            loss_clipped = distance_loss(
+                target, old_value + clipped, loss_function=self.loss_critic_type
+            )
+            loss = torch.maximum(loss, loss_clipped)
+            with torch.no_grad():
+                clip_fraction = (delta != clipped).to(value.dtype).mean()
+        explained_variance = None
+        if self.log_explained_variance:
+            with torch.no_grad():
+                tgt, pred = target.detach(), value.detach()
+                eps = torch.finfo(tgt.dtype).eps
+                resid = torch.var(tgt - pred, correction=0, dim=0)
+                explained_variance = 1.0 - resid / (torch.var(tgt, correction=0, dim=0) + eps)
+        return self.cost_critic_coeff * loss, clip_fraction, explained_variance
+
+    # --------------------------------------------------------------- forward
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
+        # Shallow copy: the combined advantage replaces the reward advantage for ClipPPOLoss
+        # without touching the caller's batch.
+        data = tensordict.copy()
+        data.set(self.tensor_keys.advantage, self._combined_advantage(tensordict))
+        td_out = super().forward(data)
+
+        if "loss_critic" in td_out.keys() and self.critic_l2_coeff is not None:
+            norm = self._squared_param_norm("critic_network")
+            if norm is not None:
+                td_out.set("loss_critic", td_out.get("loss_critic") + self.critic_l2_coeff * norm)
+
+        loss_cost, cost_clip_fraction, cost_ev = self.loss_cost_critic(data)
+        loss_cost = self._reduce_loss(loss_cost, data).squeeze(-1)
+        if self.critic_l2_coeff is not None:
+            norm = self._squared_param_norm("cost_critic_network")
+            if norm is not None:
+                loss_cost = loss_cost + self.critic_l2_coeff * norm
+        td_out.set("loss_cost_critic", loss_cost)
+        if cost_clip_fraction is not None:
+            td_out.set("cost_value_clip_fraction", cost_clip_fraction)
+        if cost_ev is not None:
+            td_out.set("cost_explained_variance", cost_ev)
+        ref = td_out.get("loss_objective")
+        td_out.set(
+            "lagrange_multiplier",
+            self.multiplier.value.to(device=ref.device, dtype=ref.dtype),
+        )
+        self._clear_weakrefs(
+            data, td_out, "cost_critic_network_params", "target_cost_critic_network_params"
+        )
+        return td_out
+
+    # ----------------------------------------------------------- estimators
+    def make_cost_value_estimator(
+        self, *, gamma: float = 0.99, lmbda: float = 0.95, **gae_kwargs: Any
+    ) -> GAE:
+        """A cost GAE over this loss's cost critic and keys (``tensor_keys.cost``, ``cost_value``, ...).
+
+        Convenience for :func:`~sg_torchrl.objectives.make_cost_gae` that follows any
+        :meth:`set_keys` remapping (cost, cost value, cost advantage / target, done, terminated).
+        The estimator is returned, not stored: run it on the whole batch before the minibatch
+        loop.
+
+        Keyword Args:
+            gamma (float): discount. Defaults to ``0.99``.
+            lmbda (float): GAE lambda. Defaults to ``0.95``.
+            **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE`.
+
+        Returns:
+            The configured :class:`~torchrl.objectives.value.GAE`.
+        """
+        gae = make_cost_gae(self.cost_critic_network, gamma=gamma, lmbda=lmbda, **gae_kwargs)
+        tk = self.tensor_keys
+        gae.set_keys(
+            reward=tk.cost,
+            value=tk.cost_value,
+            advantage=tk.cost_advantage,
+            value_target=tk.cost_value_target,
+            done=tk.done,
+            terminated=tk.terminated,
+        )
+        return gae

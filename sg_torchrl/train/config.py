@@ -1,0 +1,165 @@
+"""Typed configuration of one ``sg-train`` experiment, overridable from the command line.
+
+Defaults are the Safety-Gymnasium paper's first-order hyper-parameters (appendix table, also
+SafePO's CLI defaults): 20,000 steps per epoch from 10 simulators, gamma 0.99, GAE lambda 0.95 for
+reward and cost, Adam 3e-4 for the actor (linearly annealed) and both critics, 40 passes of
+minibatch 64 with KL early stop at 0.02, clip 0.2, gradient-norm clip 40, critic L2 1e-3,
+Lagrange init 0.001 / lr 0.035, PID gains 0.1 / 0.01 / 0.01, cost limit 25.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin, get_type_hints
+
+__all__ = ["TrainConfig", "PRESETS", "parse_args"]
+
+
+def _opt(default: Any, help: str, **kwargs: Any) -> Any:
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda: list(default), metadata={"help": help, **kwargs})
+    return field(default=default, metadata={"help": help, **kwargs})
+
+
+@dataclass
+class TrainConfig:
+    """One experiment. Every field is a command-line flag (``--total-steps 200000``)."""
+
+    algo: Literal["ppo_lag", "cppo_pid"] = _opt("ppo_lag", "safe RL algorithm")
+    env_id: str = _opt("SafetyHalfCheetahVelocity-v1", "Safety-Gymnasium env id (sg_torchrl.list_envs())")
+    seed: int = _opt(0, "seed of the simulators, the networks and the minibatch order")
+    total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
+    num_envs: int = _opt(10, "simulators stepped in one process")
+    steps_per_epoch: int = _opt(20_000, "env steps per epoch (one policy update); a multiple of num_envs")
+    cost_limit: float = _opt(25.0, "episode cost limit d of the constrained MDP")
+    gamma: float = _opt(0.99, "discount of reward and cost")
+    gae_lambda: float = _opt(0.95, "GAE lambda of the reward advantage")
+    cost_gae_lambda: float = _opt(0.95, "GAE lambda of the cost advantage")
+    hidden_sizes: list[int] = _opt((64, 64), "hidden layer sizes of actor and critics (tanh MLPs)")
+    actor_lr: float = _opt(3e-4, "actor Adam learning rate, linearly annealed to 0")
+    critic_lr: float = _opt(3e-4, "reward and cost critic Adam learning rate")
+    update_iters: int = _opt(40, "passes over the epoch's data")
+    minibatch_size: int = _opt(64, "samples per gradient step")
+    clip_ratio: float = _opt(0.2, "PPO ratio clip epsilon")
+    target_kl: float = _opt(0.02, "stop the passes once KL(old || new) exceeds this")
+    max_grad_norm: float = _opt(40.0, "global gradient-norm clip over actor and critics")
+    critic_l2: float = _opt(1e-3, "L2 penalty on critic weights")
+    lagrangian_init: float = _opt(1e-3, "initial Lagrange multiplier (PID: initial integral)")
+    lagrangian_lr: float = _opt(0.035, "Lagrange multiplier Adam learning rate")
+    pid_kp: float = _opt(0.1, "CPPO-PID proportional gain")
+    pid_ki: float = _opt(0.01, "CPPO-PID integral gain")
+    pid_kd: float = _opt(0.01, "CPPO-PID derivative gain")
+    pid_d_delay: int = _opt(10, "CPPO-PID derivative delay (epochs)")
+    normalize_obs: bool = _opt(True, "running mean/std observation normalisation (SafePO default)")
+    eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
+    output_dir: str = _opt("runs", "root folder of run directories")
+    run_name: str | None = _opt(None, "run directory name (default: <env>/<algo>/seed-<seed>)")
+    wandb: Literal["offline", "online", "disabled"] = _opt("offline", "wandb mode; offline needs no account")
+    checkpoint_every: int = _opt(10, "epochs between checkpoints (the last epoch is always saved)")
+    resume: str | None = _opt(None, "checkpoint file or run directory to continue")
+    progress: bool = _opt(True, "show a progress bar")
+    threads: int = _opt(1, "torch threads (1 is fastest for small MLPs on few cores)")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay")
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"config: {name} must be >= 1, got {getattr(self, name)}")
+        for name in ("actor_lr", "critic_lr", "lagrangian_lr", "target_kl", "max_grad_norm", "clip_ratio"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"config: {name} must be > 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda", "cost_gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"config: {name} must be in [0, 1], got {getattr(self, name)}")
+        if self.cost_limit < 0:
+            raise ValueError(f"config: cost_limit must be >= 0, got {self.cost_limit}")
+        if self.steps_per_epoch % self.num_envs:
+            raise ValueError(
+                f"config: steps_per_epoch ({self.steps_per_epoch}) must be a multiple of num_envs ({self.num_envs})"
+            )
+        if self.total_steps < self.steps_per_epoch:
+            raise ValueError(
+                f"config: total_steps ({self.total_steps}) is less than one epoch ({self.steps_per_epoch})"
+            )
+        if self.algo not in get_args(get_type_hints(TrainConfig)["algo"]):
+            raise ValueError(f"config: unknown algo {self.algo!r}")
+        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+            raise ValueError(f"config: hidden_sizes must be positive, got {self.hidden_sizes}")
+
+    @property
+    def epochs(self) -> int:
+        return self.total_steps // self.steps_per_epoch
+
+    @property
+    def run_dir(self) -> Path:
+        name = self.run_name or f"{self.env_id}/{self.algo}/seed-{self.seed:03d}"
+        return Path(self.output_dir) / name
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def save(self, path: Path) -> None:
+        path.write_text(json.dumps(self.to_dict(), indent=2))
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # `make run`: PPO-Lag on SafetyHalfCheetahVelocity-v1, about ten minutes on 2 cores.
+    "make-run": dict(
+        algo="ppo_lag", env_id="SafetyHalfCheetahVelocity-v1", total_steps=300_000, num_envs=10,
+        steps_per_epoch=20_000, eval_episodes=5, run_name="make-run",
+    ),
+    # A seconds-long smoke run for tests and for trying the pipeline.
+    "smoke": dict(
+        total_steps=4_000, num_envs=4, steps_per_epoch=2_000, update_iters=2, eval_episodes=1,
+        wandb="disabled", progress=False,
+    ),
+}
+
+
+def _flag_type(hint: Any):
+    origin = get_origin(hint)
+    if hint is bool:
+        return lambda text: {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}[
+            text.lower()
+        ]
+    if origin is Literal:
+        return str
+    if origin is list:
+        return int
+    args = [a for a in get_args(hint) if a is not type(None)]
+    return args[0] if args else hint
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sg-train",
+        description="Train a safe RL agent on a Safety-Gymnasium task (sg_torchrl).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--preset", choices=sorted(PRESETS), help="start from a named preset, then apply flags")
+    hints = get_type_hints(TrainConfig)
+    for f in dataclasses.fields(TrainConfig):
+        hint = hints[f.name]
+        kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": f.metadata.get("help", ""), "default": None}
+        if get_origin(hint) is Literal:
+            kwargs["choices"] = list(get_args(hint))
+        if get_origin(hint) is list:
+            kwargs["nargs"] = "+"
+        parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> TrainConfig:
+    """Build a :class:`TrainConfig` from a preset and command-line overrides."""
+    namespace = build_parser().parse_args(argv)
+    values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
+    values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
+    return TrainConfig(**values)

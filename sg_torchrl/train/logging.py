@@ -1,0 +1,96 @@
+"""Per-epoch metric logging to CSV, wandb and TensorBoard through TorchRL's loggers.
+
+Metric names follow SafePO's (``Metrics/EpRet``, ``Metrics/EpCost``, ``Train/LagrangeMultiplier``,
+``Loss/Loss_actor``, ``Time/FPS`` ...) so curves compare side by side with the reference runs.
+Besides TorchRL's loggers, every epoch is appended as one row to ``progress.csv`` (SafePO's file)
+which the plot and the benchmark tables read.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import os
+from pathlib import Path
+from typing import Any
+
+from torchrl.record.loggers import CSVLogger, Logger
+
+__all__ = ["RunLogger"]
+
+
+class RunLogger:
+    """Fan one dict of scalars per epoch out to every configured backend.
+
+    Args:
+        run_dir: the run directory (created if missing).
+        exp_name: experiment name for the loggers.
+        wandb_mode: ``"offline"`` (default: no account, no network), ``"online"`` or ``"disabled"``.
+        config: stored with the wandb run.
+        resume: append to an existing ``progress.csv`` instead of starting a new one.
+    """
+
+    def __init__(
+        self,
+        run_dir: Path,
+        exp_name: str,
+        *,
+        wandb_mode: str = "offline",
+        config: dict[str, Any] | None = None,
+        resume: bool = False,
+    ) -> None:
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.progress_path = self.run_dir / "progress.csv"
+        self.backends: list[Logger] = [CSVLogger(exp_name=exp_name, log_dir=str(self.run_dir / "csv"))]
+        if importlib.util.find_spec("tensorboard") is not None:
+            from torchrl.record.loggers import TensorboardLogger
+
+            self.backends.append(TensorboardLogger(exp_name=exp_name, log_dir=str(self.run_dir / "tb")))
+        if wandb_mode != "disabled":
+            self.backends.append(self._wandb(exp_name, wandb_mode, config))
+        self._columns: list[str] | None = None
+        if resume and self.progress_path.exists():
+            with self.progress_path.open() as handle:
+                self._columns = next(csv.reader(handle), None)
+        elif self.progress_path.exists():
+            self.progress_path.unlink()
+
+    def _wandb(self, exp_name: str, mode: str, config: dict[str, Any] | None) -> Logger:
+        from torchrl.record.loggers import WandbLogger
+
+        # torchrl's offline=True sets WANDB_MODE=dryrun, which wandb 0.31 rejects; pass mode instead.
+        os.environ.pop("WANDB_MODE", None)
+        os.environ.setdefault("WANDB_SILENT", "true")
+        return WandbLogger(
+            exp_name=exp_name, offline=False, save_dir=str(self.run_dir), project="sg_torchrl", mode=mode,
+            config=config,
+        )
+
+    def log(self, metrics: dict[str, float], step: int) -> None:
+        for backend in self.backends:
+            for name, value in metrics.items():
+                backend.log_scalar(name, float(value), step=step)
+        self._append_progress(metrics)
+
+    def _append_progress(self, metrics: dict[str, float]) -> None:
+        if self._columns is None:
+            self._columns = list(metrics)
+            with self.progress_path.open("w", newline="") as handle:
+                csv.writer(handle).writerow(self._columns)
+        with self.progress_path.open("a", newline="") as handle:
+            csv.writer(handle).writerow([metrics.get(name, "") for name in self._columns])
+
+    def history(self) -> list[dict[str, float]]:
+        """All rows of ``progress.csv`` so far (numbers parsed)."""
+        if not self.progress_path.exists():
+            return []
+        with self.progress_path.open() as handle:
+            return [{k: float(v) if v != "" else float("nan") for k, v in row.items()} for row in csv.DictReader(handle)]
+
+    def close(self) -> None:
+        for backend in self.backends:
+            experiment = getattr(backend, "experiment", None)
+            finish = getattr(experiment, "finish", None)
+            if callable(finish):
+                finish()

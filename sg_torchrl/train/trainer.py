@@ -1,0 +1,286 @@
+"""The on-policy safe training loop behind ``sg-train``.
+
+One epoch (SafePO's first-order loop, Safety-Gymnasium paper appendix):
+
+1. collect ``steps_per_epoch`` transitions from ``num_envs`` batched simulators;
+2. update the multiplier from the mean cost of the episodes finished in the epoch (before the
+   policy update, as SafePO does; SafePO feeds a doubly smoothed 50-episode window mean instead,
+   a quirk we do not reproduce);
+3. reward and cost GAE, batch-level advantage normalisation;
+4. up to ``update_iters`` shuffled passes of minibatch gradient steps on actor + both critics,
+   stopping once KL(old || new) over the batch exceeds ``target_kl``;
+5. log SafePO's metrics, checkpoint.
+
+Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
+observation normaliser, simulator states and generators, the collector's carry, episode
+statistics, torch RNG states), so ``--resume`` continues bit-identically.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase, TransformedEnv
+from tqdm.auto import tqdm
+
+import sg_torchrl
+from sg_torchrl.collectors import EpisodeStats, RolloutCollector
+from sg_torchrl.envs.normalization import RunningObservationNorm
+from sg_torchrl.objectives import gaussian_kl, make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.train.algorithms import ALGORITHMS
+from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.evaluate import evaluate_policy
+from sg_torchrl.train.logging import RunLogger
+from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.train.plot import plot_curves
+
+__all__ = ["Trainer", "CHECKPOINT_NAME"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+_LOSS_TERMS = ("loss_objective", "loss_critic", "loss_cost_critic")
+
+
+class Trainer:
+    """Build everything a run needs from a :class:`TrainConfig` and run its epochs.
+
+    Args:
+        cfg: the experiment.
+        checkpoint: a checkpoint dict (from :meth:`load_checkpoint`) to continue from.
+    """
+
+    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
+        self.cfg = cfg
+        torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.algorithm = ALGORITHMS[cfg.algo]
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed)
+        obs_dim = self.base_env.observation_dim
+        self.obs_norm = RunningObservationNorm((obs_dim,)) if cfg.normalize_obs else None
+        self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
+
+        self.actor, self.critic, self.cost_critic = make_actor_critics(
+            obs_dim, self.base_env.action_spec, cfg.hidden_sizes
+        )
+        self.multiplier = self.algorithm.make_multiplier(cfg)
+        self.loss = self.algorithm.make_loss(self.actor, self.critic, self.cost_critic, self.multiplier, cfg)
+        self.reward_gae = make_gae(self.critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
+        self.cost_gae = make_cost_gae(self.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
+
+        critic_params = [*self.critic.parameters(), *self.cost_critic.parameters()]
+        self.parameters = [*self.actor.parameters(), *critic_params]
+        # One fused Adam with two parameter groups: SafePO's three Adam optimisers with the same
+        # arithmetic, but one kernel call per step instead of a Python loop over parameters.
+        self.optimizer = torch.optim.Adam(
+            [{"params": list(self.actor.parameters()), "lr": cfg.actor_lr}, {"params": critic_params, "lr": cfg.critic_lr}],
+            fused=True,
+        )
+        epochs = cfg.epochs
+        # SafePO anneals the actor learning rate linearly to zero over the run; critics stay constant.
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, [lambda epoch: max(0.0, 1.0 - epoch / epochs), lambda epoch: 1.0]
+        )
+        self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
+        self.stats = EpisodeStats()
+        self.minibatch_rng = torch.Generator().manual_seed(cfg.seed)
+        self.epoch = 0
+        self.total_steps = 0
+        self.train_seconds = 0.0
+        self._last_mean_cost = 0.0
+        if checkpoint is not None:
+            self._restore(checkpoint)
+        self.logger = RunLogger(
+            cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
+            config=cfg.to_dict(), resume=checkpoint is not None,
+        )
+
+    # ------------------------------------------------------------------ epochs
+    def run(self, max_epochs: int | None = None) -> dict[str, float]:
+        """Train until the budget is spent (or ``max_epochs`` more epochs), then checkpoint.
+
+        Returns the last epoch's metrics, plus the evaluation summary when the run finished.
+        """
+        cfg = self.cfg
+        cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        cfg.save(cfg.run_dir / "config.json")
+        last_epoch = cfg.epochs if max_epochs is None else min(cfg.epochs, self.epoch + max_epochs)
+        metrics: dict[str, float] = {}
+        bar = tqdm(total=cfg.epochs * cfg.steps_per_epoch, initial=self.total_steps, unit="step",
+                   disable=not cfg.progress, desc=f"{self.algorithm.title} {cfg.env_id}", dynamic_ncols=True)
+        try:
+            while self.epoch < last_epoch:
+                metrics = self.train_epoch()
+                bar.update(cfg.steps_per_epoch)
+                bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}", EpCost=f"{metrics['Metrics/EpCost']:.1f}",
+                                lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
+                if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
+                    self.save_checkpoint()
+        finally:
+            bar.close()
+        if self.epoch >= cfg.epochs:
+            metrics.update(self.finish())
+        return metrics
+
+    def train_epoch(self) -> dict[str, float]:
+        start = time.perf_counter()
+        batch = self.collector.collect()
+        rollout_time = time.perf_counter() - start
+        self.stats.update(batch)
+        finished = self.stats.pop_finished()
+        if finished["cost"].numel():
+            self._last_mean_cost = finished["cost"].mean().item()
+        lagrange = self.multiplier.update(self._last_mean_cost).item()
+
+        update_start = time.perf_counter()
+        update_info = self.update(batch)
+        update_time = time.perf_counter() - update_start
+        self.scheduler.step()
+        self.epoch += 1
+        self.total_steps += batch.numel()
+        epoch_time = time.perf_counter() - start
+        self.train_seconds += epoch_time
+
+        window = self.stats.window(50)
+        metrics = {
+            "Metrics/EpRet": window.get("return", float("nan")),
+            "Metrics/EpCost": window.get("cost", float("nan")),
+            "Metrics/EpLen": window.get("length", float("nan")),
+            "Metrics/EpochEpCost": self._last_mean_cost,
+            "Train/Epoch": self.epoch,
+            "Train/TotalSteps": self.total_steps,
+            "Train/LagrangeMultiplier": lagrange,
+            "Train/LR": self.optimizer.param_groups[0]["lr"],
+            **update_info,
+            "Time/Rollout": rollout_time,
+            "Time/Update": update_time,
+            "Time/Total": self.train_seconds,
+            "Time/FPS": batch.numel() / epoch_time,
+        }
+        self.logger.log(metrics, step=self.total_steps)
+        return metrics
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """Advantages, then minibatch passes with SafePO's KL early stop."""
+        cfg = self.cfg
+        with torch.no_grad():
+            self.reward_gae(batch)
+            self.cost_gae(batch)
+        data = batch.reshape(-1)
+        raw_reward_adv = data["advantage"].mean().item()
+        raw_cost_adv = data["cost_advantage"].mean().item()
+        normalize_advantages(data)
+        old_loc, old_scale = data["loc"].clone(), data["scale"].clone()
+        size = data.numel()
+        sums = dict.fromkeys(_LOSS_TERMS, 0.0)
+        steps = 0
+        kl = 0.0
+        for iteration in range(cfg.update_iters):
+            shuffled = data[torch.randperm(size, generator=self.minibatch_rng)]
+            for start in range(0, size, cfg.minibatch_size):
+                out = self.loss(shuffled[start : start + cfg.minibatch_size])
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_cost_critic"]
+                self.optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(self.parameters, cfg.max_grad_norm, foreach=True)
+                self.optimizer.step()
+                for name in _LOSS_TERMS:
+                    sums[name] += out[name].item()
+                steps += 1
+            kl = self._policy_kl(data, old_loc, old_scale)
+            if kl > cfg.target_kl:
+                break
+        return {
+            "Train/KL": kl,
+            "Train/StopIter": iteration + 1,
+            "Loss/Loss_actor": sums["loss_objective"] / steps,
+            "Loss/Loss_reward_critic": sums["loss_critic"] / steps,
+            "Loss/Loss_cost_critic": sums["loss_cost_critic"] / steps,
+            "Value/RewardAdv": raw_reward_adv,
+            "Value/CostAdv": raw_cost_adv,
+        }
+
+    @torch.no_grad()
+    def _policy_kl(self, data: TensorDictBase, old_loc: torch.Tensor, old_scale: torch.Tensor) -> float:
+        current = self.actor.get_dist_params(data.select("observation"))
+        loc, scale = current if isinstance(current, tuple) else (current["loc"], current["scale"])
+        return gaussian_kl(old_loc, old_scale, loc, scale).mean().item()
+
+    def finish(self) -> dict[str, float]:
+        """Final evaluation, learning-curve PNG and summary."""
+        cfg = self.cfg
+        last10 = self.stats.window(10)
+        summary: dict[str, float] = {
+            "Final/EpRetLast10": last10.get("return", float("nan")),
+            "Final/EpCostLast10": last10.get("cost", float("nan")),
+        }
+        if cfg.eval_episodes > 0:
+            evaluation = evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
+                                         obs_norm=self.obs_norm)
+            self.logger.log({**evaluation, "Train/TotalSteps": self.total_steps}, step=self.total_steps)
+            summary.update(evaluation)
+        (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": self.total_steps,
+                                                              "Time/Total": self.train_seconds}, indent=2))
+        history = [row for row in self.logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
+        plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
+                    title=f"{self.algorithm.title} on {cfg.env_id} (seed {cfg.seed})")
+        self.logger.close()
+        return summary
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.cfg.run_dir / CHECKPOINT_NAME
+
+    def save_checkpoint(self, path: Path | None = None) -> Path:
+        path = path or self.checkpoint_path
+        state = {
+            "config": self.cfg.to_dict(),
+            "epoch": self.epoch,
+            "total_steps": self.total_steps,
+            "train_seconds": self.train_seconds,
+            "last_mean_cost": self._last_mean_cost,
+            "loss": self.loss.state_dict(),
+            "multiplier": self.multiplier.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "obs_norm": None if self.obs_norm is None else self.obs_norm.state_dict(),
+            "collector": self.collector.state_dict(),
+            "stats": self.stats.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "minibatch_rng": self.minibatch_rng.get_state(),
+        }
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
+        return path
+
+    @staticmethod
+    def load_checkpoint(path: str | Path) -> dict[str, Any]:
+        """Read a checkpoint file, or ``<run dir>/checkpoint.pt`` when given a run directory."""
+        path = Path(path)
+        if path.is_dir():
+            path = path / CHECKPOINT_NAME
+        if not path.exists():
+            raise FileNotFoundError(f"no checkpoint at {path}")
+        # Our own file: it holds numpy simulator states, which weights_only loading rejects.
+        return torch.load(path, weights_only=False)
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.epoch = state["epoch"]
+        self.total_steps = state["total_steps"]
+        self.train_seconds = state["train_seconds"]
+        self._last_mean_cost = state["last_mean_cost"]
+        self.loss.load_state_dict(state["loss"])
+        self.multiplier.load_state_dict(state["multiplier"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        if self.obs_norm is not None:
+            self.obs_norm.load_state_dict(state["obs_norm"])
+        self.collector.load_state_dict(state["collector"])
+        self.stats.load_state_dict(state["stats"])
+        torch.set_rng_state(state["torch_rng"])
+        self.minibatch_rng.set_state(state["minibatch_rng"])
