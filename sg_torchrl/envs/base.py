@@ -203,7 +203,7 @@ class SafeEnv(EnvBase, abc.ABC):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._validated_action(tensordict.get("action"))
-        clipped = np.clip(action, self._action_low, self._action_high)
+        clipped = np.minimum(np.maximum(action, self._action_low), self._action_high)  # np.clip, cheaper
         self._before_step()
         self._advance(clipped)
         observation = self._observe()
@@ -280,6 +280,7 @@ class SafeEnv(EnvBase, abc.ABC):
         self.physics_errors += int(diverged.sum())
         indices = np.flatnonzero(diverged)
         self._reset_sims(indices)
+        self._elapsed[indices] = 0
         observation = np.where(diverged[:, None], 0.0, observation)
         reward = np.where(diverged, 0.0, reward)
         costs = {name: np.where(diverged, 0.0, value) for name, value in costs.items()}

@@ -10,11 +10,12 @@ Why not one env object per simulator: on a 2-core machine the per-call overhead 
 ``EnvBase.step`` and of a policy forward dominates small MuJoCo models, so one env stepping N
 simulators amortises it N times (Safety-Gymnasium uses one subprocess per simulator instead).
 
-State cache: the one Python loop over the simulators that stepping needs anyway also copies
-``qpos``, ``qvel`` and the task's ``fields`` into preallocated ``(N, ...)`` arrays. Tasks then read
-observations, positions and health checks from those arrays as often as they like, without
-another loop over the ``MjData``. The cache is refreshed by :meth:`step`, :meth:`reset` and
-:meth:`set_state`; code that writes into ``MjData`` directly must call :meth:`refresh`.
+State cache: after stepping, ``qpos``, ``qvel`` and the task's ``fields`` of every simulator are
+copied into preallocated ``(N, ...)`` arrays, one ``np.concatenate`` per field over numpy views of
+the ``MjData`` buffers that were taken once at construction (no Python loop over the simulators,
+no attribute lookups). Tasks then read observations, positions and health checks from those arrays
+as often as they like. The cache is refreshed by :meth:`step`, :meth:`reset` and :meth:`set_state`;
+code that writes into ``MjData`` directly must call :meth:`refresh`.
 
 Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises one of its
 ``BADQPOS``/``BADQVEL``/``BADQACC`` warnings and silently resets that ``MjData`` to the model's
@@ -60,12 +61,17 @@ class MujocoBatch:
         self.datas = [mujoco.MjData(model) for _ in range(num_sims)]
         for data in self.datas:
             mujoco.mj_forward(model, data)
-        # The state cache (see the module docstring): filled in place, never reallocated.
-        self._qpos = np.zeros((num_sims, model.nq))
-        self._qvel = np.zeros((num_sims, model.nv))
-        self._fields = {name: np.zeros((num_sims, *getattr(self.datas[0], name).shape)) for name in fields}
-        self._field_items = tuple(self._fields.items())
-        self._warnings = np.zeros((num_sims, len(self.datas[0].warning.number)), dtype=np.int64)
+        # The state cache (see the module docstring): filled in place, never reallocated. Each entry
+        # holds the (N, ...) cache array and the live views of that MjData array in every simulator.
+        # MuJoCo's warning counters are cached the same way: they reveal its silent resets.
+        self._ctrl_views = [data.ctrl for data in self.datas]
+        self._cache: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}
+        for name in ("qpos", "qvel", *fields, "warnings"):
+            views = [data.warning.number if name == "warnings" else getattr(data, name) for data in self.datas]
+            self._cache[name] = (np.zeros((num_sims, *views[0].shape), dtype=views[0].dtype), views)
+        self._qpos, self._qvel, self._warnings = (self._cache[name][0] for name in ("qpos", "qvel", "warnings"))
+        # Where np.concatenate of the N views lands: the cache array with the N rows joined.
+        self._gather_plan = [(views, cache.reshape(-1, *cache.shape[2:])) for cache, views in self._cache.values()]
         self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
@@ -79,13 +85,14 @@ class MujocoBatch:
             ``(N,)`` bool: the simulators MuJoCo found unstable during this step (and reset to
             the model's initial state, see the module docstring).
         """
-        model, post, copy_out = self.model, self.post_constraint, self._copy_out
-        for i, data in enumerate(self.datas):
-            data.ctrl[:] = ctrl[i]
+        model, post = self.model, self.post_constraint
+        for data, data_ctrl, row in zip(self.datas, self._ctrl_views, ctrl):
+            data_ctrl[:] = row
             mujoco.mj_step(model, data, nstep)
             if post:
                 mujoco.mj_rnePostConstraint(model, data)
-            copy_out(i, data)
+        for views, out in self._gather_plan:
+            np.concatenate(views, out=out)
         counts = self._warnings[:, _UNSTABLE].sum(axis=1)
         unstable = counts != self._unstable_counts
         self._unstable_counts[:] = counts
@@ -114,18 +121,12 @@ class MujocoBatch:
 
         Only needed after writing into ``self.datas[i]`` directly.
         """
-        indices = range(self.num_sims) if indices is None else [int(i) for i in indices]
-        for i in indices:
-            self._copy_out(i, self.datas[i])
-        rows = list(indices)
+        rows = range(self.num_sims) if indices is None else [int(i) for i in indices]
+        for cache, views in self._cache.values():
+            for i in rows:
+                cache[i] = views[i]
+        rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
-
-    def _copy_out(self, i: int, data: mujoco.MjData) -> None:
-        self._qpos[i] = data.qpos
-        self._qvel[i] = data.qvel
-        for name, buffer in self._field_items:
-            buffer[i] = getattr(data, name)
-        self._warnings[i] = data.warning.number
 
     # ------------------------------------------------------------------ snapshots
     def get_state(self) -> np.ndarray:
@@ -166,10 +167,10 @@ class MujocoBatch:
 
     def field(self, name: str) -> np.ndarray:
         """A cached ``MjData`` array (one of ``fields``), ``(N, ...)`` (updated in place; do not write)."""
-        try:
-            return self._fields[name]
-        except KeyError:
-            raise KeyError(f"{name!r} is not cached; pass it in `fields` (cached: {list(self._fields)})") from None
+        if name not in self._cache or name == "warnings":
+            cached = [key for key in self._cache if key != "warnings"]
+            raise KeyError(f"{name!r} is not cached; pass it in `fields` (cached: {cached})")
+        return self._cache[name][0]
 
     def gather(self, field: str) -> np.ndarray:
         """Stack any ``MjData`` array attribute (``"xpos"``, ``"cinert"``, ...) into a new ``(N, ...)`` array."""

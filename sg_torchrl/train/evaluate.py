@@ -8,11 +8,9 @@ evaluation kept updating them).
 
 from __future__ import annotations
 
-import copy
-
 import torch
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import sg_torchrl
@@ -32,7 +30,11 @@ def evaluate_policy(
 ) -> dict[str, float]:
     """Mean and std of return, cost and length over ``episodes`` deterministic episodes."""
     base = sg_torchrl.make(env_id, num_envs=episodes, seed=seed)
-    env = base if obs_norm is None else TransformedEnv(base, copy.deepcopy(obs_norm).eval())
+    env: EnvBase = base
+    if obs_norm is not None:
+        frozen = RunningObservationNorm(obs_norm.mean.shape, in_keys=obs_norm.in_keys, epsilon=obs_norm.epsilon)
+        frozen.load_state_dict(obs_norm.state_dict())
+        env = TransformedEnv(base, frozen.eval())
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(base.max_episode_steps, policy, break_when_any_done=False)
     done = rollout["next", "done"].squeeze(-1)

@@ -48,6 +48,8 @@ class VelocityEnv(SafeEnv):
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,
     ) -> None:
+        if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if robot not in ROBOTS:
             raise ValueError(f"unknown velocity robot {robot!r}; choose from {sorted(ROBOTS)}")
         spec: LocomotionRobot = ROBOTS[robot]

@@ -1,0 +1,126 @@
+"""sg-train: config validation, CLI overrides, a smoke run's artefacts, exact resume, evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+torch.set_num_threads(1)
+
+from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl.train.config import parse_args  # noqa: E402
+
+
+def tiny_config(tmp_path, **overrides) -> TrainConfig:
+    values = dict(
+        env_id="SafetyHalfCheetahVelocity-v1", num_envs=2, steps_per_epoch=200, total_steps=600,
+        update_iters=2, minibatch_size=64, eval_episodes=0, wandb="disabled", progress=False,
+        output_dir=str(tmp_path), run_name="run", checkpoint_every=100,
+    )
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+def flat_parameters(trainer: Trainer) -> torch.Tensor:
+    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
+    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
+
+
+class TestConfig:
+    def test_defaults_are_the_papers(self):
+        cfg = TrainConfig()
+        assert (cfg.steps_per_epoch, cfg.update_iters, cfg.minibatch_size) == (20_000, 40, 64)
+        assert (cfg.gamma, cfg.gae_lambda, cfg.target_kl, cfg.clip_ratio) == (0.99, 0.95, 0.02, 0.2)
+        assert (cfg.actor_lr, cfg.critic_lr, cfg.lagrangian_init, cfg.lagrangian_lr) == (3e-4, 3e-4, 1e-3, 0.035)
+        assert cfg.cost_limit == 25.0 and cfg.hidden_sizes == [64, 64]
+
+    @pytest.mark.parametrize(
+        "field, value, message",
+        [
+            ("num_envs", 0, "num_envs"),
+            ("steps_per_epoch", 1001, "multiple of num_envs"),
+            ("gamma", 1.5, "gamma"),
+            ("actor_lr", -1.0, "actor_lr"),
+            ("cost_limit", -3.0, "cost_limit"),
+            ("total_steps", 10, "less than one epoch"),
+            ("algo", "sac", "unknown algo"),
+        ],
+    )
+    def test_bad_values_name_the_field(self, field, value, message):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig(**{field: value})
+
+    def test_command_line_overrides_preset(self):
+        cfg = parse_args(["--preset", "smoke", "--algo", "cppo_pid", "--seed", "7", "--hidden-sizes", "32", "16",
+                          "--normalize-obs", "false", "--cost-limit", "10"])
+        assert cfg.algo == "cppo_pid" and cfg.seed == 7 and cfg.hidden_sizes == [32, 16]
+        assert cfg.normalize_obs is False and cfg.cost_limit == 10.0
+        assert cfg.total_steps == 4_000  # from the preset
+
+    def test_cli_reports_bad_value(self, capsys):
+        assert main(["--num-envs", "3", "--steps-per-epoch", "1000"]) == 2
+        assert "multiple of num_envs" in capsys.readouterr().err
+
+    def test_unknown_env_id_is_a_clear_error(self, tmp_path):
+        with pytest.raises(KeyError, match="Did you mean"):
+            Trainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))
+
+
+class TestTraining:
+    def test_smoke_run_writes_logs_checkpoint_and_plot(self, tmp_path, capsys):
+        code = main(["--preset", "smoke", "--output-dir", str(tmp_path), "--run-name", "smoke",
+                     "--algo", "cppo_pid"])
+        assert code == 0
+        run = tmp_path / "smoke"
+        for name in ("progress.csv", "checkpoint.pt", "curves.png", "config.json", "summary.json"):
+            assert (run / name).exists(), name
+        header = (run / "progress.csv").read_text().splitlines()[0].split(",")
+        for metric in ("Metrics/EpRet", "Metrics/EpCost", "Metrics/EpLen", "Train/LagrangeMultiplier", "Train/KL",
+                       "Train/StopIter", "Loss/Loss_actor", "Loss/Loss_cost_critic", "Time/FPS"):
+            assert metric in header, metric
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["Metrics/EvalEpLen"] == 1000.0
+        assert "EpCost" in capsys.readouterr().out
+
+    def test_update_changes_parameters_and_multiplier_follows_cost(self, tmp_path):
+        trainer = Trainer(tiny_config(tmp_path, cost_limit=0.0))
+        before = flat_parameters(trainer).clone()
+        metrics = trainer.train_epoch()
+        assert not torch.equal(before, flat_parameters(trainer))
+        assert 1 <= metrics["Train/StopIter"] <= 2
+        assert metrics["Train/TotalSteps"] == 200
+
+    def test_resume_continues_exactly(self, tmp_path):
+        uninterrupted = Trainer(tiny_config(tmp_path / "a"))
+        uninterrupted.run()
+
+        first_half = Trainer(tiny_config(tmp_path / "b"))
+        first_half.run(max_epochs=2)
+        checkpoint = Trainer.load_checkpoint(first_half.checkpoint_path.parent)
+        resumed = Trainer(tiny_config(tmp_path / "b"), checkpoint)
+        assert resumed.epoch == 2
+        resumed.run()
+
+        assert torch.equal(flat_parameters(uninterrupted), flat_parameters(resumed))
+        assert torch.equal(uninterrupted.multiplier.value, resumed.multiplier.value)
+        assert torch.equal(uninterrupted.obs_norm.mean, resumed.obs_norm.mean)
+        rows_a = (tmp_path / "a" / "run" / "progress.csv").read_text().splitlines()
+        rows_b = (tmp_path / "b" / "run" / "progress.csv").read_text().splitlines()
+        assert len(rows_a) == len(rows_b) == 4  # header + 3 epochs, the resumed run appended
+        assert [r.split(",")[:3] for r in rows_a] == [r.split(",")[:3] for r in rows_b]
+
+    def test_missing_checkpoint_is_a_clear_error(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match="no checkpoint"):
+            Trainer.load_checkpoint(tmp_path)
+
+
+class TestLogging:
+    def test_wandb_offline_needs_no_account(self, tmp_path, monkeypatch):
+        monkeypatch.delenv("WANDB_API_KEY", raising=False)
+        monkeypatch.setenv("WANDB_MODE", "dryrun")  # what torchrl's offline=True would set; must not break us
+        assert main(["--preset", "smoke", "--wandb", "offline", "--output-dir", str(tmp_path), "--run-name", "w",
+                     "--eval-episodes", "0"]) == 0
+        runs = list((tmp_path / "w" / "wandb").glob("offline-run-*"))
+        assert len(runs) == 1 and any(runs[0].glob("*.wandb"))
