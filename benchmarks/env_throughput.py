@@ -8,7 +8,9 @@ For every env id and batch size ``N`` this measures, in the same process and int
 * **raw**: the physical limit, a plain Python loop over ``N`` ``mujoco.MjData`` of the same
   compiled model doing ``data.ctrl[:] = a; mujoco.mj_step(model, data, frame_skip)`` (plus
   ``mj_rnePostConstraint`` for robots whose observation reads contact forces, which the env
-  cannot skip either).
+  cannot skip either). The raw simulators start from the env's own reset states, so both loops
+  integrate the same trajectories (the cost of ``mj_step`` depends on the contacts) until the env
+  resets an episode (Hopper, Walker2d, Ant and Humanoid terminate; the raw loop never resets).
 
 Both report env steps per second (``N * steps / seconds``), best of ``--repeats`` runs after a
 warm-up, and the table shows their ratio. Timings on a shared 2-core machine are noisy: compare
@@ -45,9 +47,8 @@ def _fixed_action(env, seed: int) -> torch.Tensor:
     return low + (high - low) * torch.rand(low.shape, generator=generator)
 
 
-def time_ours(env, action: torch.Tensor, steps: int, warmup: int) -> float:
-    """Seconds for ``steps`` calls of ``env.step_and_maybe_reset``."""
-    td = env.reset()
+def time_ours(env, td, action: torch.Tensor, steps: int, warmup: int) -> float:
+    """Seconds for ``steps`` calls of ``env.step_and_maybe_reset``, starting from the reset ``td``."""
     for _ in range(warmup):
         td.set("action", action)
         _, td = env.step_and_maybe_reset(td)
@@ -58,11 +59,12 @@ def time_ours(env, action: torch.Tensor, steps: int, warmup: int) -> float:
     return time.perf_counter() - start
 
 
-def time_raw(model: mujoco.MjModel, action: np.ndarray, frame_skip: int, post_constraint: bool,
-             steps: int, warmup: int) -> float:
-    """Seconds for ``steps`` rounds of stepping ``N`` bare ``MjData`` (no env around them)."""
+def time_raw(model: mujoco.MjModel, start: list[tuple[np.ndarray, np.ndarray]], action: np.ndarray,
+             frame_skip: int, post_constraint: bool, steps: int, warmup: int) -> float:
+    """Seconds for ``steps`` rounds of stepping ``N`` bare ``MjData`` (no env around them) from ``start``."""
     datas = [mujoco.MjData(model) for _ in range(len(action))]
-    for data in datas:
+    for data, (qpos, qvel) in zip(datas, start):
+        data.qpos[:], data.qvel[:] = qpos, qvel
         mujoco.mj_forward(model, data)
 
     def run(n: int) -> None:
@@ -89,8 +91,10 @@ def measure(env_id: str, num_envs: int, steps: int, repeats: int, warmup: int, s
     post = "cfrc_ext" in robot.extra_observations
     ours, raw = [], []
     for _ in range(repeats):  # interleaved, so machine-load drift hits both alike
-        ours.append(time_ours(env, action, steps, warmup))
-        raw.append(time_raw(model, raw_action, robot.frame_skip, post, steps, warmup))
+        td = env.reset()
+        start = [(data.qpos.copy(), data.qvel.copy()) for data in env.physics.datas]
+        ours.append(time_ours(env, td, action, steps, warmup))
+        raw.append(time_raw(model, start, raw_action, robot.frame_skip, post, steps, warmup))
     env.close()
     ours_rate = num_envs * steps / min(ours)
     raw_rate = num_envs * steps / min(raw)

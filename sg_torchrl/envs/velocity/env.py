@@ -82,7 +82,7 @@ class VelocityEnv(SafeEnv):
         low, high = self.physics.ctrl_range
         super().__init__(
             num_envs=num_envs,
-            observation_dim=self._observation_size(model),
+            observation_dim=self._observation.shape[1],
             action_low=low,
             action_high=high,
             constraint_names=("velocity",),

@@ -1,0 +1,115 @@
+"""The env registry: every registered id builds a valid batched TorchRL env; unknown ids fail helpfully."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+import sg_torchrl
+from sg_torchrl.envs import UnknownEnvError, registry_entry
+
+torch.set_num_threads(1)
+
+ALL_IDS = sg_torchrl.list_envs()
+
+# reference/safety_gymnasium_semantics.md, section 10: (observation size, action size) per robot.
+REFERENCE_SIZES = {
+    "Ant": (27, 8),
+    "HalfCheetah": (17, 6),
+    "Hopper": (11, 3),
+    "Humanoid": (376, 17),
+    "Swimmer": (8, 2),
+    "Walker2d": (17, 6),
+}
+
+
+def make_env(env_id: str, num_envs: int = 3, seed: int = 0, **options):
+    return sg_torchrl.make(env_id, num_envs=num_envs, seed=seed, **options)
+
+
+class TestListEnvs:
+    def test_velocity_family_has_twelve_ids(self):
+        ids = sg_torchrl.list_envs(family="velocity")
+        assert len(ids) == 12
+        assert ids == sorted(ids)
+        expected = {f"Safety{robot}Velocity-v{v}" for robot in REFERENCE_SIZES for v in (0, 1)}
+        assert set(ids) == expected
+
+    def test_filter_by_robot(self):
+        assert sg_torchrl.list_envs(robot="Ant") == ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
+
+    def test_unknown_family_is_empty(self):
+        assert sg_torchrl.list_envs(family="no-such-family") == []
+
+    def test_entries_carry_metadata(self):
+        entry = registry_entry("SafetyHopperVelocity-v1")
+        assert (entry.family, entry.robot, entry.task, entry.max_episode_steps) == ("velocity", "Hopper", "Velocity", 1000)
+
+
+class TestUnknownId:
+    def test_suggests_closest_id(self):
+        with pytest.raises(UnknownEnvError) as info:
+            sg_torchrl.make("SafetyHalfCheetahVelocity-v2")
+        message = str(info.value)
+        assert "'SafetyHalfCheetahVelocity-v2'" in message
+        assert "Did you mean 'SafetyHalfCheetahVelocity-v1'" in message
+
+    def test_is_a_key_error(self):
+        # Code that catches KeyError for missing ids keeps working.
+        with pytest.raises(KeyError):
+            sg_torchrl.make("SafetyNoSuchThing-v0")
+
+    def test_no_suggestion_for_nonsense(self):
+        with pytest.raises(UnknownEnvError) as info:
+            sg_torchrl.make("xyz")
+        assert "Did you mean" not in str(info.value)
+        assert "list_envs()" in str(info.value)
+
+
+class TestMakeOptions:
+    def test_num_envs_zero(self):
+        with pytest.raises(ValueError, match="num_envs"):
+            make_env("SafetyHalfCheetahVelocity-v1", num_envs=0)
+
+    def test_bogus_cost_mode(self):
+        with pytest.raises(ValueError, match="cost_mode"):
+            make_env("SafetyHalfCheetahVelocity-v1", cost_mode="bogus")
+
+    def test_options_override_registry_defaults(self):
+        env = make_env("SafetyHalfCheetahVelocity-v1", num_envs=1, max_episode_steps=17)
+        assert env.max_episode_steps == 17
+        assert make_env("SafetyHalfCheetahVelocity-v1", num_envs=1).max_episode_steps == 1000
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+class TestEveryId:
+    def test_check_env_specs(self, env_id):
+        env = make_env(env_id)
+        check_env_specs(env, seed=0)
+        assert env.batch_size == torch.Size([3])
+
+    def test_rollout(self, env_id):
+        env = make_env(env_id)
+        steps = 20
+        rollout = env.rollout(steps, break_when_any_done=False)
+        assert rollout.batch_size == torch.Size([3, steps])
+        nxt = rollout["next"]
+        for key in ("reward", "cost"):
+            assert nxt[key].shape == (3, steps, 1), key
+            assert nxt[key].dtype == torch.float32, key
+            assert torch.isfinite(nxt[key]).all(), key
+        assert torch.isfinite(nxt["observation"]).all()
+        assert nxt["observation"].dtype == torch.float32
+        assert ("cost_info", "velocity") in nxt.keys(include_nested=True)
+        assert nxt["cost_info", "velocity"].shape == (3, steps, 1)
+        # One constraint: the total cost is the velocity cost, in {0, 1}.
+        torch.testing.assert_close(nxt["cost"], nxt["cost_info", "velocity"])
+        assert set(nxt["cost"].unique().tolist()) <= {0.0, 1.0}
+
+    def test_sizes_match_reference(self, env_id):
+        env = make_env(env_id, num_envs=1)
+        obs_size, act_size = REFERENCE_SIZES[registry_entry(env_id).robot]
+        assert env.observation_spec["observation"].shape == (1, obs_size)
+        assert env.action_spec.shape == (1, act_size)
+        assert env.observation_dim == obs_size and env.action_dim == act_size
