@@ -55,7 +55,9 @@ class SafeEnv(EnvBase, abc.ABC):
         num_envs: number of simulators ``N`` stepped by this env (``batch_size=[N]``).
         observation_dim: length of the flat observation vector.
         action_low / action_high: per-dimension action bounds; actions outside are clipped.
-        constraint_names: names of the ``cost_info`` entries, one per constraint.
+        constraint_names: names of the ``cost_info`` entries, one per constraint. May be empty
+            (a task without constraints, e.g. Safety-Gymnasium's level-0 navigation tasks): then
+            ``cost_info`` is an empty sub-TensorDict and ``cost`` is always 0.
         max_episode_steps: episodes are truncated after this many steps.
         frame_skip: physics steps per env step (done inside the env, see ``_has_frame_skip``).
         cost_mode: ``"indicator"`` (default, Safety-Gymnasium's ``constrain_indicator``): every
@@ -96,8 +98,6 @@ class SafeEnv(EnvBase, abc.ABC):
             raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
         if cost_mode not in ("indicator", "raw"):
             raise ValueError(f"cost_mode must be 'indicator' or 'raw', got {cost_mode!r}")
-        if not constraint_names:
-            raise ValueError("a safe env needs at least one constraint name")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.num_envs = num_envs
         self.frame_skip = frame_skip
@@ -203,6 +203,15 @@ class SafeEnv(EnvBase, abc.ABC):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._validated_action(tensordict.get("action"))
+        return self._pack(*self._transition_arrays(action))
+
+    def _transition_arrays(self, action: np.ndarray) -> tuple:
+        """One batched step on numpy arrays, the body of ``_step`` without TensorDicts.
+
+        ``action`` is the validated ``(N, act_dim)`` float64 action. Returns ``(observation,
+        reward, costs, terminated, truncated)`` with raw per-constraint ``costs`` (aggregated by
+        :meth:`_pack`). The gymnasium façade calls this directly to skip TensorDict overhead.
+        """
         clipped = np.minimum(np.maximum(action, self._action_low), self._action_high)  # np.clip, cheaper
         self._before_step()
         self._advance(clipped)
@@ -214,10 +223,8 @@ class SafeEnv(EnvBase, abc.ABC):
         truncated = self._elapsed >= self.max_episode_steps
         diverged = self._diverged(observation)
         if diverged.any():
-            observation, reward, costs, terminated, truncated = self._isolate(
-                diverged, observation, reward, costs, terminated, truncated
-            )
-        return self._pack(observation, reward, costs, terminated, truncated)
+            return self._isolate(diverged, observation, reward, costs, terminated, truncated)
+        return observation, reward, costs, terminated, truncated
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # EnvBase reshapes the reward to its spec and fills in missing done flags here, walking the
@@ -255,10 +262,6 @@ class SafeEnv(EnvBase, abc.ABC):
     def _load_physics_state(self, state) -> None:
         self.physics.set_state(state)
 
-    def current_observation(self) -> torch.Tensor:
-        """Observations of the current simulator states, ``(N, obs_dim)`` (no stepping)."""
-        return torch.as_tensor(self._observe(), dtype=torch.float32, device=self.device)
-
     # ------------------------------------------------------------------ helpers
     def _validated_action(self, action: torch.Tensor | None) -> np.ndarray:
         expected = (self.num_envs, self.action_dim)
@@ -287,7 +290,7 @@ class SafeEnv(EnvBase, abc.ABC):
         return observation, reward, costs, terminated & ~diverged, truncated | diverged
 
     def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        total = sum(costs.values())
+        total = sum(costs.values(), np.zeros(self.num_envs))
         if self.cost_mode == "indicator":
             return (total > 0).astype(np.float32), {k: (v > 0).astype(np.float32) for k, v in costs.items()}
         return total, costs

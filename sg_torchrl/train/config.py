@@ -142,13 +142,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sg-train",
         description="Train a safe RL agent on a Safety-Gymnasium task (sg_torchrl).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--preset", choices=sorted(PRESETS), help="start from a named preset, then apply flags")
     hints = get_type_hints(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
         hint = hints[f.name]
-        kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": f.metadata.get("help", ""), "default": None}
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        # argparse default stays None so that explicitly given flags can be told apart (--resume).
+        help_text = f"{f.metadata.get('help', '')} (default: {default})"
+        kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": help_text, "default": None}
         if get_origin(hint) is Literal:
             kwargs["choices"] = list(get_args(hint))
         if get_origin(hint) is list:
