@@ -48,16 +48,27 @@ class MujocoBatch:
             e.g. the Humanoid's; gymnasium's MuJoCo envs always run it).
         fields: ``MjData`` arrays besides ``qpos``/``qvel`` to keep in the state cache
             (``"xpos"``, ``"cinert"``, ...), read with :meth:`field`.
+        forward_after_step: run ``mj_forward`` after the ``nstep`` physics steps, so that positions
+            derived from ``qpos`` (``xpos``, ``xmat``) and sensor readings describe the state the
+            step ended in (``mj_step`` leaves them at the state before its last integration).
+            Safety-Gymnasium's navigation tasks do this; gymnasium's MuJoCo envs do not.
     """
 
     def __init__(
-        self, model: mujoco.MjModel, num_sims: int, *, post_constraint: bool = False, fields: Sequence[str] = ()
+        self,
+        model: mujoco.MjModel,
+        num_sims: int,
+        *,
+        post_constraint: bool = False,
+        fields: Sequence[str] = (),
+        forward_after_step: bool = False,
     ) -> None:
         if num_sims < 1:
             raise ValueError(f"num_sims must be >= 1, got {num_sims}")
         self.model = model
         self.num_sims = num_sims
         self.post_constraint = post_constraint
+        self.forward_after_step = forward_after_step
         self.datas = [mujoco.MjData(model) for _ in range(num_sims)]
         for data in self.datas:
             mujoco.mj_forward(model, data)
@@ -85,10 +96,12 @@ class MujocoBatch:
             ``(N,)`` bool: the simulators MuJoCo found unstable during this step (and reset to
             the model's initial state, see the module docstring).
         """
-        model, post = self.model, self.post_constraint
+        model, post, forward = self.model, self.post_constraint, self.forward_after_step
         for data, data_ctrl, row in zip(self.datas, self._ctrl_views, ctrl):
             data_ctrl[:] = row
             mujoco.mj_step(model, data, nstep)
+            if forward:
+                mujoco.mj_forward(model, data)
             if post:
                 mujoco.mj_rnePostConstraint(model, data)
         for views, out in self._gather_plan:
@@ -98,12 +111,21 @@ class MujocoBatch:
         self._unstable_counts[:] = counts
         return unstable
 
-    def reset(self, indices: Sequence[int], qpos: np.ndarray, qvel: np.ndarray) -> None:
+    def reset(
+        self,
+        indices: Sequence[int],
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        mocap_pos: np.ndarray | None = None,
+        mocap_quat: np.ndarray | None = None,
+    ) -> None:
         """Reset simulators ``indices`` to the given joint state (rows of ``qpos``/``qvel``).
 
         Data is cleared with ``mj_resetData`` first (time, warm-starts, activations), then
         the state is written and ``mj_forward`` recomputes every derived quantity, exactly as
         gymnasium's ``MujocoEnv.reset`` + ``set_state`` do. No model is compiled.
+        ``mocap_pos`` / ``mocap_quat`` (rows of ``(nmocap, 3)`` / ``(nmocap, 4)``), when given,
+        place the mocap bodies (``mj_resetData`` puts them back at the model's positions).
         """
         model = self.model
         for row, index in enumerate(indices):
@@ -111,6 +133,10 @@ class MujocoBatch:
             mujoco.mj_resetData(model, data)
             data.qpos[:] = qpos[row]
             data.qvel[:] = qvel[row]
+            if mocap_pos is not None:
+                data.mocap_pos[:] = mocap_pos[row]
+            if mocap_quat is not None:
+                data.mocap_quat[:] = mocap_quat[row]
             mujoco.mj_forward(model, data)
             if self.post_constraint:
                 mujoco.mj_rnePostConstraint(model, data)
@@ -127,6 +153,32 @@ class MujocoBatch:
                 cache[i] = views[i]
         rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
+
+    def set_mocap_pos(self, index: int, mocap_id: int, pos: np.ndarray) -> None:
+        """Move mocap body ``mocap_id`` of simulator ``index`` to ``pos`` (3,), without a forward pass.
+
+        Positions derived from it (``xpos``) follow at the next :meth:`step`; a mocap body without
+        collision geoms does not influence the dynamics, so nothing else needs recomputing.
+        """
+        self.datas[index].mocap_pos[mocap_id] = pos
+
+    def count_contacts(self, geoms_a: np.ndarray, geoms_b: np.ndarray) -> np.ndarray:
+        """Number of active contacts between a geom of set A and a geom of set B, per simulator.
+
+        Args:
+            geoms_a / geoms_b: ``(ngeom,)`` bool masks over the model's geoms.
+
+        Returns:
+            ``(N,)`` float counts (a contact between two geoms in both sets counts once).
+        """
+        counts = np.zeros(self.num_sims)
+        for i, data in enumerate(self.datas):
+            if data.ncon:
+                pairs = data.contact.geom
+                first, second = pairs[:, 0], pairs[:, 1]
+                hits = (geoms_a[first] & geoms_b[second]) | (geoms_a[second] & geoms_b[first])
+                counts[i] = np.count_nonzero(hits)
+        return counts
 
     # ------------------------------------------------------------------ snapshots
     def get_state(self) -> np.ndarray:

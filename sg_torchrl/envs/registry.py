@@ -125,4 +125,25 @@ def _register_velocity() -> None:
             )
 
 
+def _register_navigation() -> None:
+    from sg_torchrl.envs.navigation import ROBOTS, TASKS, NavigationEnv
+
+    for task, levels in TASKS.items():
+        for level, factory in sorted(levels.items()):
+            for robot in ROBOTS:
+                register(
+                    EnvEntry(
+                        env_id=f"Safety{robot}{task}{level}-v0",
+                        constructor=NavigationEnv,
+                        family="navigation",
+                        robot=robot,
+                        task=task,
+                        level=level,
+                        max_episode_steps=factory().max_episode_steps,
+                        kwargs={"robot": robot, "task": task, "level": level},
+                    )
+                )
+
+
 _register_velocity()
+_register_navigation()

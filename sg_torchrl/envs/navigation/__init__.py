@@ -1,0 +1,34 @@
+"""Safe navigation tasks (Safety-Gymnasium paper, section 4.1): robots, objects, tasks, the world builder.
+
+Layout of this package:
+
+* ``world.py``   ``MjSpec`` world builder, compiled-model cache, :class:`Scene` (batched state views)
+* ``robots/``    :class:`Robot` interface and the robots (``ROBOTS``)
+* ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
+* ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``)
+* ``layout.py``  vectorised layout sampling with keep-outs
+* ``lidar.py``   vectorised pseudo-lidar
+* ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above
+"""
+
+from sg_torchrl.envs.navigation.env import NavigationEnv
+from sg_torchrl.envs.navigation.objects import FreeObject, Goal, Hazards, NavObject, StaticObject, Vases
+from sg_torchrl.envs.navigation.robots import ROBOTS, Point, Robot
+from sg_torchrl.envs.navigation.tasks import TASKS, GoalTask, Task, make_task
+
+__all__ = [
+    "FreeObject",
+    "Goal",
+    "GoalTask",
+    "Hazards",
+    "NavObject",
+    "NavigationEnv",
+    "Point",
+    "ROBOTS",
+    "Robot",
+    "StaticObject",
+    "TASKS",
+    "Task",
+    "Vases",
+    "make_task",
+]

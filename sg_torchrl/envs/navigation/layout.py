@@ -1,0 +1,161 @@
+"""Layout sampling (reference section 6), vectorised with numpy.
+
+Items are placed one by one in a fixed order: the agent, then every object instance in world
+order (:func:`~sg_torchrl.envs.navigation.world.world_order`; ``hazard0, hazard1, ...``). For each
+item up to 100 candidate points are drawn uniformly from its region (the task extents shrunk by
+the item's keep-out, or one of its ``placements`` rectangles, shrunk the same way and chosen with
+probability proportional to area, or its fixed location); the first candidate whose distance to
+every placed item is at least ``own keepout + other keepout`` is taken. If an item finds none,
+the whole layout is redrawn, up to 10000 times. Then the agent yaw and one yaw per object
+instance are drawn uniformly in ``[0, 2 pi)``.
+
+The 100 candidates of every item are drawn in one generator call per layout attempt and tested
+against all placed items at once, so a layout costs a few numpy operations per item. Drawing all
+100 at once and taking the first valid one has the same distribution as drawing one at a time
+until one is valid. All randomness comes from the generator passed in: the simulator's own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sg_torchrl.envs.navigation.objects.base import NavObject
+
+__all__ = ["LayoutError", "LayoutSampler", "Region"]
+
+CANDIDATES = 100  # candidate points per item and attempt
+LAYOUT_TRIES = 10_000  # whole-layout redraws before giving up
+RESAMPLE_TRIES = 10_000  # candidate points when re-placing one item mid-episode
+
+
+class LayoutError(RuntimeError):
+    """No valid layout (or re-placement) was found within the retry budget."""
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where one item may be placed: rectangles ``(R, 4)`` already shrunk by its keep-out, and their weights."""
+
+    rects: np.ndarray
+    probs: np.ndarray
+
+    @classmethod
+    def make(cls, rects: np.ndarray, keepout: float, fixed: bool = False) -> Region:
+        rects = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
+        if not fixed:
+            rects = rects + np.array([keepout, keepout, -keepout, -keepout])
+            rects = rects[(rects[:, 0] <= rects[:, 2]) & (rects[:, 1] <= rects[:, 3])]
+            if not len(rects):
+                raise ValueError(f"no placement rectangle leaves room for keep-out {keepout}")
+        areas = (rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])
+        probs = areas / areas.sum() if areas.sum() > 0 else np.full(len(rects), 1.0 / len(rects))
+        return cls(rects, probs)
+
+    def draw(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        """``count`` points ``(count, 2)`` drawn uniformly over the region."""
+        u = rng.random((count, 2))
+        if len(self.rects) == 1:
+            rect = self.rects[0]
+            return rect[:2] + u * (rect[2:] - rect[:2])
+        rects = self.rects[rng.choice(len(self.rects), size=count, p=self.probs)]
+        return rects[:, :2] + u * (rects[:, 2:] - rects[:, :2])
+
+
+class LayoutSampler:
+    """Samples layouts for one task level (see the module docstring).
+
+    Args:
+        extents: ``(xmin, ymin, xmax, ymax)`` of the default placement area.
+        agent_keepout: the agent's keep-out radius.
+        objects: the task objects, in world order.
+        agent_placements: rectangles for the agent (default: the extents).
+
+    Attributes:
+        slices: item range of each object in the layout arrays (the agent is item 0).
+        keepouts: ``(M,)`` keep-out radius per item.
+    """
+
+    def __init__(
+        self,
+        extents: Sequence[float],
+        agent_keepout: float,
+        objects: Sequence[NavObject],
+        agent_placements: np.ndarray | None = None,
+    ) -> None:
+        extents = np.asarray(extents, dtype=np.float64).reshape(1, 4)
+        self.objects = list(objects)
+        agent_rects = extents if agent_placements is None else agent_placements
+        regions = [Region.make(agent_rects, agent_keepout)]
+        keepouts = [agent_keepout]
+        self.slices: dict[int, slice] = {}
+        for obj in self.objects:
+            start = len(regions)
+            for i in range(obj.num):
+                if i < len(obj.locations):
+                    location = obj.locations[i]
+                    regions.append(Region.make(np.r_[location, location], obj.keepout, fixed=True))
+                else:
+                    regions.append(Region.make(extents if obj.placements is None else obj.placements, obj.keepout))
+                keepouts.append(obj.keepout)
+            self.slices[id(obj)] = slice(start, len(regions))
+        self.regions = regions
+        self.keepouts = np.array(keepouts)
+        self.size = len(regions)
+        # Squared minimum distances between items, and the items whose region is one rectangle
+        # (their candidates are an affine map of one shared uniform draw).
+        self._min_d2 = np.square(self.keepouts[:, None] + self.keepouts[None, :])
+        simple = [len(r.rects) == 1 for r in regions]
+        self._simple = np.array(simple)
+        lows = np.array([r.rects[0, :2] for r in regions])
+        self._low = lows
+        self._span = np.array([r.rects[0, 2:] for r in regions]) - lows
+
+    def slice_of(self, obj: NavObject) -> slice:
+        return self.slices[id(obj)]
+
+    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """One layout: positions ``(M, 2)`` and yaws ``(M,)`` (item 0 is the agent)."""
+        size = self.size
+        xy = np.empty((size, 2))
+        for _ in range(LAYOUT_TRIES):
+            candidates = self._low[:, None, :] + rng.random((size, CANDIDATES, 2)) * self._span[:, None, :]
+            for item in np.flatnonzero(~self._simple):
+                candidates[item] = self.regions[item].draw(rng, CANDIDATES)
+            if self._place_all(candidates, xy):
+                break
+        else:
+            raise LayoutError(f"no valid layout in {LAYOUT_TRIES} attempts")
+        yaw = rng.uniform(0.0, 2.0 * np.pi, size=size)
+        return xy, yaw
+
+    def _place_all(self, candidates: np.ndarray, xy: np.ndarray) -> bool:
+        xy[0] = candidates[0, 0]
+        for item in range(1, self.size):
+            delta = candidates[item][:, None, :] - xy[None, :item, :]  # (C, item, 2)
+            valid = (np.einsum("cki,cki->ck", delta, delta) >= self._min_d2[item, :item]).all(axis=1)
+            first = int(valid.argmax())
+            if not valid[first]:
+                return False
+            xy[item] = candidates[item, first]
+        return True
+
+    def resample(self, rng: np.random.Generator, item: int, others_xy: np.ndarray, others_keepout: np.ndarray,
+                 tries: int = RESAMPLE_TRIES) -> np.ndarray | None:
+        """A new position for ``item`` against other items at ``others_xy`` (``(K, 2)``) with ``others_keepout``.
+
+        Draws up to ``tries`` candidates from the item's region, :data:`CANDIDATES` at a time;
+        returns the first valid one, or ``None`` if none is.
+        """
+        min_d2 = np.square(self.keepouts[item] + others_keepout)
+        region = self.regions[item]
+        for _ in range(-(-tries // CANDIDATES)):
+            candidates = region.draw(rng, CANDIDATES)
+            delta = candidates[:, None, :] - others_xy[None, :, :]
+            valid = (np.einsum("cki,cki->ck", delta, delta) >= min_d2).all(axis=1)
+            first = int(valid.argmax())
+            if valid[first]:
+                return candidates[first]
+        return None

@@ -1,0 +1,57 @@
+"""Vases: light boxes that must not be touched or set in motion."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import mujoco
+import numpy as np
+
+from sg_torchrl.envs.navigation.objects.base import FreeObject
+from sg_torchrl.envs.navigation.world import Scene
+
+__all__ = ["Vases"]
+
+
+class Vases(FreeObject):
+    """``num`` free boxes of half-size ``size`` (default 0.1, density 0.001), keep-out 0.15.
+
+    Costs when constrained (reference section 3; Goal level 2), each per step:
+
+    * ``"vases_contact"``: the number of MuJoCo contacts between a vase geom and a robot geom;
+    * ``"vases_velocity"``: the sum of the linear speeds of the vases moving at least
+      ``velocity_threshold`` (1e-4 m/s).
+
+    Safety-Gymnasium also defines a displacement cost with coefficient 0, so it never appears.
+    """
+
+    name: ClassVar[str] = "vases"
+    prefix: ClassVar[str] = "vase"
+    sink: ClassVar[float] = 4e-5  # soft contacts let a resting vase settle this far into the floor
+    velocity_threshold: ClassVar[float] = 1e-4
+
+    def __init__(self, num: int = 1, *, size: float = 0.1, keepout: float = 0.15, density: float = 0.001,
+                 constrained: bool = True, **options) -> None:
+        super().__init__(num, size=size, keepout=keepout, constrained=constrained, **options)
+        self.density = density
+        self.height = self.size - self.sink
+
+    def spec_key(self) -> tuple:
+        return (*super().spec_key(), self.density)
+
+    def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
+        body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_BOX, size=[self.size] * 3,
+                      density=self.density, group=0, rgba=[0.0, 1.0, 1.0, 1.0])
+
+    @property
+    def cost_names(self) -> tuple[str, ...]:
+        return ("vases_contact", "vases_velocity") if self.constrained else ()
+
+    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
+        if not self.constrained:
+            return {}
+        speeds = self.speeds(scene)
+        return {
+            "vases_contact": scene.physics.count_contacts(self.geom_mask, scene.robot_geoms),
+            "vases_velocity": np.where(speeds >= self.velocity_threshold, speeds, 0.0).sum(axis=1),
+        }

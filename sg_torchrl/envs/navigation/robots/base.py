@@ -1,0 +1,133 @@
+"""The robot interface of the navigation engine.
+
+A robot contributes to the world: the physics options and world-wide defaults it was tuned
+with (Safety-Gymnasium takes them from the robot's model file, so they also apply to the task
+objects), its body tree rooted at :attr:`Robot.root_body`, its actuators (one per action
+dimension, in action order) and its sensors. At run time it writes its start pose into ``qpos``
+and turns sensor readings into the leading part of the observation.
+
+Observation order (reference section 2): the fixed sensors (accelerometer, velocimeter, gyro,
+magnetometer, then robot extras such as Doggo's touch sensors), hinge-joint velocities,
+ball-joint angular velocities, free-joint height, free-joint linear velocity, hinge-joint angles
+as (sin, cos), ball-joint quaternions as 3x3 rotation matrices. Only the robot's own joints with
+a sensor count: the planar root joints of Point and Car have none, so they add nothing. A robot
+declares this list as :attr:`Robot.observation_terms`, one :class:`SensorTerm` per sensor.
+
+Adding a robot: subclass :class:`Robot`, implement :meth:`build` and :meth:`set_pose`, declare
+``observation_terms`` (and ``is_alive`` if it can fall over, as the Ant does), then add the class
+to :data:`sg_torchrl.envs.navigation.robots.ROBOTS`.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Literal
+
+import mujoco
+import numpy as np
+
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.world import Scene
+
+__all__ = ["Robot", "SensorTerm", "FIXED_SENSORS"]
+
+FIXED_SENSORS = ("accelerometer", "velocimeter", "gyro", "magnetometer")
+
+# How a sensor reading becomes observation values.
+Transform = Literal["raw", "sincos", "rotmat", "z"]
+_WIDTH = {"sincos": 2, "rotmat": 9, "z": 1}
+
+
+@dataclass(frozen=True)
+class SensorTerm:
+    """One observed sensor.
+
+    Args:
+        sensor: the MuJoCo sensor name (also the observation entry's name).
+        transform: ``"raw"`` (the reading as is), ``"sincos"`` (a hinge angle as (sin, cos)),
+            ``"rotmat"`` (a quaternion as a row-major 3x3 rotation matrix) or ``"z"`` (the last
+            component of a 3-vector: the free-joint height).
+    """
+
+    sensor: str
+    transform: Transform = "raw"
+
+
+class Robot(abc.ABC):
+    """A navigation robot (see the module docstring). Instances are bound to one compiled model."""
+
+    name: ClassVar[str]
+    #: the body at the root of the robot's tree; its frame is the agent frame of lidar and reward
+    root_body: ClassVar[str] = "agent"
+    #: placement keep-out radius of the agent (reference section 6)
+    keepout: ClassVar[float] = 0.4
+    #: physics steps per env step (reference section 6: 10 for every robot)
+    frame_skip: ClassVar[int] = 10
+    observation_terms: ClassVar[tuple[SensorTerm, ...]] = tuple(SensorTerm(name) for name in FIXED_SENSORS)
+
+    def __init__(self) -> None:
+        self._columns: list[tuple[SensorTerm, int, int]] = []  # (term, sensordata address, width)
+
+    # ------------------------------------------------------------------ model
+    @abc.abstractmethod
+    def build(self, spec: mujoco.MjSpec) -> None:
+        """Set options and world-wide defaults, add the robot's bodies, actuators and sensors."""
+
+    # ------------------------------------------------------------------ binding
+    def bind(self, model: mujoco.MjModel) -> None:
+        """Resolve sensor addresses (and anything else :meth:`set_pose` needs) in ``model``."""
+        self._columns = []
+        for term in self.observation_terms:
+            sensor = model.sensor(term.sensor)
+            self._columns.append((term, int(sensor.adr[0]), int(sensor.dim[0])))
+
+    @property
+    def observation_size(self) -> int:
+        return sum(_WIDTH.get(term.transform, width) for term, _, width in self._columns)
+
+    def observation_names(self) -> list[tuple[str, int]]:
+        """``(name, width)`` of each observation entry, in order."""
+        return [(term.sensor, _WIDTH.get(term.transform, width)) for term, _, width in self._columns]
+
+    # ------------------------------------------------------------------ run time
+    @abc.abstractmethod
+    def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
+        """Write start poses into ``qpos`` rows ``(n, nq)``: root at ``xy`` ``(n, 2)``, heading ``yaw`` ``(n,)``."""
+
+    def observe(self, sensordata: np.ndarray, out: np.ndarray) -> None:
+        """Fill ``out`` (``(N, observation_size)``) from ``sensordata`` (``(N, nsensordata)``)."""
+        column = 0
+        for term, address, width in self._columns:
+            reading = sensordata[:, address : address + width]
+            if term.transform == "raw":
+                out[:, column : column + width] = reading
+                column += width
+            elif term.transform == "z":
+                out[:, column] = reading[:, -1]
+                column += 1
+            elif term.transform == "sincos":
+                out[:, column] = np.sin(reading[:, 0])
+                out[:, column + 1] = np.cos(reading[:, 0])
+                column += 2
+            else:  # rotmat
+                _quat_to_mat(reading, out[:, column : column + 9])
+                column += 9
+
+    def is_alive(self, scene: Scene) -> np.ndarray:
+        """Which simulators' robots are still alive, ``(N,)`` bool (reference section 5). Default: always."""
+        return np.ones(scene.num_envs, dtype=bool)
+
+
+def _quat_to_mat(quat: np.ndarray, out: np.ndarray) -> None:
+    """Unit quaternions ``(N, 4)`` (w, x, y, z) to row-major rotation matrices written to ``out`` ``(N, 9)``."""
+    w, x, y, z = quat.T
+    out[:, 0] = 1 - 2 * (y * y + z * z)
+    out[:, 1] = 2 * (x * y - w * z)
+    out[:, 2] = 2 * (x * z + w * y)
+    out[:, 3] = 2 * (x * y + w * z)
+    out[:, 4] = 1 - 2 * (x * x + z * z)
+    out[:, 5] = 2 * (y * z - w * x)
+    out[:, 6] = 2 * (x * z - w * y)
+    out[:, 7] = 2 * (y * z + w * x)
+    out[:, 8] = 1 - 2 * (x * x + y * y)

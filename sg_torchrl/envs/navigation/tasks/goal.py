@@ -1,0 +1,81 @@
+"""Goal: drive to a goal area; a new goal appears whenever it is reached (reference sections 4, 6).
+
+Reward per step: ``(d_prev - d) * 1.0 + 1.0 * [d <= 0.3]``, ``d`` the planar distance from the
+robot to the goal centre. Reaching the goal does not end the episode: the goal is re-sampled with
+the layout keep-out rule against the current positions of the robot and all objects, and
+``d_prev`` restarts from the distance to the new goal. If no position is found (10000 tries) the
+episode terminates. Episodes last 1000 steps.
+
+Levels: 0 the goal alone in +-1; 1 adds 8 hazards and one unconstrained vase in +-1.5; 2 has
+10 hazards and 10 constrained vases in +-2.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from sg_torchrl.envs.navigation.objects import Goal, Hazards, Vases
+from sg_torchrl.envs.navigation.tasks.base import Task
+
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.env import NavigationEnv
+
+__all__ = ["GoalTask", "GOAL_LEVELS"]
+
+
+class GoalTask(Task):
+    """Reach goals one after another (see the module docstring).
+
+    Attributes (per simulator, updated every step):
+        goal_met: ``(N,)`` bool, the goal was reached on the last step (Safety-Gymnasium's
+            ``info["goal_met"]``).
+    """
+
+    name: ClassVar[str] = "Goal"
+
+    def bind(self, env: NavigationEnv) -> None:
+        self.goal = self.find(Goal)
+        self._last_distance = np.zeros(env.num_envs)
+        self.goal_met = np.zeros(env.num_envs, dtype=bool)
+
+    def distance(self, env: NavigationEnv) -> np.ndarray:
+        """Planar distance robot to goal centre, ``(N,)``."""
+        return env.scene.planar_distance(self.goal.positions(env.scene))[:, 0]
+
+    def reset(self, env: NavigationEnv, indices: np.ndarray) -> None:
+        self._last_distance[indices] = self.distance(env)[indices]
+        self.goal_met[indices] = False
+
+    def reward(self, env: NavigationEnv) -> np.ndarray:
+        distance = self.distance(env)
+        np.less_equal(distance, self.goal.size, out=self.goal_met)
+        reward = (self._last_distance - distance) * self.goal.reward_distance + self.goal.reward_goal * self.goal_met
+        self._last_distance[:] = distance
+        return reward
+
+    def after_step(self, env: NavigationEnv) -> np.ndarray:
+        terminated = np.zeros(env.num_envs, dtype=bool)
+        for index in np.flatnonzero(self.goal_met):
+            if env.resample(self.goal, index):
+                self._last_distance[index] = self.distance(env)[index]
+            else:
+                terminated[index] = True
+        return terminated
+
+    def state_dict(self) -> dict:
+        return {"last_distance": self._last_distance.copy(), "goal_met": self.goal_met.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._last_distance[:] = state["last_distance"]
+        self.goal_met[:] = state["goal_met"]
+
+
+# reference section 6: extents, counts, sizes and keep-outs of each level.
+GOAL_LEVELS = {
+    0: lambda: GoalTask(0, extents=1.0, objects=[Goal(keepout=0.305)]),
+    1: lambda: GoalTask(1, extents=1.5, objects=[
+        Goal(keepout=0.305), Hazards(8, keepout=0.18), Vases(1, constrained=False)]),
+    2: lambda: GoalTask(2, extents=2.0, objects=[Goal(keepout=0.305), Hazards(10, keepout=0.18), Vases(10)]),
+}
