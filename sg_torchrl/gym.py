@@ -31,9 +31,13 @@ API
   :class:`EpisodeEndedError` (a ``gymnasium.error.ResetNeeded`` that is also an ``AssertionError``,
   which is what Safety-Gymnasium raises there); an action whose shape differs from
   ``action_space.shape``, or that is not finite, raises ``ValueError``. Actions outside the bounds
-  are clipped, as in Safety-Gymnasium. ``render_mode`` other than ``None`` raises
-  ``NotImplementedError`` (the envs have no renderer yet). Using a closed env raises
+  are clipped, as in Safety-Gymnasium. ``render_mode`` other than ``None`` and ``"rgb_array"``
+  raises ``NotImplementedError``. Using a closed env raises
   ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
+* Rendering: with ``render_mode="rgb_array"``, ``render()`` returns the simulator as an
+  ``(height, width, 3)`` ``uint8`` array seen by a camera that follows the robot (headless, EGL or
+  OSMesa; see :mod:`sg_torchrl.envs.rendering`). Options ``width``, ``height`` (default 256) and
+  ``camera`` (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
 * The values are exactly the TorchRL env's: the observation is its ``float32`` observation
   converted to ``float64``, reward and cost are its ``float32`` values as python floats, and the
   action is converted to ``float32`` (the action spec's dtype) before use. A policy evaluated
@@ -138,7 +142,7 @@ def make(
             implies ``cost_in_info=True``).
         cost_in_info: ``False``: Safety-Gymnasium's 6-tuple step (:class:`SafetyGymnasiumEnv`).
             ``True``: gymnasium's 5-tuple with ``info["cost"]`` (:class:`GymnasiumEnv`).
-        render_mode: only ``None`` is supported for now.
+        render_mode: ``None`` or ``"rgb_array"`` (then ``width``, ``height``, ``camera`` options too).
         **options: sg_torchrl options, e.g. ``max_episode_steps=500`` (``None``: no internal limit),
             ``cost_mode="raw"``, ``seed=0`` (seed at construction; ``reset(seed=...)`` also works).
 
@@ -165,20 +169,21 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     Args:
         env_id: an id of :func:`sg_torchrl.list_envs`.
-        render_mode: only ``None`` is supported for now.
+        render_mode: ``None`` or ``"rgb_array"``.
         **options: sg_torchrl options (see :func:`make`).
 
     The wrapped TorchRL env is :attr:`torchrl_env` (``batch_size=[1]``).
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(self, env_id: str, render_mode: str | None = None, **options: Any) -> None:
-        if render_mode is not None:
+        if render_mode not in (None, "rgb_array"):
             raise NotImplementedError(
-                f"render_mode={render_mode!r} is not supported yet: sg_torchrl envs have no renderer "
-                "(pass render_mode=None)"
+                f"render_mode={render_mode!r} is not supported: sg_torchrl envs render headless "
+                "(pass render_mode='rgb_array' or None)"
             )
+        render_options = {key: options.pop(key) for key in _RENDER_OPTIONS if key in options}
         if "num_envs" in options:
             raise TypeError(
                 "the gymnasium façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N) "
@@ -187,9 +192,12 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         if "max_episode_steps" in options and options["max_episode_steps"] is None:
             options["max_episode_steps"] = _NO_LIMIT
         self.env_id = env_id
-        self.render_mode = None
+        self.render_mode = render_mode
         env = make_torchrl_env(env_id, num_envs=1, **options)
         self._env = env
+        self._render_options = _render_options(env, render_mode, render_options)
+        if render_mode is not None:
+            self.metadata = {**self.metadata, "render_fps": round(1.0 / (env.frame_skip * env.physics.timestep))}
         observation_spec = env.observation_spec
         self.observation_space = spaces.Box(
             -np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]), dtype=np.float64
@@ -246,6 +254,14 @@ class SafetyGymnasiumEnv(gymnasium.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """Advance one step: ``(obs, reward, cost, terminated, truncated, info)``."""
         return self._transition(action)
+
+    def render(self) -> np.ndarray | None:
+        """The simulator as an ``(height, width, 3)`` ``uint8`` array (``render_mode="rgb_array"``)."""
+        self._check_open()
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' to make")
+            return None
+        return self._env.render(0, **self._render_options)
 
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
@@ -313,6 +329,21 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.env_id!r})"
+
+
+_RENDER_OPTIONS = ("width", "height", "camera", "camera_name", "camera_id")
+
+
+def _render_options(env, render_mode: str | None, options: dict[str, Any]) -> dict[str, Any]:
+    """The keyword arguments of ``env.render`` from the façade's render options."""
+    if render_mode is None:  # ignored without a render mode, as Safety-Gymnasium does
+        return {}
+    if not hasattr(env, "render"):
+        raise NotImplementedError(f"{type(env).__name__} cannot render (render_mode={render_mode!r})")
+    cameras = [value for key in ("camera", "camera_name", "camera_id") if (value := options.pop(key, None)) is not None]
+    if len(cameras) > 1:
+        raise TypeError("pass only one of camera, camera_name, camera_id")
+    return {**options, "camera": cameras[0] if cameras else None}
 
 
 class GymnasiumEnv(SafetyGymnasiumEnv):

@@ -73,7 +73,8 @@ def lidar(env, name: str, index: int = 0) -> np.ndarray:
 # ---------------------------------------------------------------------------- registry, specs, sizes
 class TestRegistry:
     def test_ids(self):
-        assert NAVIGATION_IDS == sorted(EXPECTED)
+        point_goal = [i for i in NAVIGATION_IDS if (registry_entry(i).robot, registry_entry(i).task) == ("Point", "Goal")]
+        assert point_goal == sorted(EXPECTED)  # the other robots and tasks have their own test files
         entry = registry_entry("SafetyPointGoal1-v0")
         assert (entry.family, entry.robot, entry.task, entry.level, entry.max_episode_steps) == (
             "navigation", "Point", "Goal", 1, 1000)

@@ -27,6 +27,31 @@ REFERENCE_SIZES_BY_ID = {
     "SafetyPointGoal0-v0": (28, 2),
     "SafetyPointGoal1-v0": (60, 2),
     "SafetyPointGoal2-v0": (60, 2),
+    # Button0: buttons_lidar, goal_lidar; Button1/2: + hazards, gremlins. Push0: goal, push_box; Push1/2: + hazards, pillars.
+    "SafetyPointButton0-v0": (44, 2),
+    "SafetyPointButton1-v0": (76, 2),
+    "SafetyPointButton2-v0": (76, 2),
+    "SafetyPointPush0-v0": (44, 2),
+    "SafetyPointPush1-v0": (76, 2),
+    "SafetyPointPush2-v0": (76, 2),
+    # Car: 24 robot values (12 sensors + ballangvel_rear 3 + ballquat_rear 9); Circle: circle_lidar only; Run: none.
+    "SafetyCarGoal0-v0": (40, 2),
+    "SafetyCarGoal1-v0": (72, 2),
+    "SafetyCarGoal2-v0": (72, 2),
+    "SafetyCarButton0-v0": (56, 2),
+    "SafetyCarButton1-v0": (88, 2),
+    "SafetyCarButton2-v0": (88, 2),
+    "SafetyCarPush0-v0": (56, 2),
+    "SafetyCarPush1-v0": (88, 2),
+    "SafetyCarPush2-v0": (88, 2),
+    "SafetyPointCircle0-v0": (28, 2),
+    "SafetyPointCircle1-v0": (28, 2),
+    "SafetyPointCircle2-v0": (28, 2),
+    "SafetyCarCircle0-v0": (40, 2),
+    "SafetyCarCircle1-v0": (40, 2),
+    "SafetyCarCircle2-v0": (40, 2),
+    "SafetyPointRun0-v0": (12, 2),
+    "SafetyCarRun0-v0": (24, 2),
 }
 
 

@@ -21,16 +21,25 @@ Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises o
 ``BADQPOS``/``BADQVEL``/``BADQACC`` warnings and silently resets that ``MjData`` to the model's
 initial state. :meth:`step` reports which simulators this happened to, so the env can end their
 episode instead of presenting the jump as a transition.
+
+Driven mocap bodies: objects that move along a prescribed path (Safety-Gymnasium's gremlins,
+placed before every physics sub-step) register a vectorised trajectory with :meth:`drive_mocap`.
+:meth:`step` then computes every target of the step for all simulators in one call and runs the
+sub-steps one ``mj_step`` at a time; worlds without such objects keep the single
+``mj_step(nstep)`` call per simulator.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import mujoco
 import numpy as np
 
-__all__ = ["MujocoBatch"]
+__all__ = ["MocapTrajectory", "MujocoBatch"]
+
+#: ``times (N, nstep) -> positions (N, nstep, K, 3)``: where driven mocap bodies go before each sub-step
+MocapTrajectory = Callable[[np.ndarray], np.ndarray]
 
 # MuJoCo's instability warnings (contiguous in mjtWarning): each comes with an automatic reset.
 _UNSTABLE = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
@@ -86,6 +95,11 @@ class MujocoBatch:
         self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
+        #: bumped whenever the state cache changes (step, reset, refresh): lets readers cache derived values
+        self.version = 0
+        # Mocap trajectories (see drive_mocap): (rows of mocap_pos as a slice or index array, trajectory).
+        self._mocap_drivers: list[tuple[slice | np.ndarray, MocapTrajectory]] = []
+        self._mocap_views = [data.mocap_pos for data in self.datas]
         self.refresh()
 
     # ------------------------------------------------------------------ stepping
@@ -97,19 +111,61 @@ class MujocoBatch:
             the model's initial state, see the module docstring).
         """
         model, post, forward = self.model, self.post_constraint, self.forward_after_step
-        for data, data_ctrl, row in zip(self.datas, self._ctrl_views, ctrl):
-            data_ctrl[:] = row
-            mujoco.mj_step(model, data, nstep)
-            if forward:
-                mujoco.mj_forward(model, data)
-            if post:
-                mujoco.mj_rnePostConstraint(model, data)
+        if self._mocap_drivers:
+            self._step_driven(ctrl, nstep)
+        else:  # one mj_step call per simulator: the fast path
+            for data, data_ctrl, row in zip(self.datas, self._ctrl_views, ctrl):
+                data_ctrl[:] = row
+                mujoco.mj_step(model, data, nstep)
+                if forward:
+                    mujoco.mj_forward(model, data)
+                if post:
+                    mujoco.mj_rnePostConstraint(model, data)
+        self.version += 1
         for views, out in self._gather_plan:
             np.concatenate(views, out=out)
         counts = self._warnings[:, _UNSTABLE].sum(axis=1)
         unstable = counts != self._unstable_counts
         self._unstable_counts[:] = counts
         return unstable
+
+    def drive_mocap(self, mocap_ids: Sequence[int], trajectory: MocapTrajectory) -> None:
+        """Move mocap bodies ``mocap_ids`` along ``trajectory`` before every physics sub-step.
+
+        Args:
+            mocap_ids: ``K`` mocap ids (rows of ``mocap_pos``).
+            trajectory: called once per :meth:`step` with the simulation times at which its
+                sub-steps start, ``(N, nstep)``; returns the positions those mocap bodies take
+                before each sub-step, ``(N, nstep, K, 3)``.
+
+        With a trajectory registered, :meth:`step` runs the sub-steps one ``mj_step`` at a time
+        (Safety-Gymnasium moves its gremlins this way); without one it keeps the single
+        ``mj_step(nstep)`` call per simulator.
+        """
+        ids = np.asarray(mocap_ids, dtype=np.int64)
+        if len(ids) and (np.diff(ids) == 1).all():  # contiguous rows: a slice assignment is cheaper
+            rows: slice | np.ndarray = slice(int(ids[0]), int(ids[-1]) + 1)
+        else:
+            rows = ids
+        self._mocap_drivers.append((rows, trajectory))
+
+    def _step_driven(self, ctrl: np.ndarray, nstep: int) -> None:
+        """:meth:`step` with mocap trajectories: all targets computed up front, vectorised, then sub-step by sub-step."""
+        model, post, forward = self.model, self.post_constraint, self.forward_after_step
+        start = np.fromiter((data.time for data in self.datas), dtype=np.float64, count=self.num_sims)
+        times = start[:, None] + np.arange(nstep) * model.opt.timestep
+        plans = [(rows, trajectory(times)) for rows, trajectory in self._mocap_drivers]
+        for i, (data, data_ctrl, mocap_pos, row) in enumerate(zip(self.datas, self._ctrl_views, self._mocap_views, ctrl)):
+            data_ctrl[:] = row
+            paths = [(rows, targets[i]) for rows, targets in plans]  # this simulator's (nstep, K, 3) targets
+            for k in range(nstep):
+                for rows, path in paths:
+                    mocap_pos[rows] = path[k]
+                mujoco.mj_step(model, data)
+            if forward:
+                mujoco.mj_forward(model, data)
+            if post:
+                mujoco.mj_rnePostConstraint(model, data)
 
     def reset(
         self,
@@ -153,6 +209,7 @@ class MujocoBatch:
                 cache[i] = views[i]
         rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
+        self.version += 1
 
     def set_mocap_pos(self, index: int, mocap_id: int, pos: np.ndarray) -> None:
         """Move mocap body ``mocap_id`` of simulator ``index`` to ``pos`` (3,), without a forward pass.
@@ -178,6 +235,27 @@ class MujocoBatch:
                 first, second = pairs[:, 0], pairs[:, 1]
                 hits = (geoms_a[first] & geoms_b[second]) | (geoms_a[second] & geoms_b[first])
                 counts[i] = np.count_nonzero(hits)
+        return counts
+
+    def contact_counts(self, geoms: np.ndarray) -> np.ndarray:
+        """Per simulator and geom, the number of active contacts between that geom and a geom of ``geoms``.
+
+        Args:
+            geoms: ``(ngeom,)`` bool mask (e.g. the robot's geoms).
+
+        Returns:
+            ``(N, ngeom)`` float counts: one pass over the contacts answers "how often does each
+            object touch the robot" for every object at once.
+        """
+        ngeom = self.model.ngeom
+        counts = np.zeros((self.num_sims, ngeom))
+        for i, data in enumerate(self.datas):
+            if data.ncon:
+                pairs = data.contact.geom
+                first, second = pairs[:, 0], pairs[:, 1]
+                partners = np.concatenate([second[geoms[first]], first[geoms[second]]])
+                if len(partners):
+                    counts[i] = np.bincount(partners, minlength=ngeom)
         return counts
 
     # ------------------------------------------------------------------ snapshots

@@ -13,10 +13,24 @@ Layout of this package:
 
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.objects import FreeObject, Goal, Hazards, NavObject, StaticObject, Vases
-from sg_torchrl.envs.navigation.robots import ROBOTS, Point, Robot
+from sg_torchrl.envs.navigation.objects import CircleZone, Sigwalls
+from sg_torchrl.envs.navigation.robots import ROBOTS, Car, Point, Robot
 from sg_torchrl.envs.navigation.tasks import TASKS, GoalTask, Task, make_task
+from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
+from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Pillars, PushBox
+from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
 
 __all__ = [
+    "ButtonTask",
+    "Buttons",
+    "GoalMarker",
+    "Gremlins",
+    "Pillars",
+    "PushBox",
+    "PushTask",
+    "Car",
+    "CircleTask",
+    "CircleZone",
     "FreeObject",
     "Goal",
     "GoalTask",
@@ -26,6 +40,8 @@ __all__ = [
     "Point",
     "ROBOTS",
     "Robot",
+    "RunTask",
+    "Sigwalls",
     "StaticObject",
     "TASKS",
     "Task",

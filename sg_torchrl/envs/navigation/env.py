@@ -21,16 +21,17 @@ import torch
 
 from sg_torchrl.envs.base import CostMode, SafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
-from sg_torchrl.envs.navigation.lidar import pseudo_lidar
+from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, pseudo_lidar
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
 from sg_torchrl.envs.navigation.world import Scene, build_spec, compiled_model
+from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, RenderMixin
 
 __all__ = ["NavigationEnv"]
 
 
-class NavigationEnv(SafeEnv):
+class NavigationEnv(RenderMixin, SafeEnv):
     """A navigation task at one level with one robot, batched over ``num_envs`` simulators.
 
     Args:
@@ -41,6 +42,10 @@ class NavigationEnv(SafeEnv):
         level: the task level (0, 1, 2); ignored when ``task`` is an instance.
         num_envs, device, seed, cost_mode: see :class:`SafeEnv`.
         max_episode_steps: default: the task's (1000 for Goal).
+        lidar: ``"pseudo"`` (default, the reference's) or ``"natural"`` (ray casting, sees the surfaces
+            of objects, flat ones included; same size); see :mod:`~sg_torchrl.envs.navigation.lidar`.
+        compass: add a 2-value ``<name>_comp`` unit vector to each goal-like object after its lidar
+            entry (off by default, as in every reference task; +2 values for the goal).
 
     Attributes:
         observation_slices: ``{name: slice}`` of every observation part (``"accelerometer"``, ...,
@@ -61,6 +66,8 @@ class NavigationEnv(SafeEnv):
         seed: int | None = None,
         cost_mode: CostMode = "indicator",
         max_episode_steps: int | None = None,
+        lidar: LidarMode = "pseudo",
+        compass: bool = False,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before building the scene, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -69,8 +76,12 @@ class NavigationEnv(SafeEnv):
         self.robot = ROBOTS[robot]()
         self.task = task if isinstance(task, Task) else make_task(task, level)
         objects = self.task.objects
-        model = compiled_model(
-            (self.robot.name, *self.task.key),
+        for obj in objects:
+            obj.for_robot(self.robot)  # before the world (and its cache key) is built
+        if lidar not in ("pseudo", "natural"):
+            raise ValueError(f"lidar must be 'pseudo' or 'natural', got {lidar!r}")
+        model = compiled_model(  # natural lidar re-assigns geom groups: its own model
+            (self.robot.name, *self.task.key, *(("natural_lidar",) if lidar == "natural" else ())),
             lambda: build_spec(self.robot, objects, self.task.floor_half_size),
         )
         self.robot.bind(model)
@@ -92,12 +103,21 @@ class NavigationEnv(SafeEnv):
             column += width
         self._robot_columns = slice(0, column)
         self._lidar_groups: list[tuple[NavObject, slice]] = []
+        self._compass_groups: list[tuple[NavObject, slice]] = []
         for obj in objects:
             if obj.lidar:
                 part = slice(column, column + self.task.lidar_bins)
                 self.observation_slices[f"{obj.name}_lidar"] = part
                 self._lidar_groups.append((obj, part))
                 column = part.stop
+            if compass and obj.compass_target:
+                part = slice(column, column + 2)
+                self.observation_slices[f"{obj.name}_comp"] = part
+                self._compass_groups.append((obj, part))
+                column = part.stop
+        self._natural_lidar = None if lidar == "pseudo" else NaturalLidar(
+            self.scene, [obj for obj, _ in self._lidar_groups], num_bins=self.task.lidar_bins,
+            max_dist=self.task.lidar_max_dist)
         self._constrained = [obj for obj in objects if obj.cost_names]
         constraint_names = [name for obj in self._constrained for name in obj.cost_names]
 
@@ -121,6 +141,11 @@ class NavigationEnv(SafeEnv):
             seed=seed,
         )
         self.task.bind(self)
+
+    default_camera = NAVIGATION_CAMERA  # render(): follows the robot (sg_torchrl.envs.rendering)
+
+    def _render_body(self) -> int:
+        return self.scene.agent_body
 
     # ------------------------------------------------------------------ layout
     def _reset_sims(self, indices: np.ndarray) -> None:
@@ -181,6 +206,11 @@ class NavigationEnv(SafeEnv):
             others_keepout = np.append(others_keepout, sampler.keepouts[item])
         return True
 
+    def rng(self, index: int) -> np.random.Generator:
+        """Simulator ``index``'s generator: layouts, goal positions and every other random event of a task
+        draw from it, so a seed replays a simulator whatever ``num_envs`` is."""
+        return self._rngs[index]
+
     # ------------------------------------------------------------------ stepping
     def _advance(self, action: np.ndarray) -> None:
         self._unstable[:] = self.physics.step(action, self.frame_skip)
@@ -203,8 +233,17 @@ class NavigationEnv(SafeEnv):
         self.robot.observe(scene.sensordata(), obs[:, self._robot_columns])
         position, rotation = scene.agent_pos(), scene.agent_mat()
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
+        natural = self._natural_lidar
+        if natural is not None:
+            natural.prepare(scene)
         for obj, part in self._lidar_groups:
-            pseudo_lidar(position, rotation, obj.positions(scene), num_bins=bins, max_dist=max_dist, out=obs[:, part])
+            if natural is not None:
+                natural.observe(scene, obj, out=obs[:, part])
+            else:
+                pseudo_lidar(position, rotation, obj.positions(scene), num_bins=bins, max_dist=max_dist,
+                             out=obs[:, part])
+        for obj, part in self._compass_groups:
+            compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
         self.task.after_observe(self, obs)
         return obs
 
@@ -227,6 +266,7 @@ class NavigationEnv(SafeEnv):
         return {
             "physics": self.physics.get_state(),
             "mocap_pos": self.physics.gather("mocap_pos"),
+            "mocap_quat": self.physics.gather("mocap_quat"),  # yawed mocaps the physics follows (gremlins)
             "objects": {obj.name: obj.state_dict() for obj in self.task.objects},
             "layout": self.layout.copy(),
             "task": self.task.state_dict(),
@@ -236,6 +276,8 @@ class NavigationEnv(SafeEnv):
         for index, rows in enumerate(state["mocap_pos"]):
             for mocap_id, pos in enumerate(rows):
                 self.physics.set_mocap_pos(index, mocap_id, pos)
+        for data, quat in zip(self.physics.datas, state.get("mocap_quat", ())):
+            data.mocap_quat[:] = quat
         self.physics.set_state(state["physics"])
         for obj in self.task.objects:
             obj.load_state_dict(state["objects"][obj.name])

@@ -8,13 +8,37 @@ circle: bin 0 starts at the robot's forward (+x) axis and bins go counter-clockw
 in its bin; every bin keeps the maximum over targets. With aliasing, a target at fraction ``a`` of
 the way through its bin also gives ``a * reading`` to the next bin (counter-clockwise) and
 ``(1 - a) * reading`` to the previous one. Computed from centre positions, not ray casts.
+
+Options (off by default, so observation sizes stay the reference's; ``sg_torchrl.make(id, lidar=...,
+compass=...)``):
+
+* ``lidar="natural"`` (:class:`NaturalLidar`): ray casting. Per lidar group, one horizontal ray per
+  bin (bin ``i`` at ``i * 2 pi / 16`` counter-clockwise from the robot's heading, as in the
+  reference's unused natural mode) from the robot's position at the group's height, so flat
+  objects such as hazards and the Circle zone are seen too; a ray sees only its group's geoms and
+  reads the same function of the distance to the first surface it hits as the pseudo-lidar does of
+  the distance to a centre (no aliasing). Same size as the pseudo-lidar.
+* ``compass=True`` (:func:`compass_vector`): a ``<name>_comp`` entry of 2 values, the unit vector to the
+  target in the robot frame (normalised by ``norm + 0.001``), after the ``<name>_lidar`` entry of
+  each goal-like object (``NavObject.compass_target``: the goal). +2 values per such object, e.g.
+  SafetyPointGoal1-v0 62.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Literal
+
+import mujoco
 import numpy as np
 
-__all__ = ["pseudo_lidar", "egocentric_xy"]
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.objects.base import NavObject
+    from sg_torchrl.envs.navigation.world import Scene
+
+__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "pseudo_lidar", "egocentric_xy"]
+
+LidarMode = Literal["pseudo", "natural"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -54,10 +78,7 @@ def pseudo_lidar(
     angle = np.arctan2(ego[..., 1], ego[..., 0]) % TWO_PI
     position = angle * (num_bins / TWO_PI)  # in bins
     bins = np.minimum(position.astype(np.int64), num_bins - 1)  # angles a hair below 2 pi round up to 2 pi
-    if max_dist is None:
-        reading = np.exp(-exp_gain * distance)
-    else:
-        reading = np.maximum(0.0, max_dist - distance) / max_dist
+    reading = _reading(distance, max_dist, exp_gain)
     # Every target writes three distinct bins of its own row; the per-bin maximum over targets is taken after.
     contributions = np.zeros((n, k, num_bins))
     rows, columns = np.arange(n)[:, None], np.arange(k)[None, :]
@@ -67,3 +88,91 @@ def pseudo_lidar(
         contributions[rows, columns, (bins - 1) % num_bins] = (1.0 - fraction) * reading
     contributions[rows, columns, bins] = reading
     return contributions.max(axis=1, out=out)
+
+
+def _reading(distance: np.ndarray, max_dist: float | None, exp_gain: float) -> np.ndarray:
+    if max_dist is None:
+        return np.exp(-exp_gain * distance)
+    return np.maximum(0.0, max_dist - distance) / max_dist
+
+
+def compass_vector(
+    agent_pos: np.ndarray, agent_mat: np.ndarray, target_xy: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Unit vectors ``(N, 2)`` from each robot to ``target_xy`` (``(N, 2)``) in the robot frame.
+
+    The egocentric offset (as for the lidar) divided by its norm + 0.001, as the reference does.
+    """
+    ego = egocentric_xy(agent_pos, agent_mat, target_xy[:, None, :])[:, 0]
+    norm = np.hypot(ego[:, 0], ego[:, 1])
+    return np.divide(ego, (norm + 0.001)[:, None], out=out)
+
+
+class NaturalLidar:
+    """Ray-cast lidar for the lidar groups of one world (see the module docstring).
+
+    Each ray only sees the geoms of its own group: group ``g`` (1 to 5, in observation order) of the
+    world's geom groups holds exactly the geoms of the ``g``-th observed object (its
+    ``geom_mask``) and every other geom is moved to group 0. Built with ``lidar="natural"``, a
+    world gets its own compiled model (the env adds the mode to the cache key), so this never
+    changes the model of a pseudo-lidar env. Renderers show geom groups 0-2 by default: enable
+    groups 3-5 (``mjvOption.geomgroup``) to see the later groups of such a world.
+
+    Rays start at the robot's position, at the mean height of the group's geom centres at rest;
+    they are horizontal whatever the robot's tilt and ignore geoms beyond ``max_dist``. A ray
+    starting inside a geom reads the distance to where it leaves it. Computed per simulator with
+    ``mujoco.mj_multiRay`` (one call per group), after refreshing positions with
+    ``mj_kinematics`` so that objects moved since the last step (a re-sampled goal) are seen where
+    they are now.
+
+    Args:
+        scene: the simulators.
+        objects: the lidar-observed objects, bound to ``scene``, in observation order.
+        num_bins, max_dist, exp_gain: as for :func:`pseudo_lidar`.
+    """
+
+    max_groups = mujoco.mjNGROUP - 1  # group 0 holds everything else
+
+    def __init__(self, scene: Scene, objects: Sequence[NavObject], *, num_bins: int = 16,
+                 max_dist: float | None = 3.0, exp_gain: float = 1.0) -> None:
+        if len(objects) > self.max_groups:
+            raise ValueError(f"natural lidar casts at most {self.max_groups} object groups, got {len(objects)}")
+        model = scene.model
+        groups = np.zeros(model.ngeom, dtype=model.geom_group.dtype)
+        for group, obj in enumerate(objects, start=1):
+            groups[obj.geom_mask] = group
+        model.geom_group[:] = groups
+        rest = mujoco.MjData(model)
+        mujoco.mj_forward(model, rest)
+        self.heights = {id(obj): float(rest.geom_xpos[obj.geom_mask, 2].mean()) for obj in objects}
+        self.masks = {id(obj): np.eye(mujoco.mjNGROUP, dtype=np.uint8)[group] for group, obj in enumerate(objects, 1)}
+        self.num_bins, self.max_dist, self.exp_gain = num_bins, max_dist, exp_gain
+        self.cutoff = mujoco.mjMAXVAL if max_dist is None else float(max_dist)
+        self._angles = np.arange(num_bins) * (TWO_PI / num_bins)
+        self._directions = np.zeros((scene.num_envs, num_bins, 3))
+        self._origins = np.zeros((scene.num_envs, 3))
+        self._distance = np.zeros((scene.num_envs, num_bins))
+        self._geom_ids = np.zeros(num_bins, dtype=np.int32)
+
+    def prepare(self, scene: Scene) -> None:
+        """Refresh geom positions and the ray directions; call once per observation, before :meth:`observe`."""
+        model = scene.model
+        for data in scene.physics.datas:
+            mujoco.mj_kinematics(model, data)
+        heading = scene.agent_mat()[:, :2, 0]  # the body x axis, projected on the floor
+        yaw = np.arctan2(heading[:, 1], heading[:, 0])[:, None] + self._angles
+        self._directions[..., 0] = np.cos(yaw)
+        self._directions[..., 1] = np.sin(yaw)
+        self._origins[:, :2] = scene.agent_xy()
+
+    def observe(self, scene: Scene, obj: NavObject, out: np.ndarray) -> np.ndarray:
+        """Readings ``(N, num_bins)`` of ``obj``'s group, written to ``out``."""
+        model, exclude, mask = scene.model, scene.agent_body, self.masks[id(obj)]
+        self._origins[:, 2] = self.heights[id(obj)]
+        for data, origin, directions, distance in zip(scene.physics.datas, self._origins, self._directions,
+                                                      self._distance):
+            mujoco.mj_multiRay(model, data, origin, directions.reshape(-1), mask, 1, exclude, self._geom_ids,
+                               distance, None, self.num_bins, self.cutoff)
+        hit = self._distance >= 0.0
+        np.multiply(_reading(self._distance, self.max_dist, self.exp_gain), hit, out=out)
+        return out

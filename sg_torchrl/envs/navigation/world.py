@@ -99,6 +99,8 @@ class Scene:
         self._mocap_quat[order] = model.body_quat[mocap_bodies]
         self._xpos = self.physics.field("xpos")
         self._xmat = self.physics.field("xmat").reshape(num_envs, model.nbody, 3, 3)
+        self._robot_contacts = np.zeros((num_envs, model.ngeom))  # see robot_contacts
+        self._contacts_version = -1
 
     def reset_buffers(self, count: int) -> ResetBuffers:
         """Fresh state rows for ``count`` simulators: the model's rest state, mocaps where the model put them."""
@@ -136,3 +138,15 @@ class Scene:
         """Planar distance from the robot's root to points ``xy`` (``(N, K, 2)``), ``(N, K)``."""
         delta = xy - self.agent_xy()[:, None, :]
         return np.sqrt(np.einsum("nki,nki->nk", delta, delta))
+
+    def robot_contacts(self) -> np.ndarray:
+        """Number of contacts between each geom and the robot, ``(N, ngeom)``, for the current state.
+
+        Computed in one pass over the contacts and cached until the physics state changes, so every
+        contact-cost object (buttons, gremlins, pillars, ...) and the task share it within a step.
+        """
+        version = self.physics.version
+        if self._contacts_version != version:
+            self._robot_contacts = self.physics.contact_counts(self.robot_geoms)
+            self._contacts_version = version
+        return self._robot_contacts

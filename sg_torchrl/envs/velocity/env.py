@@ -16,12 +16,13 @@ import torch
 
 from sg_torchrl.envs.base import CostMode, SafeEnv
 from sg_torchrl.envs.physics import MujocoBatch
+from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 
 __all__ = ["VelocityEnv"]
 
 
-class VelocityEnv(SafeEnv):
+class VelocityEnv(RenderMixin, SafeEnv):
     """A gymnasium-v4 locomotion robot with Safety-Gymnasium's velocity cost, batched.
 
     Args:
@@ -92,6 +93,11 @@ class VelocityEnv(SafeEnv):
             device=device,
             seed=seed,
         )
+
+    default_camera = LOCOMOTION_CAMERA  # render(): follows the torso (sg_torchrl.envs.rendering)
+
+    def _render_body(self) -> int:
+        return self._torso_id
 
     # ------------------------------------------------------------------ layout
     def _observation_size(self, model: mujoco.MjModel) -> int:

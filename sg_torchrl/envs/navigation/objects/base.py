@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.robots.base import Robot
     from sg_torchrl.envs.navigation.world import ResetBuffers, Scene
 
 __all__ = ["FreeObject", "NavObject", "StaticObject", "yaw_quat"]
@@ -68,6 +69,8 @@ class NavObject(abc.ABC):
     kind: ClassVar[Kind] = "static"
     #: counted as occupied space when a goal is re-sampled mid-episode (gremlins are not)
     in_goal_layout: ClassVar[bool] = True
+    #: a goal-like target: with ``compass=True`` the env adds a ``<name>_comp`` entry pointing at instance 0
+    compass_target: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -105,6 +108,9 @@ class NavObject(abc.ABC):
         """What :meth:`add_to` depends on: part of the compiled-model cache key. Subclasses whose
         geometry depends on more than class, count and size extend it."""
         return (type(self).__qualname__, self.num, self.size)
+
+    def for_robot(self, robot: Robot) -> None:
+        """Adapt to the robot before the world is built (the push box is smaller for the Car). Default: nothing."""
 
     def body_name(self, i: int) -> str:
         if self.prefix is None:

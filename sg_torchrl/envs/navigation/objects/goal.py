@@ -19,6 +19,7 @@ class Goal(StaticObject):
     """
 
     name: ClassVar[str] = "goal"
+    compass_target: ClassVar[bool] = True
 
     def __init__(self, *, size: float = 0.3, keepout: float = 0.4, reward_distance: float = 1.0,
                  reward_goal: float = 1.0, **options) -> None:

@@ -30,9 +30,28 @@ import numpy as np
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.world import Scene
 
-__all__ = ["Robot", "SensorTerm", "FIXED_SENSORS"]
+__all__ = ["Robot", "SensorTerm", "FIXED_SENSORS", "add_fixed_sensors", "add_vision_camera"]
 
 FIXED_SENSORS = ("accelerometer", "velocimeter", "gyro", "magnetometer")
+_FIXED_SENSOR_TYPES = {
+    "accelerometer": mujoco.mjtSensor.mjSENS_ACCELEROMETER,
+    "velocimeter": mujoco.mjtSensor.mjSENS_VELOCIMETER,
+    "gyro": mujoco.mjtSensor.mjSENS_GYRO,
+    "magnetometer": mujoco.mjtSensor.mjSENS_MAGNETOMETER,
+}
+
+
+def add_fixed_sensors(spec: mujoco.MjSpec, site: str) -> None:
+    """Add the four fixed sensors (:data:`FIXED_SENSORS`, named as such) on ``site``, in observation order."""
+    for sensor in FIXED_SENSORS:
+        spec.add_sensor(name=sensor, type=_FIXED_SENSOR_TYPES[sensor], objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
+
+
+def add_vision_camera(body: mujoco.MjsBody, pos: list[float]) -> None:
+    """Add the ``vision`` camera at ``pos`` on ``body``: looking along the body's +x axis, tilted down, fovy 90."""
+    camera = body.add_camera(name="vision", pos=pos, fovy=90.0)
+    camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
+    camera.alt.xyaxes = [0.0, -1.0, 0.0, 0.4, 0.0, 1.0]
 
 # How a sensor reading becomes observation values.
 Transform = Literal["raw", "sincos", "rotmat", "z"]

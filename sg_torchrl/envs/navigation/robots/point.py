@@ -17,16 +17,9 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.navigation.robots.base import FIXED_SENSORS, Robot
+from sg_torchrl.envs.navigation.robots.base import Robot, add_fixed_sensors, add_vision_camera
 
 __all__ = ["Point"]
-
-_SENSOR_TYPES = {
-    "accelerometer": mujoco.mjtSensor.mjSENS_ACCELEROMETER,
-    "velocimeter": mujoco.mjtSensor.mjSENS_VELOCIMETER,
-    "gyro": mujoco.mjtSensor.mjSENS_GYRO,
-    "magnetometer": mujoco.mjtSensor.mjSENS_MAGNETOMETER,
-}
 
 
 class Point(Robot):
@@ -44,9 +37,7 @@ class Point(Robot):
         spec.default.site.size[0] = 0.032
 
         body = spec.worldbody.add_body(name=self.root_body, pos=[0.0, 0.0, self.height])
-        camera = body.add_camera(name="vision", pos=[0.0, 0.0, 0.15], fovy=90.0)
-        camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
-        camera.alt.xyaxes = [0.0, -1.0, 0.0, 0.4, 0.0, 1.0]
+        add_vision_camera(body, [0.0, 0.0, 0.15])
         slide, hinge = mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE
         body.add_joint(name="agent_x", type=slide, axis=[1.0, 0.0, 0.0], damping=[0.01, 0.0, 0.0])
         body.add_joint(name="agent_y", type=slide, axis=[0.0, 1.0, 0.0], damping=[0.01, 0.0, 0.0])
@@ -69,9 +60,7 @@ class Point(Robot):
             actuator.forcerange = [-0.05, 0.05]
             actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
-        for sensor in FIXED_SENSORS:
-            spec.add_sensor(name=sensor, type=_SENSOR_TYPES[sensor], objtype=mujoco.mjtObj.mjOBJ_SITE,
-                            objname=self.root_body)
+        add_fixed_sensors(spec, self.root_body)
 
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)

@@ -50,7 +50,7 @@ class GoalTask(Task):
 
     def reward(self, env: NavigationEnv) -> np.ndarray:
         distance = self.distance(env)
-        np.less_equal(distance, self.goal.size, out=self.goal_met)
+        self.goal_met[:] = self.reached(env, distance)
         reward = (self._last_distance - distance) * self.goal.reward_distance + self.goal.reward_goal * self.goal_met
         self._last_distance[:] = distance
         return reward
@@ -58,11 +58,20 @@ class GoalTask(Task):
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         terminated = np.zeros(env.num_envs, dtype=bool)
         for index in np.flatnonzero(self.goal_met):
-            if env.resample(self.goal, index):
+            if self.next_goal(env, index):
                 self._last_distance[index] = self.distance(env)[index]
             else:
                 terminated[index] = True
         return terminated
+
+    def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
+        """Which simulators reached the goal this step, ``(N,)`` bool. Here: within the goal's radius."""
+        return distance <= self.goal.size
+
+    def next_goal(self, env: NavigationEnv, index: int) -> bool:
+        """Set up simulator ``index``'s next goal after reaching one; False ends its episode. Here: re-sample
+        the goal position with the layout keep-out rule."""
+        return env.resample(self.goal, index)
 
     def state_dict(self) -> dict:
         return {"last_distance": self._last_distance.copy(), "goal_met": self.goal_met.copy()}

@@ -1,0 +1,36 @@
+"""Contact costs: objects that must not be touched by the robot (pillars, gremlins)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.world import Scene
+
+__all__ = ["ContactCost", "robot_contacts"]
+
+
+def robot_contacts(scene: Scene, geom_mask: np.ndarray) -> np.ndarray:
+    """Number of contacts between the robot and the geoms of ``geom_mask`` (``(ngeom,)`` bool), ``(N,)``."""
+    return scene.robot_contacts()[:, geom_mask].sum(axis=1)
+
+
+class ContactCost:
+    """Mixin for a :class:`~sg_torchrl.envs.navigation.objects.base.NavObject`: when constrained, one cost
+    entry named after the object, the number of MuJoCo contacts between its geoms and the robot's
+    (reference section 3: ``cost_pillars``, ``cost_gremlins``; coefficient 1)."""
+
+    name: str
+    constrained: bool
+    geom_mask: np.ndarray
+
+    @property
+    def cost_names(self) -> tuple[str, ...]:
+        return (self.name,) if self.constrained else ()
+
+    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
+        if not self.constrained:
+            return {}
+        return {self.name: robot_contacts(scene, self.geom_mask)}

@@ -1,0 +1,77 @@
+"""Button: press the goal button among four; a new goal button is drawn each time (reference sections 2-6).
+
+Reward per step: ``(d_prev - d) * 1.0`` with ``d`` the planar distance from the robot to the goal
+button (the goal marker sits on it), plus ``1.0`` when any robot geom touches the goal button.
+Then the goal button is drawn again uniformly among the four (it may repeat), the marker moves
+onto it and a 10-step timer restarts; a reset does the same. While the timer is non-zero the
+``buttons_lidar`` entry reads all zeros and wrong buttons cost nothing. The timer counts down
+once per step, after reward and cost. Episodes last 1000 steps and never terminate early.
+
+Levels: 0 the four buttons (unconstrained) and the marker in +-1; 1 in +-1.5 adds 4 hazards and
+4 gremlins and constrains the buttons; 2 in +-1.8 has 8 hazards and 6 gremlins. Observation:
+sensors, then ``buttons_lidar``, ``goal_lidar`` (, ``hazards_lidar``, ``gremlins_lidar``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Hazards
+from sg_torchrl.envs.navigation.tasks.goal import GoalTask
+
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.env import NavigationEnv
+
+__all__ = ["BUTTON_LEVELS", "ButtonTask"]
+
+
+class ButtonTask(GoalTask):
+    """Press goal buttons one after another (see the module docstring).
+
+    A :class:`GoalTask` whose goal is the marker on the goal button: reached by touching that
+    button, and followed by drawing a new goal button instead of moving the goal.
+    """
+
+    name: ClassVar[str] = "Button"
+
+    def bind(self, env: NavigationEnv) -> None:
+        super().bind(env)
+        self.buttons = self.find(Buttons)
+        self._buttons_lidar = env.observation_slices.get(f"{self.buttons.name}_lidar")
+
+    def reset(self, env: NavigationEnv, indices: np.ndarray) -> None:
+        for index in indices:
+            self._press(env, int(index))
+        super().reset(env, indices)
+
+    def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
+        return self.buttons.goal_pressed(env.scene)
+
+    def next_goal(self, env: NavigationEnv, index: int) -> bool:
+        self._press(env, index)
+        return True
+
+    def _press(self, env: NavigationEnv, index: int) -> None:
+        """Draw simulator ``index``'s goal button, restart its timer, move the marker onto the button."""
+        xy = self.buttons.choose_goal(env.scene, index, env.rng(index))
+        self.goal.move(env.scene, index, 0, xy)
+
+    def after_step(self, env: NavigationEnv) -> np.ndarray:
+        self.buttons.tick()  # after reward and cost, before a pressed goal restarts the timer
+        return super().after_step(env)
+
+    def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
+        if self._buttons_lidar is not None:
+            observation[self.buttons.timer > 0, self._buttons_lidar] = 0.0
+
+
+# reference section 6: extents, counts, sizes and keep-outs of each level.
+BUTTON_LEVELS = {
+    0: lambda: ButtonTask(0, extents=1.0, objects=[Buttons(4, constrained=False), GoalMarker()]),
+    1: lambda: ButtonTask(1, extents=1.5, objects=[
+        Buttons(4), GoalMarker(), Hazards(4, keepout=0.18), Gremlins(4)]),
+    2: lambda: ButtonTask(2, extents=1.8, objects=[
+        Buttons(4), GoalMarker(), Hazards(8, keepout=0.18), Gremlins(6)]),
+}

@@ -1,0 +1,518 @@
+"""Headless rendering of the MuJoCo envs: ``rgb_array`` frames and episode videos.
+
+>>> env = sg_torchrl.make("SafetyPointGoal1-v0", num_envs=4, seed=0)
+>>> td = env.reset()
+>>> frame = env.render(index=2)               # (256, 256, 3) uint8, camera following robot 2
+>>> record_video(env, policy, "episode.mp4")  # one episode of simulator 0
+
+What renders
+------------
+:class:`RenderMixin` gives an env with a :class:`~sg_torchrl.envs.physics.MujocoBatch` ``physics``
+(NavigationEnv, VelocityEnv) ``render(index, width, height, camera)``: simulator ``index`` as an
+``(height, width, 3)`` ``uint8`` RGB array. The env owns one :class:`Renderer`, created at the first
+``render`` and released by ``env.close()`` (or at interpreter exit, whichever comes first). Rendering
+only reads ``MjData``: it never changes a trajectory. ``camera`` is one of
+
+* ``None`` / ``"follow"``: the env's :attr:`RenderMixin.default_camera`, a :class:`FollowCamera`
+  whose look-at point is the robot's root body in every frame (navigation: from above at an angle;
+  locomotion: from the side, like gymnasium's MuJoCo envs);
+* ``"chase"``: :data:`CHASE_CAMERA`, behind the robot, turning with its heading;
+* a :class:`FollowCamera` of your own (distance, elevation, azimuth, heading);
+* the name or id of a camera of the model (the navigation robots carry an egocentric ``"vision"``
+  camera); ``-1`` or ``"world"``: MuJoCo's default free camera over the whole world;
+* a ``mujoco.MjvCamera``, used as is.
+
+:meth:`RenderMixin.render_camera` returns the ``MjvCamera`` a frame would use (tests use it to
+check that the camera follows the robot).
+
+OpenGL backend
+--------------
+With ``MUJOCO_GL`` set (``egl``, ``osmesa``, ``glfw``) that backend is used. Unset, the first of EGL
+and OSMesa that can actually create a context here is picked, once per process: each candidate is
+tried in a short-lived subprocess (about half a second), because PyOpenGL binds one platform per
+process and a failed EGL attempt would otherwise rule out OSMesa. Both work without a GPU through
+Mesa's software rasteriser (llvmpipe). When neither works, :class:`RenderingUnavailable` names the
+missing system library (Debian/Ubuntu: ``libegl1``, ``libgl1``, ``libosmesa6``; ``make install``
+installs them when it can). By default (``render_fast``) frames have no anti-aliasing, shadows,
+reflections or skybox: on a software rasteriser these cost several times the frame rate. Frames of
+any size work (the renderer's offscreen buffer is sized for them; the shared model is left as is).
+
+Videos
+------
+:func:`record_video` runs an episode (a policy, or random actions) and writes one frame per step:
+MP4 through ``imageio-ffmpeg`` when it is installed (a dependency of sg_torchrl), else an animated
+GIF next to the requested path.
+"""
+
+from __future__ import annotations
+
+import atexit
+import ctypes.util
+import math
+import os
+import subprocess
+import sys
+import warnings
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import mujoco
+import numpy as np
+import torch
+
+__all__ = [
+    "CHASE_CAMERA",
+    "DEFAULT_HEIGHT",
+    "DEFAULT_WIDTH",
+    "FollowCamera",
+    "LOCOMOTION_CAMERA",
+    "NAVIGATION_CAMERA",
+    "RenderMixin",
+    "Renderer",
+    "RenderingUnavailable",
+    "gl_backend",
+    "record_video",
+]
+
+DEFAULT_WIDTH = 256
+DEFAULT_HEIGHT = 256
+
+# Backend -> (library PyOpenGL loads, Debian/Ubuntu packages providing it and what it needs).
+_LIBRARIES = {
+    "egl": ("EGL", "libegl1 (with a driver such as libegl-mesa0) and libgl1"),
+    "osmesa": ("OSMesa", "libosmesa6"),
+}
+_INSTALL_HINT = (
+    "Install the Mesa libraries (Debian/Ubuntu: `apt-get install libegl1 libgl1 libosmesa6`; "
+    "`make install` does this when it runs as root) or set MUJOCO_GL to a backend that works here."
+)
+
+
+class RenderingUnavailable(RuntimeError):
+    """No OpenGL backend can render here (the message says what is missing)."""
+
+
+# ---------------------------------------------------------------------------- backend selection
+_backend: str | None = None
+_backend_error: str | None = None
+
+# Run in a fresh interpreter to test one backend: create a context and MuJoCo's render context.
+_PROBE = """
+import sys
+import mujoco
+backend = sys.argv[1]
+module = __import__("mujoco." + backend, fromlist=["GLContext"])
+context = module.GLContext(16, 16)
+context.make_current()
+render_context = mujoco.MjrContext(mujoco.MjModel.from_xml_string("<mujoco/>"), 100)
+render_context.free()
+context.free()
+"""
+
+
+def _probe(backend: str) -> str | None:
+    """Why ``backend`` cannot render here, or ``None`` if it can."""
+    library, packages = _LIBRARIES[backend]
+    if ctypes.util.find_library(library) is None:
+        return f"lib{library}.so not found (Debian/Ubuntu package: {packages})"
+    env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend}
+    try:
+        result = subprocess.run([sys.executable, "-c", _PROBE, backend], env=env, capture_output=True,
+                                text=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return f"probe failed: {error}"
+    if result.returncode == 0:
+        return None
+    lines = [line for line in result.stderr.strip().splitlines() if line.strip()]
+    return f"{lines[-1] if lines else f'exit code {result.returncode}'} (needs {packages})"
+
+
+def gl_backend() -> str:
+    """The OpenGL backend rendering uses in this process: ``"egl"``, ``"osmesa"`` or ``"glfw"``.
+
+    ``MUJOCO_GL`` when set; otherwise the first of EGL and OSMesa that works (see the module
+    docstring), decided once per process. Raises :class:`RenderingUnavailable` when none works.
+    """
+    global _backend, _backend_error
+    if _backend is not None:
+        return _backend
+    if _backend_error is not None:
+        raise RenderingUnavailable(_backend_error)
+    requested = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if requested in ("disable", "disabled", "off", "false", "0"):
+        _backend_error = f"rendering is disabled (MUJOCO_GL={requested!r})"
+        raise RenderingUnavailable(_backend_error)
+    if requested:
+        _backend = requested if requested in ("egl", "osmesa") else "glfw"
+        return _backend
+    # PyOpenGL binds the platform named by PYOPENGL_PLATFORM: only that backend can work then.
+    platform = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
+    candidates = [platform] if platform in _LIBRARIES else list(_LIBRARIES)
+    reasons = []
+    for candidate in candidates:
+        reason = _probe(candidate)
+        if reason is None:
+            _backend = candidate
+            return _backend
+        reasons.append(f"{candidate}: {reason}")
+    _backend_error = "no headless OpenGL backend works here (" + "; ".join(reasons) + "). " + _INSTALL_HINT
+    raise RenderingUnavailable(_backend_error)
+
+
+def _context_class(backend: str) -> type:
+    """The ``GLContext`` class of ``backend`` (imports the backend's PyOpenGL platform)."""
+    # PyOpenGL reads PYOPENGL_PLATFORM once, when it is first imported (MuJoCo's EGL and OSMesa
+    # modules set it). Put it back afterwards so that child processes choose their own backend.
+    previous = os.environ.get("PYOPENGL_PLATFORM")
+    if backend in _LIBRARIES and previous is None:
+        os.environ["PYOPENGL_PLATFORM"] = backend
+    try:
+        if backend == "egl":
+            from mujoco.egl import GLContext
+        elif backend == "osmesa":
+            from mujoco.osmesa import GLContext
+        else:
+            from mujoco.glfw import GLContext
+    except Exception as error:  # ImportError, or PyOpenGL failing to load the library
+        raise RenderingUnavailable(f"cannot load the {backend!r} OpenGL backend: {error}. {_INSTALL_HINT}") from error
+    finally:
+        if previous is None:
+            os.environ.pop("PYOPENGL_PLATFORM", None)
+    return GLContext
+
+
+# ---------------------------------------------------------------------------- renderer
+_live_renderers: weakref.WeakSet = weakref.WeakSet()
+_exit_hook_registered = False
+
+
+def _close_all_renderers() -> None:
+    """At interpreter exit, free every renderer still open while its GL backend is still alive."""
+    for renderer in list(_live_renderers):
+        renderer.close()
+
+
+class Renderer:
+    """Offscreen renderer of one model: a GL context, MuJoCo's render context and a scene.
+
+    Args:
+        model: the compiled model (shared by the simulators it renders).
+        width / height: the largest frame this renderer will produce (smaller ones are fine).
+        max_geom: capacity of the scene in geoms.
+        fast: no multisample anti-aliasing (about 3x faster on a software rasteriser) and no
+            shadows, reflections or skybox (stack notes: up to 8x; the navigation worlds use none).
+
+    Prefer :meth:`RenderMixin.render`; use this class directly to render ``MjData`` you manage.
+    :meth:`close` frees the GL resources (also done at interpreter exit).
+    """
+
+    def __init__(self, model: mujoco.MjModel, width: int, height: int, *, max_geom: int = 10_000,
+                 fast: bool = True) -> None:
+        global _exit_hook_registered
+        if width < 1 or height < 1:
+            raise ValueError(f"frame size must be positive, got width={width}, height={height}")
+        self.model = model
+        self.fast = fast
+        self._gl = None
+        self._context = None
+        backend = gl_backend()
+        context_class = _context_class(backend)
+        # The render context takes its offscreen buffer's size and multisampling from the model
+        # when it is created; set them for this renderer only and restore the (shared) model after.
+        buffer, quality = model.vis.global_, model.vis.quality
+        saved = (buffer.offwidth, buffer.offheight, quality.offsamples)
+        self.max_width, self.max_height = max(int(buffer.offwidth), width), max(int(buffer.offheight), height)
+        try:
+            buffer.offwidth, buffer.offheight = self.max_width, self.max_height
+            if fast:
+                quality.offsamples = 0
+            self._gl = context_class(self.max_width, self.max_height)
+            self._gl.make_current()
+            self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._context)
+        except Exception as error:
+            self.close()
+            raise RenderingUnavailable(
+                f"cannot create an OpenGL context with the {backend!r} backend: {error}. {_INSTALL_HINT}"
+            ) from error
+        finally:
+            buffer.offwidth, buffer.offheight, quality.offsamples = saved
+        self._scene = mujoco.MjvScene(model, maxgeom=max_geom)
+        self._option = mujoco.MjvOption()
+        _live_renderers.add(self)
+        if not _exit_hook_registered:
+            # Registered after the first GL context exists, so that it runs before the backend's own
+            # exit hook (EGL terminates its display at exit; atexit runs hooks last-in first-out).
+            atexit.register(_close_all_renderers)
+            _exit_hook_registered = True
+
+    @property
+    def closed(self) -> bool:
+        return self._context is None
+
+    def fits(self, width: int, height: int) -> bool:
+        """Whether this (open) renderer can produce a ``width`` x ``height`` frame."""
+        return not self.closed and width <= self.max_width and height <= self.max_height
+
+    def render(self, data: mujoco.MjData, camera: mujoco.MjvCamera, width: int, height: int) -> np.ndarray:
+        """``data`` seen from ``camera`` as a new ``(height, width, 3)`` ``uint8`` array."""
+        if self.closed:
+            raise RuntimeError("the renderer is closed")
+        if not self.fits(width, height):
+            raise ValueError(f"frame {width}x{height} exceeds this renderer's {self.max_width}x{self.max_height}")
+        self._gl.make_current()
+        mujoco.mjv_updateScene(self.model, data, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL.value,
+                               self._scene)
+        if self.fast:
+            flags = self._scene.flags
+            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+            flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+            flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
+        viewport = mujoco.MjrRect(0, 0, width, height)
+        mujoco.mjr_render(viewport, self._scene, self._context)
+        pixels = np.empty((height, width, 3), dtype=np.uint8)
+        mujoco.mjr_readPixels(pixels, None, viewport, self._context)
+        return np.ascontiguousarray(pixels[::-1])  # OpenGL's rows run bottom to top
+
+    def close(self) -> None:
+        """Free the GL resources; calling it again does nothing."""
+        _live_renderers.discard(self)
+        gl, context = self._gl, self._context
+        self._gl = self._context = None
+        try:
+            if context is not None:
+                if gl is not None:
+                    gl.make_current()
+                context.free()
+        finally:
+            if gl is not None:
+                gl.free()
+
+    def __del__(self) -> None:
+        if sys.is_finalizing():  # the exit hook already closed it; the GL modules may be gone
+            return
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - never raise from a finaliser
+            pass
+
+
+# ---------------------------------------------------------------------------- cameras
+@dataclass(frozen=True)
+class FollowCamera:
+    """A free camera whose look-at point is the robot's root body in every frame.
+
+    Args:
+        distance: from the look-at point, metres.
+        elevation: degrees above the horizon of the viewing direction (negative: looking down).
+        azimuth: degrees of the viewing direction in the plane (0: along +x, 90: along +y, which
+            shows +x to the right); relative to the robot's heading when ``heading`` is true.
+        heading: turn with the robot's yaw (a chase camera).
+        offset: added to the look-at point (world frame).
+    """
+
+    distance: float = 4.0
+    elevation: float = -60.0
+    azimuth: float = 90.0
+    heading: bool = False
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def place(self, camera: mujoco.MjvCamera, position: np.ndarray, rotation: np.ndarray) -> mujoco.MjvCamera:
+        """Point ``camera`` at a body at ``position`` (3,) with orientation ``rotation`` (3, 3)."""
+        camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+        camera.lookat[:] = np.asarray(position) + np.asarray(self.offset)
+        camera.distance = self.distance
+        camera.elevation = self.elevation
+        azimuth = self.azimuth
+        if self.heading:
+            azimuth += math.degrees(math.atan2(rotation[1, 0], rotation[0, 0]))
+        camera.azimuth = azimuth
+        return camera
+
+
+#: the navigation default: from above at 60 degrees, a few metres of the arena around the robot
+NAVIGATION_CAMERA = FollowCamera(distance=4.5, elevation=-60.0, azimuth=90.0)
+#: the locomotion default: from the side, slightly above (gymnasium's MuJoCo envs look alike)
+LOCOMOTION_CAMERA = FollowCamera(distance=4.0, elevation=-20.0, azimuth=90.0)
+#: behind the robot, turning with it
+CHASE_CAMERA = FollowCamera(distance=2.5, elevation=-25.0, azimuth=0.0, heading=True)
+
+
+class RenderMixin:
+    """``render`` for an env holding a :class:`~sg_torchrl.envs.physics.MujocoBatch` as ``physics``.
+
+    Put it before the env's base class (``class NavigationEnv(RenderMixin, SafeEnv)``); an env sets
+    :attr:`default_camera` and overrides :meth:`_render_body` when its robot is not body 1. Its
+    ``close`` also frees the renderer.
+    """
+
+    default_camera: ClassVar[FollowCamera] = FollowCamera()
+    #: see :class:`Renderer` ``fast``; set it to ``False`` (then :meth:`close_renderer`) for anti-aliased frames
+    render_fast: bool = True
+    _renderer: Renderer | None = None
+    _render_closed: bool = False
+
+    def _render_body(self) -> int:
+        """Id of the body the follow cameras track (default 1: the first body after the world)."""
+        return 1
+
+    def render_camera(self, index: int = 0, camera: Any = None) -> mujoco.MjvCamera:
+        """The ``MjvCamera`` :meth:`render` uses for simulator ``index`` (``camera`` as in :meth:`render`)."""
+        model, data = self.physics.model, self._render_data(index)
+        if isinstance(camera, mujoco.MjvCamera):
+            return camera
+        if camera is None or camera == "follow":
+            camera = self.default_camera
+        elif camera == "chase":
+            camera = CHASE_CAMERA
+        elif camera == "world":
+            camera = -1
+        result = mujoco.MjvCamera()
+        if isinstance(camera, FollowCamera):
+            body = self._render_body()
+            return camera.place(result, data.xpos[body], data.xmat[body].reshape(3, 3))
+        camera_id = camera
+        if isinstance(camera, str):
+            camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+            if camera_id < 0:
+                names = [model.camera(i).name for i in range(model.ncam)]
+                raise ValueError(f"unknown camera {camera!r}: use 'follow', 'chase', 'world', a FollowCamera, "
+                                 f"an MjvCamera or a camera of the model {names}")
+        if not isinstance(camera_id, (int, np.integer)) or not -1 <= camera_id < model.ncam:
+            raise ValueError(f"camera must be a name, a FollowCamera, an MjvCamera or an id in [-1, {model.ncam}), "
+                             f"got {camera!r}")
+        if camera_id == -1:
+            mujoco.mjv_defaultFreeCamera(model, result)
+        else:
+            result.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            result.fixedcamid = int(camera_id)
+        return result
+
+    def render(self, index: int = 0, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
+               camera: Any = None) -> np.ndarray:
+        """Simulator ``index`` as an RGB image, ``(height, width, 3)`` ``uint8``.
+
+        ``camera``: ``None``/``"follow"`` (the env's follow camera), ``"chase"``, ``"world"``, a
+        :class:`FollowCamera`, a model camera's name or id, or an ``MjvCamera``. Raises
+        :class:`RenderingUnavailable` when no OpenGL backend works here.
+        """
+        if self._render_closed:
+            raise RuntimeError(f"{type(self).__name__}: render() after close()")
+        data = self._render_data(index)
+        mjv_camera = self.render_camera(index, camera)
+        renderer = self._renderer
+        if renderer is None or not renderer.fits(width, height):
+            if renderer is not None:
+                renderer.close()
+            self._renderer = None
+            renderer = self._renderer = Renderer(self.physics.model, width, height, fast=self.render_fast)
+        return renderer.render(data, mjv_camera, width, height)
+
+    def close_renderer(self) -> None:
+        """Free the renderer (the next :meth:`render` creates a new one)."""
+        renderer, self._renderer = self._renderer, None
+        if renderer is not None:
+            renderer.close()
+
+    def close(self, *args, **kwargs):
+        self.close_renderer()
+        self._render_closed = True
+        return super().close(*args, **kwargs)
+
+    def __getstate__(self):
+        # Copies and pickles (collectors, worker processes) get no renderer: GL contexts belong to
+        # one process and one owner. The copy creates its own at its first render().
+        state = dict(super().__getstate__())
+        state.pop("_renderer", None)
+        return state
+
+    def _render_data(self, index: int) -> mujoco.MjData:
+        datas = self.physics.datas
+        if not isinstance(index, (int, np.integer)) or not 0 <= index < len(datas):
+            raise IndexError(f"simulator index {index!r} out of range for {len(datas)} simulators")
+        return datas[index]
+
+
+# ---------------------------------------------------------------------------- videos
+def _ffmpeg_available() -> bool:
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _frame_rate(env) -> float:
+    dt = env.frame_skip * env.physics.model.opt.timestep
+    return 1.0 / dt if dt > 0 else 30.0
+
+
+def record_video(
+    env,
+    policy: Callable | None = None,
+    path: str | os.PathLike = "episode.mp4",
+    steps: int | None = None,
+    *,
+    fps: float | None = None,
+    index: int = 0,
+    width: int = DEFAULT_WIDTH,
+    height: int = DEFAULT_HEIGHT,
+    camera: Any = None,
+    stop_when_done: bool = True,
+) -> Path:
+    """Reset ``env``, run it and write the frames of simulator ``index`` as a video.
+
+    Args:
+        env: an env with :class:`RenderMixin` (``sg_torchrl.make(...)``), or a gymnasium façade env
+            (``sg_torchrl.gym.make(...)``; its TorchRL env is used).
+        policy: maps the TensorDict of the current step to one holding ``"action"`` (an actor,
+            e.g. inside ``set_exploration_type(ExplorationType.DETERMINISTIC)``), run under
+            ``torch.no_grad``; ``None``: uniform random actions.
+        path: ``.mp4`` (needs ``imageio-ffmpeg``; without it a GIF is written next to it and a
+            warning says so) or ``.gif``.
+        steps: at most this many env steps (default: the env's ``max_episode_steps``).
+        fps: frame rate (default: real time, one frame per env step of ``frame_skip * timestep`` s).
+        stop_when_done: stop when simulator ``index``'s episode ends (its last frame is included).
+
+    Returns:
+        The path written (the first frame is the reset state, then one frame per step).
+    """
+    import imageio.v2 as imageio
+    from torchrl.envs.utils import step_mdp
+
+    env = getattr(env, "torchrl_env", env)
+    if not hasattr(env, "render"):
+        raise TypeError(f"{type(env).__name__} cannot render")
+    path = Path(path)
+    fps = float(fps if fps is not None else _frame_rate(env))
+    steps = int(steps if steps is not None else env.max_episode_steps)
+    if path.suffix.lower() != ".gif" and not _ffmpeg_available():
+        gif = path.with_suffix(".gif")
+        warnings.warn(f"imageio-ffmpeg is not installed: writing {gif} instead of {path}", stacklevel=2)
+        path = gif
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        writer = imageio.get_writer(path, mode="I", duration=1000.0 / fps, loop=0)
+    else:
+        # macro_block_size=1: keep the frame size as is (libx264 still needs even sizes).
+        writer = imageio.get_writer(path, fps=fps, macro_block_size=1)
+    try:
+        with torch.no_grad():
+            td = env.reset()
+            writer.append_data(env.render(index, width, height, camera))
+            for _ in range(steps):
+                if policy is None:
+                    td.set("action", env.action_spec.rand())
+                else:
+                    td = policy(td)
+                td = env.step(td)
+                writer.append_data(env.render(index, width, height, camera))
+                if stop_when_done and bool(td.get(("next", "done"))[index].any()):
+                    break
+                td = env.maybe_reset(step_mdp(td))
+    finally:
+        writer.close()
+    return path
