@@ -256,11 +256,11 @@ class SafeEnv(EnvBase, abc.ABC):
         self._load_physics_state(state["physics"])
 
     def _physics_state(self):
-        """Task hook: a picklable snapshot of the simulators (MuJoCo envs: the full physics state)."""
-        return self.physics.get_state()
+        """Task hook: a picklable snapshot of the simulators (see ``MujocoSafeEnv``)."""
+        raise NotImplementedError(f"{type(self).__name__} does not support simulator snapshots")
 
     def _load_physics_state(self, state) -> None:
-        self.physics.set_state(state)
+        raise NotImplementedError(f"{type(self).__name__} does not support simulator snapshots")
 
     # ------------------------------------------------------------------ helpers
     def _validated_action(self, action: torch.Tensor | None) -> np.ndarray:

@@ -93,6 +93,7 @@ class MujocoBatch:
         # Where np.concatenate of the N views lands: the cache array with the N rows joined.
         self._gather_plan = [(views, cache.reshape(-1, *cache.shape[2:])) for cache, views in self._cache.values()]
         self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
+        self.unstable = np.zeros(num_sims, dtype=bool)  # simulators MuJoCo reset during the last step
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
         #: bumped whenever the state cache changes (step, reset, refresh): lets readers cache derived values
@@ -125,9 +126,9 @@ class MujocoBatch:
         for views, out in self._gather_plan:
             np.concatenate(views, out=out)
         counts = self._warnings[:, _UNSTABLE].sum(axis=1)
-        unstable = counts != self._unstable_counts
+        np.not_equal(counts, self._unstable_counts, out=self.unstable)
         self._unstable_counts[:] = counts
-        return unstable
+        return self.unstable
 
     def drive_mocap(self, mocap_ids: Sequence[int], trajectory: MocapTrajectory) -> None:
         """Move mocap bodies ``mocap_ids`` along ``trajectory`` before every physics sub-step.
@@ -209,6 +210,7 @@ class MujocoBatch:
                 cache[i] = views[i]
         rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
+        self.unstable[rows] = False
         self.version += 1
 
     def set_mocap_pos(self, index: int, mocap_id: int, pos: np.ndarray) -> None:

@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sg_torchrl.envs.base import CostMode, SafeEnv
+from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
 from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, pseudo_lidar
 from sg_torchrl.envs.navigation.objects.base import NavObject
@@ -31,7 +32,7 @@ from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, RenderMixin
 __all__ = ["NavigationEnv"]
 
 
-class NavigationEnv(RenderMixin, SafeEnv):
+class NavigationEnv(RenderMixin, MujocoSafeEnv):
     """A navigation task at one level with one robot, batched over ``num_envs`` simulators.
 
     Args:
@@ -126,7 +127,6 @@ class NavigationEnv(RenderMixin, SafeEnv):
         self._reward = np.zeros(num_envs)
         self._costs: dict[str, np.ndarray] = {name: np.zeros(num_envs) for name in constraint_names}
         self._terminated = np.zeros(num_envs, dtype=bool)
-        self._unstable = np.zeros(num_envs, dtype=bool)
         low, high = self.physics.ctrl_range
         super().__init__(
             num_envs=num_envs,
@@ -213,7 +213,7 @@ class NavigationEnv(RenderMixin, SafeEnv):
 
     # ------------------------------------------------------------------ stepping
     def _advance(self, action: np.ndarray) -> None:
-        self._unstable[:] = self.physics.step(action, self.frame_skip)
+        self.physics.step(action, self.frame_skip)
         # Reward, then costs, on the state the physics ended in; then task events (a reached goal
         # moves), so that the observation below already shows the new goal.
         reward = self.task.reward(self)
@@ -256,9 +256,6 @@ class NavigationEnv(RenderMixin, SafeEnv):
     def _compute_terminated(self) -> np.ndarray:
         return self._terminated
 
-    def _diverged(self, observation: np.ndarray) -> np.ndarray:
-        # MuJoCo resets an unstable simulator by itself, so its observation is finite: ask the physics.
-        return super()._diverged(observation) | self._unstable
 
     # ------------------------------------------------------------------ snapshots
     def _physics_state(self):

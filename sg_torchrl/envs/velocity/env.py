@@ -14,7 +14,8 @@ import mujoco
 import numpy as np
 import torch
 
-from sg_torchrl.envs.base import CostMode, SafeEnv
+from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
@@ -22,7 +23,7 @@ from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 __all__ = ["VelocityEnv"]
 
 
-class VelocityEnv(RenderMixin, SafeEnv):
+class VelocityEnv(RenderMixin, MujocoSafeEnv):
     """A gymnasium-v4 locomotion robot with Safety-Gymnasium's velocity cost, batched.
 
     Args:
@@ -76,7 +77,6 @@ class VelocityEnv(RenderMixin, SafeEnv):
         self._position_before = np.zeros((num_envs, 2 if spec.planar else 1))
         self.last_velocity = np.zeros(num_envs)
         self._velocity = np.zeros((num_envs, 2))
-        self._unstable = np.zeros(num_envs, dtype=bool)
         # Hot-path buffers are filled in place: assigning an attribute of an EnvBase (an nn.Module)
         # costs microseconds, and SafeEnv copies what it emits.
         self._observation = np.zeros((num_envs, self._observation_size(model)))
@@ -134,7 +134,7 @@ class VelocityEnv(RenderMixin, SafeEnv):
         self._position_before[:] = self._position()
 
     def _advance(self, action: np.ndarray) -> None:
-        self._unstable[:] = self.physics.step(action, self.frame_skip)
+        self.physics.step(action, self.frame_skip)
         width = self._position_before.shape[1]
         np.subtract(self._position(), self._position_before, out=self._velocity[:, :width])
         self._velocity[:, :width] /= self._dt
@@ -155,9 +155,6 @@ class VelocityEnv(RenderMixin, SafeEnv):
             end += values.shape[1]
         return obs
 
-    def _diverged(self, observation: np.ndarray) -> np.ndarray:
-        # MuJoCo resets an unstable simulator by itself, so its observation is finite: ask the physics.
-        return super()._diverged(observation) | self._unstable
 
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
         # gymnasium v4 penalises the action as given (MuJoCo clamps it only inside the physics).
