@@ -34,8 +34,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 
 import mujoco
@@ -43,6 +41,7 @@ import numpy as np
 import torch
 
 import sg_torchrl
+from _report import write_json
 
 DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyHalfCheetahVelocity-v1", "SafetyHopperVelocity-v1",
                "SafetyAntVelocity-v1")
@@ -178,12 +177,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print()
     print(markdown_table(rows))
     if args.json:
-        meta = {
-            "python": platform.python_version(), "torch": torch.__version__, "mujoco": mujoco.__version__,
-            "sg_torchrl": sg_torchrl.__version__, "threads": args.threads, "machine": platform.machine(),
-        }
-        with open(args.json, "w") as f:
-            json.dump({"meta": meta, "results": rows}, f, indent=2)
+        write_json(args.json, rows, threads=args.threads)
     return rows
 
 

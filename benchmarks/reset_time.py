@@ -23,16 +23,14 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 
-import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
 
 import sg_torchrl
+from _report import write_json
 
 DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyPointGoal2-v0", "SafetyHalfCheetahVelocity-v1")
 REFERENCE_RESET_MS = 1100.0  # Safety-Gymnasium navigation reset (recompiles), 2-core machine kind
@@ -133,12 +131,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(f"\nReference: Safety-Gymnasium recompiles its navigation model on every reset, about "
           f"{REFERENCE_RESET_MS:.0f} ms on the 2-core machine kind. Bar: one simulator <= 1 ms median.")
     if args.json:
-        meta = {
-            "python": platform.python_version(), "torch": torch.__version__, "mujoco": mujoco.__version__,
-            "sg_torchrl": sg_torchrl.__version__, "threads": args.threads, "machine": platform.machine(),
-        }
-        with open(args.json, "w") as f:
-            json.dump({"meta": meta, "results": rows}, f, indent=2)
+        write_json(args.json, rows, threads=args.threads)
     return rows
 
 
