@@ -20,6 +20,8 @@ from sg_torchrl.envs.navigation import Goal, GoalTask, Hazards, NavigationEnv, V
 from sg_torchrl.envs.navigation.layout import LayoutSampler
 from sg_torchrl.envs.navigation.lidar import pseudo_lidar
 
+from layout_checks import assert_layouts_respect_keepouts
+
 torch.set_num_threads(1)
 
 NAVIGATION_IDS = sg_torchrl.list_envs(family="navigation")
@@ -311,23 +313,9 @@ class TestLayout:
         assert keepouts[0] == 0.4 and keepouts[1] == 0.305
         assert (keepouts[sampler.slice_of(env.task.find(Hazards))] == 0.18).all()
         assert (keepouts[sampler.slice_of(env.task.find(Vases))] == 0.15).all()
-        minimum = keepouts[:, None] + keepouts[None, :]
-        off_diagonal = ~np.eye(sampler.size, dtype=bool)
-        layouts = []
-        for _ in range(20):
-            env.reset()
-            layouts.append(env.layout.copy())
-            # The physics holds the layout: robot, hazards (mocap) and vases (free bodies).
-            np.testing.assert_allclose(env.scene.agent_xy(), env.layout[:, 0], atol=1e-9)
-            for obj in env.task.objects:
-                np.testing.assert_allclose(obj.positions(env.scene), env.layout[:, sampler.slice_of(obj)], atol=1e-9)
-        layouts = np.concatenate(layouts)
+        # The physics holds the layout: robot, hazards (mocap) and vases (free bodies).
+        layouts = assert_layouts_respect_keepouts(env, resets=20, extents=2.0)
         assert layouts.shape == (1000, sampler.size, 2)
-        distance = np.linalg.norm(layouts[:, :, None] - layouts[:, None, :], axis=-1)
-        assert (distance[:, off_diagonal] >= np.broadcast_to(minimum, distance.shape)[:, off_diagonal]).all()
-        # Each item lies within the extents shrunk by its own keep-out.
-        assert (np.abs(layouts) <= 2.0 - keepouts[None, :, None] + 1e-12).all()
-        assert len(np.unique(layouts[:, 0], axis=0)) == 1000  # layouts differ
 
     def test_sampler_is_fast_and_yaws_uniform(self):
         env = make_env("SafetyPointGoal2-v0")

@@ -22,6 +22,8 @@ from sg_torchrl.envs.navigation import NavigationEnv
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Hazards, Pillars, PushBox
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
 
+from layout_checks import assert_layouts_respect_keepouts
+
 torch.set_num_threads(1)
 
 # reference section 2: observation parts after the 12 sensor values; section 3: cost entries.
@@ -364,28 +366,19 @@ class TestPush:
 @pytest.mark.parametrize("env_id", ["SafetyPointButton2-v0", "SafetyPointPush2-v0"])
 def test_thousand_layouts_respect_keepouts(env_id):
     env = make_env(env_id, num_envs=50, seed=3)
-    sampler = env.layout_sampler
-    keepouts, extents = sampler.keepouts, env.task.extents[2]
-    minimum = keepouts[:, None] + keepouts[None, :]
-    off_diagonal = ~np.eye(sampler.size, dtype=bool)
-    layouts = []
-    for _ in range(20):
-        env.reset()
-        layouts.append(env.layout.copy())
-        np.testing.assert_allclose(env.scene.agent_xy(), env.layout[:, 0], atol=1e-9)
-        for obj in env.task.objects:
-            where = env.layout[:, sampler.slice_of(obj)]
-            if isinstance(obj, Gremlins):
-                where = where + [0.0, 0.35]  # on their circles at t = 0
-            if isinstance(obj, GoalMarker):  # moved onto the goal button
-                where = env.task.buttons.positions(env.scene)[np.arange(50), env.task.buttons.goal_button][:, None]
-            np.testing.assert_allclose(obj.positions(env.scene), where, atol=1e-9, err_msg=obj.name)
-    layouts = np.concatenate(layouts)
-    assert layouts.shape == (1000, sampler.size, 2)
-    distance = np.linalg.norm(layouts[:, :, None] - layouts[:, None, :], axis=-1)
-    assert (distance[:, off_diagonal] >= np.broadcast_to(minimum, distance.shape)[:, off_diagonal]).all()
-    assert (np.abs(layouts) <= extents - keepouts[None, :, None] + 1e-12).all()
-    assert len(np.unique(layouts[:, 0], axis=0)) == 1000
+
+    def expected_positions(obj, where):
+        if isinstance(obj, Gremlins):
+            return where + [0.0, 0.35]  # on their circles at t = 0
+        if isinstance(obj, GoalMarker):  # moved onto the goal button
+            buttons = env.task.buttons
+            return buttons.positions(env.scene)[np.arange(50), buttons.goal_button][:, None]
+        return where
+
+    layouts = assert_layouts_respect_keepouts(
+        env, resets=20, extents=env.task.extents[2], expected_positions=expected_positions
+    )
+    assert layouts.shape == (1000, env.layout_sampler.size, 2)
 
 
 def test_resting_layouts_cost_nothing():
