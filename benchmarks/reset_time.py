@@ -32,7 +32,8 @@ from tensordict import TensorDict
 import sg_torchrl
 from _report import write_json
 
-DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyPointGoal2-v0", "SafetyHalfCheetahVelocity-v1")
+DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyPointGoal2-v0", "SafetyPointButton1-v0", "SafetyPointPush1-v0",
+               "SafetyHalfCheetahVelocity-v1")
 REFERENCE_RESET_MS = 1100.0  # Safety-Gymnasium navigation reset (recompiles), 2-core machine kind
 
 

@@ -234,6 +234,23 @@ class TestPartialReset:
             out = nxt.clone()
         assert nxt["truncated"].squeeze(-1).tolist() == [False, True, False, True]
 
+    @pytest.mark.parametrize("input_keys", [("observation", "cost", "done", "action"), ("done",), ()])
+    def test_partial_reset_merge_matches_torchrl(self, input_keys):
+        """SafeEnv's one-``torch.where``-per-entry merge gives TorchRL's ``TensorDict.where`` result,
+        including entries present on one side only (0 in the rows where they are missing)."""
+        fast, general = make_env(num_envs=4, seed=3), make_env(num_envs=4, seed=3)
+        general.run_type_checks = True  # takes EnvBase's own _reset_proc_data
+        mask = torch.tensor([[False], [True], [False], [True]])
+        results = []
+        for env in (fast, general):
+            td = env.reset()
+            td = env.step(td.set("action", random_actions(env, 1, seed=0)[0]))["next"].clone()
+            td["action"] = torch.ones(4, env.action_dim)
+            results.append(env.reset(td.select(*input_keys).set("_reset", mask)))
+        assert set(results[0].keys(True, True)) == set(results[1].keys(True, True))
+        for key in results[1].keys(True, True):
+            torch.testing.assert_close(results[0][key], results[1][key], rtol=0, atol=0, msg=str(key))
+
     def test_reset_resets_only_done_in_step_and_maybe_reset(self):
         env = make_env(num_envs=3, seed=0, max_episode_steps=2)
         td = env.reset()

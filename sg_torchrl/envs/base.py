@@ -234,6 +234,35 @@ class SafeEnv(EnvBase, abc.ABC):
             return super()._step_proc_data(next_tensordict_out)
         return next_tensordict_out
 
+    def _reset_proc_data(self, tensordict: TensorDictBase | None, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        # EnvBase completes missing done flags, checks that no reset simulator is done and merges
+        # the reset rows into the input through ``TensorDict.where``: together about a third of a
+        # one-simulator reset. ``_reset`` emits every done flag, all False, with the declared
+        # shapes, so only the merge is needed; it is done here with one ``torch.where`` per entry
+        # and the same result as TorchRL's (entries missing on one side read 0 in those rows).
+        if self.run_type_checks or tensordict is None:
+            return super()._reset_proc_data(tensordict, tensordict_reset)
+        mask = tensordict.get("_reset", None)
+        if mask is None or bool(mask.all()):
+            return super()._reset_proc_data(tensordict, tensordict_reset)
+        entries = {}
+        for source in (tensordict_reset, tensordict):
+            for key, value in source.items(include_nested=True, leaves_only=True):
+                if not isinstance(value, torch.Tensor) or value.device != mask.device:
+                    return super()._reset_proc_data(tensordict, tensordict_reset)  # the general path
+                entries.setdefault(key, None)
+        del tensordict["_reset"], entries["_reset"]
+        reset_rows = mask.reshape(self.num_envs)
+        for key in entries:
+            new, old = tensordict_reset.get(key, None), tensordict.get(key, None)
+            if new is None:
+                new = torch.zeros_like(old)
+            elif old is None or old.shape != new.shape or old.dtype != new.dtype:
+                old = torch.zeros_like(new)
+            rows = reset_rows.reshape(self.num_envs, *([1] * (new.ndim - 1)))
+            tensordict.set(key, torch.where(rows, new, old))
+        return tensordict
+
     # ------------------------------------------------------------------ snapshots
     def sim_state(self) -> dict:
         """Everything needed to continue the simulators exactly: generators, step counters, physics.
