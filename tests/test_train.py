@@ -9,6 +9,7 @@ import torch
 
 torch.set_num_threads(1)
 
+import sg_torchrl  # noqa: E402
 from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
 
@@ -58,6 +59,13 @@ class TestConfig:
         assert cfg.algo == "cppo_pid" and cfg.seed == 7 and cfg.hidden_sizes == [32, 16]
         assert cfg.normalize_obs is False and cfg.cost_limit == 10.0
         assert cfg.total_steps == 4_000  # from the preset
+
+    def test_make_run_preset_is_ppo_lag_on_point_goal1(self):
+        # `make run` (issue 3): PPO-Lag on SafetyPointGoal1-v0, whole epochs, a few minutes of CPU.
+        cfg = parse_args(["--preset", "make-run"])
+        assert (cfg.algo, cfg.env_id) == ("ppo_lag", "SafetyPointGoal1-v0")
+        assert cfg.env_id in sg_torchrl.list_envs()
+        assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.total_steps <= 300_000
 
     def test_cli_reports_bad_value(self, capsys):
         assert main(["--num-envs", "3", "--steps-per-epoch", "1000"]) == 2
