@@ -9,7 +9,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.objectives import LagrangeMultiplier, Multiplier, PIDLagrangeMultiplier  # noqa: E402
+from sg_torchrl.objectives import LagrangeMultiplier, Multiplier, NoMultiplier, PIDLagrangeMultiplier  # noqa: E402
 
 # Episode costs around the default limit of 25: above, below, far above, exactly at the limit.
 COSTS = [40.0, 31.5, 26.0, 12.0, 0.0, 3.0, 60.0, 100.0, 25.0, 24.0, 80.0, 5.0, 0.0, 0.0, 45.0]
@@ -82,6 +82,27 @@ class TestMultiplierBase:
         out = m.update(30.0)
         assert out.shape == torch.Size([]) and not out.requires_grad and out.item() >= 0.0
         assert out.item() == m.value.item() == m().item()
+
+
+class TestCombine:
+    def test_sum_norm_rule(self):
+        multiplier = LagrangeMultiplier(init=0.5)
+        adv, cost_adv = torch.tensor([[1.0], [2.0]]), torch.tensor([[4.0], [-2.0]])
+        torch.testing.assert_close(multiplier.combine(adv, cost_adv), (adv - 0.5 * cost_adv) / 1.5)
+
+    def test_shape_mismatch_is_an_error(self):
+        with pytest.raises(ValueError, match="must match"):
+            LagrangeMultiplier().combine(torch.zeros(4, 1), torch.zeros(4))
+
+    def test_no_multiplier_is_zero_for_ever(self):
+        multiplier = NoMultiplier(cost_limit=10.0)
+        adv, cost_adv = torch.randn(5, 1), torch.randn(5, 1)
+        for cost in (0.0, 50.0, 1e6):
+            assert multiplier.update(cost).item() == 0.0
+        torch.testing.assert_close(multiplier.combine(adv, cost_adv), adv)
+        assert multiplier.cost_limit.item() == 10.0
+        with pytest.raises(ValueError, match="finite"):
+            multiplier.update(float("nan"))
 
 
 class TestLagrangeMultiplier:

@@ -11,6 +11,7 @@ from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multipliers import (
     LagrangeMultiplier,
     Multiplier,
+    NoMultiplier,
     PIDLagrangeMultiplier,
 )
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
@@ -19,6 +20,7 @@ from sg_torchrl.objectives.value import make_cost_gae, make_gae, normalize_advan
 __all__ = [
     "LagrangeMultiplier",
     "Multiplier",
+    "NoMultiplier",
     "PIDLagrangeMultiplier",
     "PPOLagLoss",
     "gaussian_kl",

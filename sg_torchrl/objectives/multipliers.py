@@ -34,7 +34,7 @@ from numbers import Real
 import torch
 from torch import nn, Tensor
 
-__all__ = ["Multiplier", "LagrangeMultiplier", "PIDLagrangeMultiplier"]
+__all__ = ["Multiplier", "LagrangeMultiplier", "NoMultiplier", "PIDLagrangeMultiplier"]
 
 
 def _as_finite_float(value: float | Tensor, name: str) -> float:
@@ -125,6 +125,51 @@ class Multiplier(nn.Module, abc.ABC):
 
     def forward(self) -> Tensor:
         """Returns :attr:`value`, so the module can be called like any other."""
+        return self.value
+
+    def combine(self, advantage: Tensor, cost_advantage: Tensor) -> Tensor:
+        """The Lagrangian advantage every multiplier-based algorithm optimises.
+
+        SafePO's :math:`(A_r - \\lambda A_c) / (1 + \\lambda)` when :attr:`sum_norm` (PPO-Lag,
+        TRPO-Lag, RCPO, CPPO-PID, FOCOPS), :math:`(1 - \\lambda) A_r - \\lambda A_c` when
+        :attr:`diff_norm` (Stooke et al. 2020) and :math:`A_r - \\lambda A_c` otherwise, with
+        :math:`\\lambda` = :attr:`value` (no gradient flows into the multiplier). First- and
+        second-order losses both call this, so the rule lives in one place.
+
+        Raises:
+            ValueError: if the two advantages have different shapes (no silent broadcasting).
+        """
+        if advantage.shape != cost_advantage.shape:
+            raise ValueError(
+                f"the reward advantage has shape {tuple(advantage.shape)} but the cost advantage has shape "
+                f"{tuple(cost_advantage.shape)}; they must match (no silent broadcasting)."
+            )
+        lam = self.value.to(device=advantage.device, dtype=advantage.dtype)
+        if self.diff_norm:
+            return (1 - lam) * advantage - lam * cost_advantage
+        if self.sum_norm:
+            return (advantage - lam * cost_advantage) / (1 + lam)
+        return advantage - lam * cost_advantage
+
+
+class NoMultiplier(Multiplier):
+    """:math:`\\lambda = 0` for ever: the multiplier of the unconstrained baselines (PG, PPO, NPG, TRPO)
+    and of CPO / PCPO, which handle the constraint in the policy step instead.
+
+    Its :meth:`combine` returns the reward advantage, so an unconstrained algorithm is a Lagrangian
+    loss with this multiplier rather than a second copy of the loss. The cost limit is kept for
+    the algorithms that read it (CPO's :math:`c = J_c - d`).
+    """
+
+    def __init__(self, cost_limit: float = 25.0) -> None:
+        super().__init__(cost_limit)
+        self.register_buffer("_zero", torch.zeros((), dtype=torch.float32))
+
+    def _current_value(self) -> Tensor:
+        return self._zero
+
+    def update(self, mean_episode_cost: float | Tensor) -> Tensor:
+        _as_finite_float(mean_episode_cost, "mean_episode_cost")
         return self.value
 
 

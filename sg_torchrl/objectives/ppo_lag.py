@@ -302,18 +302,7 @@ class PPOLagLoss(ClipPPOLoss):
         cost_adv = self._get_required(
             tensordict, self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)"
         )
-        if adv.shape != cost_adv.shape:
-            raise ValueError(
-                f"The reward advantage {self.tensor_keys.advantage!r} has shape "
-                f"{tuple(adv.shape)} but the cost advantage {self.tensor_keys.cost_advantage!r} "
-                f"has shape {tuple(cost_adv.shape)}; they must match (no silent broadcasting)."
-            )
-        lam = self.multiplier.value.to(device=adv.device, dtype=adv.dtype)
-        if self.multiplier.diff_norm:
-            return (1 - lam) * adv - lam * cost_adv
-        if self.multiplier.sum_norm:
-            return (adv - lam * cost_adv) / (1 + lam)
-        return adv - lam * cost_adv
+        return self.multiplier.combine(adv, cost_adv)
 
     @staticmethod
     def _get_required(tensordict: TensorDictBase, key: NestedKey, producer: str) -> Tensor:
