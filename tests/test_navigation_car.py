@@ -154,10 +154,11 @@ def test_random_actions_stay_stable():
 
 def assert_sim0_same_for_n1_and_n16(env_id: str, steps: int = 25, **options) -> None:
     """Simulator 0 replays bit for bit with 1 or 16 simulators (same seed and actions, auto-resets every 10 steps)."""
-    actions = 2 * torch.rand((steps, 16, 2), generator=torch.Generator().manual_seed(0)) - 1
     outs = []
     for num_envs in (1, 16):
         env = make_env(env_id, num_envs=num_envs, seed=7, max_episode_steps=10, **options)
+        # The same actions both times (one seed), as many columns as the robot has actuators.
+        actions = 2 * torch.rand((steps, 16, env.action_dim), generator=torch.Generator().manual_seed(0)) - 1
         td, trace = env.reset(), []
         for t in range(steps):
             stepped, td = env.step_and_maybe_reset(td.set("action", actions[t, :num_envs]))

@@ -53,7 +53,7 @@ REFERENCE_SIZES_BY_ID = {
     "SafetyPointRun0-v0": (12, 2),
     "SafetyCarRun0-v0": (24, 2),
     # Racecar 12 robot values (the fixed sensors only), Doggo 56 (12 + 8 touch + 12 hinge velocities + 12 x (sin, cos)),
-    # Ant 40 (12 + 8 hinge velocities + height 1 + linear velocity 3 + 8 x (sin, cos)); reference section 2.
+    # Ant 40 (12 + 8 hinge velocities + height 1 + agent_qvel 3 + 8 x (sin, cos)); reference section 2.
     "SafetyRacecarGoal0-v0": (28, 2),
     "SafetyRacecarGoal1-v0": (60, 2),
     "SafetyRacecarGoal2-v0": (60, 2),
@@ -109,7 +109,12 @@ class TestListEnvs:
         assert set(ids) == expected
 
     def test_filter_by_robot(self):
-        assert sg_torchrl.list_envs(robot="Ant") == ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
+        # "Ant" names a velocity robot and a navigation robot: the family tells them apart.
+        velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
+        assert sg_torchrl.list_envs(family="velocity", robot="Ant") == velocity
+        navigation = sg_torchrl.list_envs(family="navigation", robot="Ant")
+        assert len(navigation) == 13 and "SafetyAntGoal1-v0" in navigation
+        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation)
 
     def test_unknown_family_is_empty(self):
         assert sg_torchrl.list_envs(family="no-such-family") == []

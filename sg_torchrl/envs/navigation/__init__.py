@@ -14,13 +14,14 @@ Layout of this package:
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.objects import FreeObject, Goal, Hazards, NavObject, StaticObject, Vases
 from sg_torchrl.envs.navigation.objects import CircleZone, Sigwalls
-from sg_torchrl.envs.navigation.robots import ROBOTS, Car, Point, Robot
+from sg_torchrl.envs.navigation.robots import ROBOTS, Ant, Car, Doggo, Point, Racecar, Robot
 from sg_torchrl.envs.navigation.tasks import TASKS, GoalTask, Task, make_task
 from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Pillars, PushBox
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
 
 __all__ = [
+    "Ant",
     "ButtonTask",
     "Buttons",
     "GoalMarker",
@@ -29,6 +30,7 @@ __all__ = [
     "PushBox",
     "PushTask",
     "Car",
+    "Doggo",
     "CircleTask",
     "CircleZone",
     "FreeObject",
@@ -39,6 +41,7 @@ __all__ = [
     "NavigationEnv",
     "Point",
     "ROBOTS",
+    "Racecar",
     "Robot",
     "RunTask",
     "Sigwalls",

@@ -154,9 +154,10 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         yaw = np.empty((len(indices), sampler.size))
         for row, index in enumerate(indices):
             xy[row], yaw[row] = sampler.sample(self._rngs[index])
-        self.set_layout(indices, xy, yaw)
+        self.set_layout(indices, xy, yaw, rngs=[self._rngs[index] for index in indices])
 
-    def set_layout(self, indices, xy: np.ndarray, yaw: np.ndarray | None = None) -> None:
+    def set_layout(self, indices, xy: np.ndarray, yaw: np.ndarray | None = None,
+                   rngs: list[np.random.Generator] | None = None) -> None:
         """Start simulators ``indices`` from a given layout instead of a sampled one.
 
         Args:
@@ -164,6 +165,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             xy: ``(n, M, 2)`` positions in layout order: item 0 the robot, then each object's
                 instances at ``layout_sampler.slice_of(obj)``. Keep-outs are not checked.
             yaw: ``(n, M)`` headings (default 0: the robot faces +x).
+            rngs: one generator per simulator for the robot's spawn noise
+                (:meth:`Robot.randomize_pose`, the Ant's); ``None`` starts exactly at rest.
 
         The physics is reset to this layout at rest and the task's episode state restarts (e.g. the
         distance to the goal); step counters are left alone (``reset`` handles those). Used by
@@ -175,6 +178,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         yaw = np.zeros(xy.shape[:2]) if yaw is None else np.asarray(yaw, dtype=np.float64).reshape(xy.shape[:2])
         rows = scene.reset_buffers(len(indices))
         self.robot.set_pose(scene.model, rows.qpos, xy[:, 0], yaw[:, 0])
+        if rngs is not None:
+            self.robot.randomize_pose(rows.qpos, rngs)
         for obj in self.task.objects:
             part = sampler.slice_of(obj)
             obj.place(scene, indices, rows, xy[:, part], yaw[:, part])

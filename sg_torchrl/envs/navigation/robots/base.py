@@ -21,6 +21,7 @@ to :data:`sg_torchrl.envs.navigation.robots.ROBOTS`.
 from __future__ import annotations
 
 import abc
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Literal
 
@@ -113,6 +114,13 @@ class Robot(abc.ABC):
     @abc.abstractmethod
     def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
         """Write start poses into ``qpos`` rows ``(n, nq)``: root at ``xy`` ``(n, 2)``, heading ``yaw`` ``(n,)``."""
+
+    def randomize_pose(self, qpos: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
+        """Perturb start poses written by :meth:`set_pose` (rows of ``qpos``, one generator per row).
+
+        Called on every sampled reset, not for layouts given explicitly. Default: no noise (the
+        reference's Point, Car, Racecar and Doggo start exactly at rest; the Ant overrides this).
+        """
 
     def observe(self, sensordata: np.ndarray, out: np.ndarray) -> None:
         """Fill ``out`` (``(N, observation_size)``) from ``sensordata`` (``(N, nsensordata)``)."""

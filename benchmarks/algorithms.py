@@ -1,0 +1,163 @@
+"""Algorithm benchmark: ``sg-train`` over algorithms x envs x seeds, tabulated like the paper.
+
+Each cell is one ``sg-train`` run with the paper's hyper-parameters for its algorithm (override with
+extra flags after ``--``); runs go ``--jobs`` at a time as separate processes (one torch thread
+each) and a cell whose ``summary.json`` exists is reused, so an interrupted benchmark continues.
+
+Per (env, algorithm) the table gives, as the Safety-Gymnasium paper's tables do, J^R and J^C (mean
+over seeds of the last 10 training episodes' return and cost), the normalised J^R / J^R(PPO) (our
+PPO run on the same env and budget, when it is in the benchmark) and J^C / cost limit, the seconds
+per update of a 20,000-step epoch, and the published numbers from
+``shared/reference/paper_results.csv`` (10M steps) with their own normalisation.
+
+    python benchmarks/algorithms.py --envs SafetyPointGoal1-v0 --algos ppo ppo_lag cpo --seeds 0 1 2 \\
+        --total-steps 1000000 --jobs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+PAPER_RESULTS = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "paper_results.csv"
+PAPER_NAMES = {
+    "pg": "PG", "ppo": "PPO", "ppo_lag": "PPO-Lag", "cppo_pid": "CPPO-PID", "focops": "FOCOPS", "cup": "CUP",
+    "npg": "NPG", "trpo": "TRPO", "trpo_lag": "TRPO-Lag", "rcpo": "RCPO", "cpo": "CPO", "pcpo": "PCPO",
+}
+
+
+def paper_env_name(env_id: str) -> str:
+    """``SafetyPointGoal1-v0`` -> ``PointGoal1``; ``SafetyHalfCheetahVelocity-v1`` -> ``HalfCheetahVel``."""
+    name = re.sub(r"^Safety|-v\d+$", "", env_id)
+    return re.sub(r"Velocity$", "Vel", name)
+
+
+def load_paper_results(path: Path = PAPER_RESULTS) -> dict[tuple[str, str], tuple[float, float]]:
+    """``{(paper env, paper algorithm): (reward, cost)}`` of the single-agent table (empty if absent)."""
+    if not path.exists():
+        return {}
+    with path.open() as handle:
+        return {(row["env"], row["algorithm"]): (float(row["reward"]), float(row["cost"]))
+                for row in csv.DictReader(handle) if row["table"] == "single_agent_raw"}
+
+
+def run_dir(output_dir: str, env_id: str, algo: str, seed: int) -> Path:
+    return Path(output_dir) / env_id / algo / f"seed-{seed:03d}"
+
+
+def command(args: argparse.Namespace, env_id: str, algo: str, seed: int) -> list[str]:
+    return [sys.executable, "-m", "sg_torchrl.train", "--algo", algo, "--env-id", env_id, "--seed", str(seed),
+            "--total-steps", str(args.total_steps), "--output-dir", args.output_dir, "--progress", "false",
+            "--wandb", args.wandb, *args.extra]
+
+
+def run_all(args: argparse.Namespace) -> None:
+    """Run every missing cell, ``--jobs`` processes at a time; resume cells that have a checkpoint."""
+    pending = [(env, algo, seed) for env in args.envs for algo in args.algos for seed in args.seeds]
+    running: list[tuple[str, subprocess.Popen, object]] = []
+    while pending or running:
+        while pending and len(running) < args.jobs:
+            env_id, algo, seed = pending.pop(0)
+            directory = run_dir(args.output_dir, env_id, algo, seed)
+            label = f"{env_id} {algo} seed {seed}"
+            if (directory / "summary.json").exists() and not args.force:
+                print(f"[skip] {label}: summary.json exists", flush=True)
+                continue
+            cmd = command(args, env_id, algo, seed)
+            if (directory / "checkpoint.pt").exists() and not args.force:
+                cmd += ["--resume", str(directory)]
+            directory.mkdir(parents=True, exist_ok=True)
+            log = open(directory / "stdout.log", "a")
+            print(f"[start] {label} -> {directory}", flush=True)
+            running.append((label, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+        time.sleep(2)
+        for item in list(running):
+            label, proc, log = item
+            if proc.poll() is not None:
+                log.close()
+                running.remove(item)
+                status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}, see stdout.log)"
+                print(f"[{status}] {label}", flush=True)
+
+
+def cell_summary(directory: Path) -> dict[str, float] | None:
+    """A run's final figures and its mean update seconds per epoch, or None if it has not finished."""
+    path = directory / "summary.json"
+    if not path.exists():
+        return None
+    summary = json.loads(path.read_text())
+    progress = directory / "progress.csv"
+    update_seconds = []
+    if progress.exists():
+        with progress.open() as handle:
+            update_seconds = [float(row["Time/Update"]) for row in csv.DictReader(handle) if row.get("Time/Update")]
+    summary["update_s"] = sum(update_seconds) / len(update_seconds) if update_seconds else float("nan")
+    return summary
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values) if values else float("nan")
+
+
+def table(args: argparse.Namespace) -> str:
+    """The paper-format table of every (env, algorithm) with at least one finished seed."""
+    paper = load_paper_results()
+    lines = [
+        f"Budget {args.total_steps:,} env steps per run; seeds {' '.join(map(str, args.seeds))}; "
+        f"cost limit {args.cost_limit:g}. Paper: 10M steps.",
+        "",
+        "| env | algorithm | seeds | J^R | J^C | J^R / J^R(PPO) | J^C / limit | update s / epoch "
+        "| paper J^R | paper J^C | paper J^R / PPO | paper J^C / limit |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for env_id in args.envs:
+        cells = {}
+        for algo in args.algos:
+            runs = [s for seed in args.seeds if (s := cell_summary(run_dir(args.output_dir, env_id, algo, seed)))]
+            if runs:
+                cells[algo] = runs
+        ppo_return = _mean([r["Final/EpRetLast10"] for r in cells.get("ppo", [])])
+        env_name = paper_env_name(env_id)
+        paper_ppo = paper.get((env_name, "PPO"), (float("nan"), 0.0))[0]
+        for algo, runs in cells.items():
+            reward = _mean([r["Final/EpRetLast10"] for r in runs])
+            cost = _mean([r["Final/EpCostLast10"] for r in runs])
+            update = _mean([r["update_s"] for r in runs])
+            paper_reward, paper_cost = paper.get((env_name, PAPER_NAMES[algo]), (float("nan"), float("nan")))
+            lines.append(
+                f"| {env_id} | {PAPER_NAMES[algo]} | {len(runs)} | {reward:.2f} | {cost:.2f} | "
+                f"{reward / ppo_return:.2f} | {cost / args.cost_limit:.2f} | {update:.1f} | "
+                f"{paper_reward:.2f} | {paper_cost:.2f} | {paper_reward / paper_ppo:.2f} | "
+                f"{paper_cost / args.cost_limit:.2f} |".replace("nan", "-")
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=["SafetyPointGoal1-v0"])
+    parser.add_argument("--algos", nargs="+", default=["ppo", "ppo_lag", "cpo"], choices=sorted(PAPER_NAMES))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--total-steps", type=int, default=1_000_000)
+    parser.add_argument("--cost-limit", type=float, default=25.0, help="for J^C / limit (pass --cost-limit to "
+                        "sg-train after -- as well to train with another limit)")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
+    parser.add_argument("--output-dir", default="runs/benchmark")
+    parser.add_argument("--wandb", default="disabled", choices=["offline", "online", "disabled"])
+    parser.add_argument("--force", action="store_true", help="re-run cells that already have results")
+    parser.add_argument("--report-only", action="store_true", help="only print the table of existing runs")
+    parser.add_argument("extra", nargs="*", help="extra sg-train flags after --, e.g. -- --num-envs 20")
+    args = parser.parse_args()
+    if not args.report_only:
+        run_all(args)
+    print(table(args))
+
+
+if __name__ == "__main__":
+    main()
