@@ -262,8 +262,13 @@ class MujocoBatch:
 
     # ------------------------------------------------------------------ snapshots
     def get_state(self) -> np.ndarray:
-        """Full physics state of every simulator, ``(N, nstate)`` (``mjSTATE_FULLPHYSICS``)."""
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        """Everything the next step depends on, per simulator, ``(N, nstate)`` (``mjSTATE_INTEGRATION``).
+
+        ``mjSTATE_FULLPHYSICS`` is not enough for a bit-exact resume: the constraint solver starts
+        from ``qacc_warmstart``, and a restored simulator without it drifts by solver tolerance,
+        which chaotic robots amplify within tens of steps.
+        """
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
         state = np.empty((self.num_sims, mujoco.mj_stateSize(self.model, spec)))
         for row, data in zip(state, self.datas):
             mujoco.mj_getState(self.model, data, row, spec)
@@ -271,7 +276,7 @@ class MujocoBatch:
 
     def set_state(self, state: np.ndarray) -> None:
         """Restore :meth:`get_state` output (checkpoint/resume); derived quantities are recomputed."""
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
         for row, data in zip(state, self.datas):
             mujoco.mj_setState(self.model, data, row, spec)
             mujoco.mj_forward(self.model, data)
