@@ -10,8 +10,8 @@ import torch
 torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
-from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
-from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train import ALGORITHMS, TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
 
 
 def tiny_config(tmp_path, **overrides) -> TrainConfig:
@@ -35,7 +35,34 @@ class TestConfig:
         assert (cfg.steps_per_epoch, cfg.update_iters, cfg.minibatch_size) == (20_000, 40, 64)
         assert (cfg.gamma, cfg.gae_lambda, cfg.target_kl, cfg.clip_ratio) == (0.99, 0.95, 0.02, 0.2)
         assert (cfg.actor_lr, cfg.critic_lr, cfg.lagrangian_init, cfg.lagrangian_lr) == (3e-4, 3e-4, 1e-3, 0.035)
-        assert cfg.cost_limit == 25.0 and cfg.hidden_sizes == [64, 64]
+        assert cfg.cost_limit == 25.0 and cfg.network_sizes == [64, 64]
+
+    def test_every_algorithm_is_in_the_table(self):
+        assert set(ALGORITHMS) == set(ALGORITHM_NAMES) and len(ALGORITHM_NAMES) == 12
+
+    @pytest.mark.parametrize("algo", ["cpo", "trpo_lag", "npg"])
+    def test_second_order_defaults_are_the_papers(self, algo):
+        cfg = TrainConfig(algo=algo)
+        assert (cfg.target_kl, cfg.critic_lr, cfg.update_iters, cfg.minibatch_size) == (0.01, 1e-3, 10, 128)
+        assert (cfg.cg_iters, cfg.cg_damping, cfg.line_search_steps, cfg.step_fraction) == (15, 0.1, 15, 0.8)
+
+    def test_per_algorithm_defaults_and_explicit_values(self):
+        assert TrainConfig(algo="pcpo").line_search_steps == 200
+        assert TrainConfig(algo="focops").multiplier_upper_bound == 2.0
+        assert TrainConfig(algo="cup").multiplier_upper_bound == 2.0
+        assert TrainConfig(algo="ppo_lag").multiplier_upper_bound is None
+        assert TrainConfig(algo="cpo", target_kl=0.05).target_kl == 0.05  # explicit values win
+        assert parse_args(["--algo", "trpo"]).target_kl == 0.01
+
+    @pytest.mark.parametrize(
+        "env_id, sizes",
+        [("SafetyPointGoal1-v0", [64, 64]), ("SafetyAntVelocity-v1", [64, 64]), ("SafetyAntGoal1-v0", [256, 256]),
+         ("SafetyDoggoButton2-v0", [256, 256])],
+    )
+    def test_network_sizes_follow_the_paper_per_robot(self, env_id, sizes):
+        # Appendix: [256, 256] for the Ant and Doggo navigation robots, [64, 64] for the rest.
+        assert TrainConfig(env_id=env_id).network_sizes == sizes
+        assert TrainConfig(env_id=env_id, hidden_sizes=[32]).network_sizes == [32]
 
     @pytest.mark.parametrize(
         "field, value, message",
@@ -47,6 +74,8 @@ class TestConfig:
             ("cost_limit", -3.0, "cost_limit"),
             ("total_steps", 10, "less than one epoch"),
             ("algo", "sac", "unknown algo"),
+            ("step_fraction", 1.0, "step_fraction"),
+            ("line_search_steps", 0, "line_search_steps"),
         ],
     )
     def test_bad_values_name_the_field(self, field, value, message):
@@ -100,14 +129,40 @@ class TestTraining:
         assert 1 <= metrics["Train/StopIter"] <= 2
         assert metrics["Train/TotalSteps"] == 200
 
-    def test_resume_continues_exactly(self, tmp_path):
-        uninterrupted = Trainer(tiny_config(tmp_path / "a"))
+    @pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+    def test_every_algorithm_trains_one_epoch(self, tmp_path, algo):
+        # Cost limit 0: the constraint is violated, so Lagrangian multipliers grow and CPO / PCPO
+        # take their constraint-handling branches.
+        # 1000 steps per simulator: every HalfCheetah episode finishes within the epoch.
+        trainer = Trainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0, steps_per_epoch=2000, total_steps=2000))
+        actor = torch.cat([p.detach().reshape(-1).clone() for p in trainer.actor.parameters()])
+        critics = torch.cat([p.detach().reshape(-1).clone() for m in (trainer.critic, trainer.cost_critic)
+                             for p in m.parameters()])
+        metrics = trainer.train_epoch()
+        assert not torch.equal(critics, torch.cat([p.detach().reshape(-1) for m in (trainer.critic, trainer.cost_critic)
+                                                   for p in m.parameters()]))
+        moved = not torch.equal(actor, torch.cat([p.detach().reshape(-1) for p in trainer.actor.parameters()]))
+        assert moved or metrics.get("Misc/AcceptanceStep") == 0  # a rejected line search leaves the actor
+        for name in ("Metrics/EpRet", "Train/KL", "Loss/Loss_actor", "Loss/Loss_reward_critic",
+                     "Loss/Loss_cost_critic", "Train/LagrangeMultiplier"):
+            assert name in metrics and metrics[name] == metrics[name], name  # present and not NaN
+        if algo in SECOND_ORDER:
+            for name in ("Misc/xHx", "Misc/H_inv_g", "Misc/AcceptanceStep", "Misc/FinalStepNorm"):
+                assert torch.isfinite(torch.tensor(metrics[name])), name
+        if algo == "cpo":
+            assert metrics["Misc/CPOCase"] in (0.0, 1.0, 2.0, 3.0, 4.0)
+        lagrangian = algo in ("ppo_lag", "cppo_pid", "focops", "cup", "trpo_lag", "rcpo")
+        assert (metrics["Train/LagrangeMultiplier"] > 0) == lagrangian
+
+    @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "cpo"])
+    def test_resume_continues_exactly(self, tmp_path, algo):
+        uninterrupted = Trainer(tiny_config(tmp_path / "a", algo=algo))
         uninterrupted.run()
 
-        first_half = Trainer(tiny_config(tmp_path / "b"))
+        first_half = Trainer(tiny_config(tmp_path / "b", algo=algo))
         first_half.run(max_epochs=2)
         checkpoint = Trainer.load_checkpoint(first_half.checkpoint_path.parent)
-        resumed = Trainer(tiny_config(tmp_path / "b"), checkpoint)
+        resumed = Trainer(tiny_config(tmp_path / "b", algo=algo), checkpoint)
         assert resumed.epoch == 2
         resumed.run()
 

@@ -4,8 +4,13 @@
   multiplier update rules (Adam projected ascent, Ray et al. 2019; PID, Stooke et al. 2020).
 * :func:`make_gae`, :func:`make_cost_gae`, :func:`normalize_advantages`: reward and cost GAE side by
   side and SafePO's batch normalisation.
-* :class:`PPOLagLoss`: PPO-Lag; CPPO-PID is ``PPOLagLoss(..., multiplier=PIDLagrangeMultiplier())``.
+* :class:`PPOLagLoss`: PPO-Lag; CPPO-PID is ``PPOLagLoss(..., multiplier=PIDLagrangeMultiplier())``
+  and PPO is ``PPOLagLoss(..., multiplier=NoMultiplier())``.
+* :class:`PGLoss`, :class:`FOCOPSLoss`, :class:`CUPLoss`: the other first-order SafePO losses.
 * :func:`gaussian_kl`: closed-form KL between diagonal Gaussian policies (KL early stop).
+* :class:`NaturalPolicyStep`, :class:`TRPOStep`, :class:`CPOStep`, :class:`PCPOStep`: trust-region
+  policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) over :class:`TrustRegionLoss` and the
+  second-order tools of :mod:`sg_torchrl.objectives.second_order`.
 """
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multipliers import (
@@ -15,7 +20,31 @@ from sg_torchrl.objectives.multipliers import (
     PIDLagrangeMultiplier,
 )
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
+from sg_torchrl.objectives.first_order import CUPLoss, FOCOPSLoss, PGLoss
 from sg_torchrl.objectives.value import make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.objectives.second_order import (
+    backtracking_line_search,
+    conjugate_gradient,
+    FisherVectorProduct,
+    flat_grad,
+    flat_params,
+    linearise,
+    Linearisation,
+    LineSearchResult,
+    natural_step_size,
+    set_flat_params,
+)
+from sg_torchrl.objectives.trust_region import (
+    cpo_direction,
+    CPODirection,
+    CPOStep,
+    NaturalPolicyStep,
+    pcpo_direction,
+    PCPOStep,
+    TRPOStep,
+    TrustRegionLoss,
+    TrustRegionStep,
+)
 
 __all__ = [
     "LagrangeMultiplier",
@@ -23,8 +52,30 @@ __all__ = [
     "NoMultiplier",
     "PIDLagrangeMultiplier",
     "PPOLagLoss",
+    "PGLoss",
+    "FOCOPSLoss",
+    "CUPLoss",
     "gaussian_kl",
     "make_cost_gae",
     "make_gae",
     "normalize_advantages",
+    "backtracking_line_search",
+    "conjugate_gradient",
+    "FisherVectorProduct",
+    "flat_grad",
+    "flat_params",
+    "LineSearchResult",
+    "natural_step_size",
+    "set_flat_params",
+    "cpo_direction",
+    "CPODirection",
+    "CPOStep",
+    "linearise",
+    "Linearisation",
+    "NaturalPolicyStep",
+    "pcpo_direction",
+    "PCPOStep",
+    "TRPOStep",
+    "TrustRegionLoss",
+    "TrustRegionStep",
 ]

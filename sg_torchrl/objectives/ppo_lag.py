@@ -36,10 +36,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase, TensorDictParams
+from tensordict import is_tensor_collection, TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
-from torch import nn, Tensor
+from torch import distributions as D, nn, Tensor
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import GAE
@@ -68,10 +68,14 @@ class PPOLagLoss(ClipPPOLoss):
         \\qquad A_t = \\frac{A^r_t - \\lambda A^c_t}{1 + \\lambda}
 
     (``multiplier.sum_norm``; :math:`A^r - \\lambda A^c` without it, and
-    :math:`(1 - \\lambda) A^r - \\lambda A^c` with ``multiplier.diff_norm``). The combination is the
-    single hook :meth:`_combined_advantage`, which other Lagrangian losses (FOCOPS, CUP, ...)
-    override; the clipped surrogate, ratio diagnostics and reward-critic loss are
-    :class:`~torchrl.objectives.ClipPPOLoss`'s own, fed the combined advantage.
+    :math:`(1 - \\lambda) A^r - \\lambda A^c` with ``multiplier.diff_norm``). Two hooks carry
+    what the first-order variants change: :meth:`_combined_advantage` (which advantage the policy
+    sees) and :meth:`_surrogate` (what is made of the ratio and that advantage: the clipped
+    surrogate here; plain importance weighting in :class:`~sg_torchrl.objectives.PGLoss`, the
+    KL-regularised targets of :class:`~sg_torchrl.objectives.FOCOPSLoss` and
+    :class:`~sg_torchrl.objectives.CUPLoss`). The actor is evaluated once per call; the ratio
+    (torchrl's ``_log_weight``), ratio diagnostics, entropy and reward-critic loss are
+    :class:`~torchrl.objectives.ClipPPOLoss`'s own methods.
 
     Critic losses follow SafePO: mean squared error to the GAE targets plus an L2 penalty
     ``critic_l2_coeff * sum(p ** 2)`` over *all* parameters (weights and biases) of the network
@@ -178,6 +182,8 @@ class PPOLagLoss(ClipPPOLoss):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     _schedulable_buffers = frozenset({"critic_l2_coeff", "cost_critic_coeff"})
+    #: Detached diagnostics returned by :meth:`_surrogate` (listed in :attr:`out_keys`).
+    _surrogate_out_keys: tuple[str, ...] = ("clip_fraction",)
 
     cost_critic_network: TensorDictModule
     cost_critic_network_params: TensorDictParams
@@ -266,7 +272,8 @@ class PPOLagLoss(ClipPPOLoss):
     @property
     def out_keys(self) -> list[NestedKey]:
         if self._out_keys is None:
-            keys = list(ClipPPOLoss.out_keys.fget(self))
+            keys = [k for k in ClipPPOLoss.out_keys.fget(self) if k != "clip_fraction"]
+            keys.extend(self._surrogate_out_keys)
             keys.extend(["loss_cost_critic", "lagrange_multiplier"])
             if self.clip_value is not None:
                 keys.append("cost_value_clip_fraction")
@@ -390,39 +397,167 @@ class PPOLagLoss(ClipPPOLoss):
                 explained_variance = 1.0 - resid / (torch.var(tgt, correction=0, dim=0) + eps)
         return self.cost_critic_coeff * loss, clip_fraction, explained_variance
 
+    # --------------------------------------------------------------- policy
+    def _surrogate(
+        self,
+        log_weight: Tensor,
+        advantage: Tensor,
+        dist: D.Distribution,
+        tensordict: TensorDictBase,
+        *,
+        log_is_weight: Tensor | None = None,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The per-sample policy loss (the negated surrogate) and its detached diagnostics.
+
+        The second hook of the first-order family, next to :meth:`_combined_advantage`: this
+        default is PPO's clipped surrogate :math:`-\\min(r A, \\mathrm{clip}(r, 1-\\epsilon,
+        1+\\epsilon) A)` with ``clip_fraction`` as diagnostic; PG, FOCOPS and CUP override it.
+        Everything an override may need comes from the single actor evaluation of the call.
+
+        Args:
+            log_weight (Tensor): :math:`\\log \\pi_\\theta(a|s) - \\log \\pi_{\\text{prox}}(a|s)`,
+                shape ``[*B, 1]``, differentiable. Without torchrl's ``delay_actor`` /
+                ``max_importance_ratio`` options the proximal policy is the behaviour policy whose
+                log-prob is stored under ``tensor_keys.sample_log_prob``.
+            advantage (Tensor): the advantage the policy optimises, same shape as ``log_weight``.
+            dist (Distribution): the current policy at the batch's observations (differentiable),
+                e.g. for a KL to a stored policy.
+            tensordict (TensorDictBase): the input batch as given to ``forward``; the actor's
+                outputs are written elsewhere, so stored entries (e.g. the rollout ``loc`` /
+                ``scale``) are the stored values.
+
+        Keyword Args:
+            log_is_weight (Tensor, optional): :math:`\\log \\pi_{\\text{prox}} - \\log
+                \\pi_{\\text{behav}}` (torchrl's importance correction), ``None`` when the proximal
+                policy is the behaviour policy. See :meth:`_behaviour_log_ratio`.
+
+        Returns:
+            ``(loss, diagnostics)``: the unreduced loss, shape ``[*B, 1]``, and a dict of detached
+            scalars whose keys are :attr:`_surrogate_out_keys`.
+        """
+        log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight)
+        clipped_log_weight = log_weight.clamp(*self._clip_bounds)
+        clip_fraction = (clipped_log_weight != log_weight).to(log_weight.dtype).mean()
+        if log_is_weight is not None:
+            clipped_log_weight = clipped_log_weight + log_is_weight
+        gain = torch.minimum(log_ratio.exp() * advantage, clipped_log_weight.exp() * advantage)
+        return -gain, {"clip_fraction": clip_fraction}
+
+    @staticmethod
+    def _behaviour_log_ratio(log_weight: Tensor, log_is_weight: Tensor | None) -> Tensor:
+        """:math:`\\log \\pi_\\theta / \\pi_{\\text{behav}}`, the log importance weight."""
+        return log_weight if log_is_weight is None else log_weight + log_is_weight
+
+    def _actor_loss(self, tensordict: TensorDictBase, advantage: Tensor) -> TensorDictBase:
+        """Unreduced policy terms on ``advantage``: :meth:`_surrogate`, ratio diagnostics, entropy.
+
+        Evaluates the actor once (on a shallow copy of ``tensordict``, which therefore keeps its
+        stored values) through torchrl's ``_log_weight``, applies the loss's optional advantage
+        normalisation, then the :meth:`_surrogate` hook. Diagnostics as
+        :class:`~torchrl.objectives.ClipPPOLoss`: ``kl_approx``, ``ESS``, ``max_ratio``,
+        ``mean_ratio`` (of the behaviour ratio), plus ``entropy`` / ``loss_entropy`` with an
+        entropy bonus.
+
+        Raises:
+            ValueError: if ``advantage`` does not have the log-ratio's shape ``[*B, 1]``.
+        """
+        scratch = tensordict.copy()
+        advantage = self._maybe_normalize_advantage(advantage, scratch, update_norm=False)
+        log_weight, dist, kl_approx, log_is_weight = self._log_weight(
+            scratch, adv_shape=advantage.shape[:-1]
+        )
+        if advantage.shape != log_weight.shape:
+            raise ValueError(
+                f"The advantage has shape {tuple(advantage.shape)} but the log-ratio has shape "
+                f"{tuple(log_weight.shape)}; the advantage needs the trailing value dimension "
+                f"(batch shape + (1,))."
+            )
+        loss, diagnostics = self._surrogate(
+            log_weight, advantage, dist, tensordict, log_is_weight=log_is_weight
+        )
+        td_out = TensorDict({"loss_objective": loss, **diagnostics})
+        with torch.no_grad():
+            log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight).detach()
+            flat = log_ratio.squeeze(-1)
+            ess = (2 * flat.logsumexp(0) - (2 * flat).logsumexp(0)).exp()
+            ratio = log_ratio.exp()
+            td_out.set("kl_approx", kl_approx.detach().mean())
+            td_out.set("ESS", ess / log_weight.shape[0])
+            td_out.set("max_ratio", ratio.max())
+            td_out.set("mean_ratio", ratio.mean())
+        if self.entropy_bonus:
+            entropy = self._get_entropy(dist, adv_shape=advantage.shape[:-1])
+            logged = entropy
+            if is_tensor_collection(entropy):
+                td_out.set("composite_entropy", entropy.detach())
+                logged = torch.stack(list(entropy.values(True, True))).sum(0)
+            td_out.set("entropy", logged.detach().mean())
+            td_out.set("loss_entropy", self._weighted_loss_entropy(entropy))
+        return td_out
+
+    def _reduce_losses(self, td_out: TensorDictBase, tensordict: TensorDictBase) -> TensorDictBase:
+        """Applies the loss's reduction (and the input's loss mask) to every ``loss_*`` entry."""
+        return td_out.named_apply(
+            lambda name, value: self._reduce_loss(value, tensordict).squeeze(-1)
+            if name.startswith("loss_")
+            else value,
+        )
+
     # --------------------------------------------------------------- forward
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
-        # Shallow copy: the combined advantage replaces the reward advantage for ClipPPOLoss
-        # without touching the caller's batch.
-        data = tensordict.copy()
-        data.set(self.tensor_keys.advantage, self._combined_advantage(tensordict))
-        td_out = super().forward(data)
+    def critic_losses(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The reduced reward- and cost-critic losses, each with the critic L2 penalty.
 
-        if "loss_critic" in td_out.keys() and self.critic_l2_coeff is not None:
-            norm = self._squared_param_norm("critic_network")
-            if norm is not None:
-                td_out.set("loss_critic", td_out.get("loss_critic") + self.critic_l2_coeff * norm)
-
-        loss_cost, cost_clip_fraction, cost_ev = self.loss_cost_critic(data)
-        loss_cost = self._reduce_loss(loss_cost, data).squeeze(-1)
-        if self.critic_l2_coeff is not None:
-            norm = self._squared_param_norm("cost_critic_network")
-            if norm is not None:
-                loss_cost = loss_cost + self.critic_l2_coeff * norm
+        ``loss_critic`` and ``loss_cost_critic`` (plus ``value_clip_fraction`` /
+        ``cost_value_clip_fraction`` with ``clip_value``, and the explained variances with
+        ``log_explained_variance``); the actor is not evaluated. :meth:`forward` uses it, and
+        the second-order updates train their critics with it alone.
+        """
+        td_out = TensorDict()
+        if self._has_critic:
+            loss_critic, clip_fraction, explained_variance = self.loss_critic(tensordict.copy())
+            td_out.set("loss_critic", loss_critic)
+            if clip_fraction is not None:
+                td_out.set("value_clip_fraction", clip_fraction)
+            if explained_variance is not None:
+                td_out.set("explained_variance", explained_variance)
+        loss_cost, cost_clip_fraction, cost_ev = self.loss_cost_critic(tensordict)
         td_out.set("loss_cost_critic", loss_cost)
         if cost_clip_fraction is not None:
             td_out.set("cost_value_clip_fraction", cost_clip_fraction)
         if cost_ev is not None:
             td_out.set("cost_explained_variance", cost_ev)
+        td_out = self._reduce_losses(td_out, tensordict)
+        if self.critic_l2_coeff is not None:
+            for key, network in (
+                ("loss_critic", "critic_network"),
+                ("loss_cost_critic", "cost_critic_network"),
+            ):
+                norm = self._squared_param_norm(network) if key in td_out.keys() else None
+                if norm is not None:
+                    td_out.set(key, td_out.get(key) + self.critic_l2_coeff * norm)
+        self._clear_weakrefs(
+            tensordict,
+            td_out,
+            "critic_network_params",
+            "target_critic_network_params",
+            "cost_critic_network_params",
+            "target_cost_critic_network_params",
+        )
+        return td_out
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
+        td_out = self._actor_loss(tensordict, self._combined_advantage(tensordict))
+        td_out = self._reduce_losses(td_out, tensordict)
+        td_out.update(self.critic_losses(tensordict))
         ref = td_out.get("loss_objective")
         td_out.set(
             "lagrange_multiplier",
             self.multiplier.value.to(device=ref.device, dtype=ref.dtype),
         )
         self._clear_weakrefs(
-            data, td_out, "cost_critic_network_params", "target_cost_critic_network_params"
+            tensordict, td_out, "actor_network_params", "target_actor_network_params"
         )
         return td_out
 

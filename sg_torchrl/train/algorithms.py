@@ -1,10 +1,29 @@
 """The algorithms ``sg-train`` can run, as an explicit table.
 
-An algorithm is a multiplier rule plus a loss built from the shared actor and critics: PPO-Lag is
-:class:`~sg_torchrl.objectives.PPOLagLoss` with a :class:`~sg_torchrl.objectives.LagrangeMultiplier`
-(Ray et al. 2019; Safety-Gymnasium paper, section 5), CPPO-PID is the *same loss* with a
-:class:`~sg_torchrl.objectives.PIDLagrangeMultiplier` (Stooke et al. 2020). Later algorithm
-families add rows here, not trainer code.
+An algorithm is three choices over the shared actor and critics: a multiplier rule, a loss and an
+update loop (:mod:`sg_torchrl.train.updates`). The twelve SafePO single-agent algorithms of the
+Safety-Gymnasium paper (section 5) are rows of :data:`ALGORITHMS`:
+
+============  ===================================  ==================  =========================
+name          loss                                 multiplier          update
+============  ===================================  ==================  =========================
+pg            PGLoss                               none                first order
+ppo           PPOLagLoss                           none                first order
+ppo_lag       PPOLagLoss                           Lagrange            first order
+cppo_pid      PPOLagLoss                           PID Lagrange        first order
+focops        FOCOPSLoss                           Lagrange, nu <= 2   first order
+cup           CUPLoss (reward stage + projection)  Lagrange, nu <= 2   two stages
+npg           PPOLagLoss (critics)                 none                natural step
+trpo          PPOLagLoss (critics)                 none                TRPO step
+trpo_lag      PPOLagLoss (critics)                 Lagrange            TRPO step
+rcpo          PPOLagLoss (critics)                 Lagrange            natural step
+cpo           PPOLagLoss (critics)                 none                CPO step
+pcpo          PPOLagLoss (critics)                 none                PCPO step
+============  ===================================  ==================  =========================
+
+So PPO is PPO-Lag with :class:`~sg_torchrl.objectives.NoMultiplier`, CPPO-PID is PPO-Lag with the PID
+multiplier, TRPO-Lag is TRPO with a Lagrange multiplier and RCPO (as SafePO implements it) is NPG
+with one. Adding an algorithm adds a row here, not trainer code.
 """
 
 from __future__ import annotations
@@ -15,23 +34,47 @@ from dataclasses import dataclass
 from torch import nn
 from torchrl.objectives import LossModule
 
-from sg_torchrl.objectives import LagrangeMultiplier, Multiplier, PIDLagrangeMultiplier, PPOLagLoss
+from sg_torchrl.objectives import (
+    CPOStep,
+    CUPLoss,
+    FOCOPSLoss,
+    LagrangeMultiplier,
+    Multiplier,
+    NaturalPolicyStep,
+    NoMultiplier,
+    PCPOStep,
+    PGLoss,
+    PIDLagrangeMultiplier,
+    PPOLagLoss,
+    TRPOStep,
+)
 from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
 __all__ = ["Algorithm", "ALGORITHMS"]
+
+MakeLoss = Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
+MakeUpdate = Callable[[UpdateParts, Multiplier, TrainConfig], PolicyUpdate]
 
 
 @dataclass(frozen=True)
 class Algorithm:
-    """How to build one algorithm's multiplier and loss from a config."""
+    """How to build one algorithm's multiplier, loss and update loop from a config."""
 
     title: str
     make_multiplier: Callable[[TrainConfig], Multiplier]
-    make_loss: Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
+    make_loss: MakeLoss
+    make_update: MakeUpdate
+
+
+# ---------------------------------------------------------------------------- multipliers
+def _none(cfg: TrainConfig) -> Multiplier:
+    return NoMultiplier(cost_limit=cfg.cost_limit)
 
 
 def _lagrange(cfg: TrainConfig) -> Multiplier:
-    return LagrangeMultiplier(cost_limit=cfg.cost_limit, init=cfg.lagrangian_init, lr=cfg.lagrangian_lr)
+    return LagrangeMultiplier(cost_limit=cfg.cost_limit, init=cfg.lagrangian_init, lr=cfg.lagrangian_lr,
+                              upper_bound=cfg.multiplier_upper_bound)
 
 
 def _pid(cfg: TrainConfig) -> Multiplier:
@@ -41,16 +84,62 @@ def _pid(cfg: TrainConfig) -> Multiplier:
     )
 
 
+# ---------------------------------------------------------------------------- losses
+# functional=False: these losses need no functional parameter swapping (no target networks, no
+# meta-RL), and calling the modules directly saves ~0.35 ms per minibatch step on CPU.
 def _ppo_lag_loss(actor, critic, cost_critic, multiplier, cfg: TrainConfig) -> LossModule:
-    # functional=False: these losses need no functional parameter swapping (no target networks,
-    # no meta-RL), and calling the modules directly saves ~0.35 ms per minibatch step on CPU.
-    return PPOLagLoss(
-        actor, critic, cost_critic, multiplier, clip_epsilon=cfg.clip_ratio, critic_l2_coeff=cfg.critic_l2,
-        functional=False,
-    )
+    return PPOLagLoss(actor, critic, cost_critic, multiplier, clip_epsilon=cfg.clip_ratio,
+                      critic_l2_coeff=cfg.critic_l2, functional=False)
 
+
+def _pg_loss(actor, critic, cost_critic, multiplier, cfg: TrainConfig) -> LossModule:
+    return PGLoss(actor, critic, cost_critic, multiplier, critic_l2_coeff=cfg.critic_l2, functional=False)
+
+
+def _focops_loss(actor, critic, cost_critic, multiplier, cfg: TrainConfig) -> LossModule:
+    return FOCOPSLoss(actor, critic, cost_critic, multiplier, temperature=cfg.focops_temperature,
+                      target_kl=cfg.target_kl, clip_epsilon=cfg.clip_ratio, critic_l2_coeff=cfg.critic_l2,
+                      functional=False)
+
+
+def _cup_loss(actor, critic, cost_critic, multiplier, cfg: TrainConfig) -> LossModule:
+    return CUPLoss(actor, critic, cost_critic, multiplier, gamma=cfg.gamma, cup_lambda=cfg.cup_lambda,
+                   clip_epsilon=cfg.clip_ratio, critic_l2_coeff=cfg.critic_l2, functional=False)
+
+
+# ---------------------------------------------------------------------------- updates
+def _first_order(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
+    return FirstOrderUpdate(parts)
+
+
+def _two_stage(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
+    return TwoStageUpdate(parts)
+
+
+def _trust_region(step_class: type, *, line_search: bool = True) -> MakeUpdate:
+    def make(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
+        options = dict(target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping)
+        if line_search:
+            options.update(line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction)
+        return TrustRegionUpdate(parts, step_class(parts.actor, **options), multiplier)
+
+    return make
+
+
+_natural = _trust_region(NaturalPolicyStep, line_search=False)
+_trpo = _trust_region(TRPOStep)
 
 ALGORITHMS: dict[str, Algorithm] = {
-    "ppo_lag": Algorithm("PPO-Lag", _lagrange, _ppo_lag_loss),
-    "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss),
+    "pg": Algorithm("PG", _none, _pg_loss, _first_order),
+    "ppo": Algorithm("PPO", _none, _ppo_lag_loss, _first_order),
+    "ppo_lag": Algorithm("PPO-Lag", _lagrange, _ppo_lag_loss, _first_order),
+    "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss, _first_order),
+    "focops": Algorithm("FOCOPS", _lagrange, _focops_loss, _first_order),
+    "cup": Algorithm("CUP", _lagrange, _cup_loss, _two_stage),
+    "npg": Algorithm("NPG", _none, _ppo_lag_loss, _natural),
+    "trpo": Algorithm("TRPO", _none, _ppo_lag_loss, _trpo),
+    "trpo_lag": Algorithm("TRPO-Lag", _lagrange, _ppo_lag_loss, _trpo),
+    "rcpo": Algorithm("RCPO", _lagrange, _ppo_lag_loss, _natural),
+    "cpo": Algorithm("CPO", _none, _ppo_lag_loss, _trust_region(CPOStep)),
+    "pcpo": Algorithm("PCPO", _none, _ppo_lag_loss, _trust_region(PCPOStep)),
 }

@@ -1,10 +1,16 @@
 """Typed configuration of one ``sg-train`` experiment, overridable from the command line.
 
-Defaults are the Safety-Gymnasium paper's first-order hyper-parameters (appendix table, also
-SafePO's CLI defaults): 20,000 steps per epoch from 10 simulators, gamma 0.99, GAE lambda 0.95 for
-reward and cost, Adam 3e-4 for the actor (linearly annealed) and both critics, 40 passes of
-minibatch 64 with KL early stop at 0.02, clip 0.2, gradient-norm clip 40, critic L2 1e-3,
-Lagrange init 0.001 / lr 0.035, PID gains 0.1 / 0.01 / 0.01, cost limit 25.
+Defaults are the Safety-Gymnasium paper's hyper-parameters (appendix table, also SafePO's CLI
+defaults): 20,000 steps per epoch from 10 simulators, gamma 0.99, GAE lambda 0.95 for reward and
+cost, critic L2 1e-3, gradient-norm clip 40, Lagrange init 0.001 / lr 0.035, PID gains 0.1 / 0.01 /
+0.01, cost limit 25. Fields whose paper value depends on the algorithm family default to ``None``
+and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built:
+
+* first order (PG, PPO, PPO-Lag, CPPO-PID, FOCOPS, CUP): Adam 3e-4 for the actor (linearly annealed)
+  and both critics, 40 passes of minibatch 64, KL early stop at 0.02, clip 0.2;
+* second order (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): trust region 0.01, conjugate gradient 15
+  iterations with damping 0.1, line search 15 steps of fraction 0.8 (PCPO 200), critics Adam 1e-3
+  for 10 passes of minibatch 128, no actor learning rate.
 """
 
 from __future__ import annotations
@@ -16,7 +22,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
-__all__ = ["TrainConfig", "PRESETS", "parse_args"]
+__all__ = ["ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "SECOND_ORDER", "TrainConfig", "PRESETS", "parse_args"]
+
+AlgorithmName = Literal[
+    "pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"
+]
+ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)
+SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"})
+
+_FIRST_ORDER_DEFAULTS = dict(actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64, target_kl=0.02)
+_SECOND_ORDER_DEFAULTS = dict(actor_lr=0.0, critic_lr=1e-3, update_iters=10, minibatch_size=128, target_kl=0.01,
+                              line_search_steps=15)
+#: Paper appendix table, per algorithm. FOCOPS and CUP bound their multiplier nu by 2.0 (the table's
+#: "nu 2.00"; SafePO's CUP script uses 0.2). Fields not listed here have one default for all.
+ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
+    **{name: dict(_FIRST_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name not in SECOND_ORDER},
+    **{name: dict(_SECOND_ORDER_DEFAULTS) for name in SECOND_ORDER},
+    "focops": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
+    "cup": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
+    "pcpo": dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200),
+}
 
 
 def _opt(default: Any, help: str, **kwargs: Any) -> Any:
@@ -29,7 +54,7 @@ def _opt(default: Any, help: str, **kwargs: Any) -> Any:
 class TrainConfig:
     """One experiment. Every field is a command-line flag (``--total-steps 200000``)."""
 
-    algo: Literal["ppo_lag", "cppo_pid"] = _opt("ppo_lag", "safe RL algorithm")
+    algo: AlgorithmName = _opt("ppo_lag", "safe RL algorithm")
     env_id: str = _opt("SafetyHalfCheetahVelocity-v1", "Safety-Gymnasium env id (sg_torchrl.list_envs())")
     seed: int = _opt(0, "seed of the simulators, the networks and the minibatch order")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
@@ -39,13 +64,17 @@ class TrainConfig:
     gamma: float = _opt(0.99, "discount of reward and cost")
     gae_lambda: float = _opt(0.95, "GAE lambda of the reward advantage")
     cost_gae_lambda: float = _opt(0.95, "GAE lambda of the cost advantage")
-    hidden_sizes: list[int] = _opt((64, 64), "hidden layer sizes of actor and critics (tanh MLPs)")
-    actor_lr: float = _opt(3e-4, "actor Adam learning rate, linearly annealed to 0")
-    critic_lr: float = _opt(3e-4, "reward and cost critic Adam learning rate")
-    update_iters: int = _opt(40, "passes over the epoch's data")
-    minibatch_size: int = _opt(64, "samples per gradient step")
+    hidden_sizes: list[int] = _opt(
+        (), "hidden layer sizes of actor and critics (tanh MLPs); default: the paper's, 256 256 for the Ant and "
+        "Doggo navigation robots, else 64 64")
+    actor_lr: float | None = _opt(None, "actor Adam learning rate, linearly annealed to 0 (first order: 3e-4)")
+    critic_lr: float | None = _opt(None, "reward and cost critic Adam learning rate (first order 3e-4, second 1e-3)")
+    update_iters: int | None = _opt(None, "passes over the epoch's data (first order 40, second order 10 critic passes)")
+    minibatch_size: int | None = _opt(None, "samples per gradient step (first order 64, second order 128)")
     clip_ratio: float = _opt(0.2, "PPO ratio clip epsilon")
-    target_kl: float = _opt(0.02, "stop the passes once KL(old || new) exceeds this")
+    target_kl: float | None = _opt(
+        None, "first order: stop the passes once KL(old || new) exceeds this (0.02); second order: the trust "
+        "region delta (0.01)")
     max_grad_norm: float = _opt(40.0, "global gradient-norm clip over actor and critics")
     critic_l2: float = _opt(1e-3, "L2 penalty on critic weights")
     lagrangian_init: float = _opt(1e-3, "initial Lagrange multiplier (PID: initial integral)")
@@ -54,6 +83,13 @@ class TrainConfig:
     pid_ki: float = _opt(0.01, "CPPO-PID integral gain")
     pid_kd: float = _opt(0.01, "CPPO-PID derivative gain")
     pid_d_delay: int = _opt(10, "CPPO-PID derivative delay (epochs)")
+    multiplier_upper_bound: float | None = _opt(None, "cap of the Lagrange multiplier (FOCOPS and CUP: 2.0)")
+    focops_temperature: float = _opt(1.5, "FOCOPS temperature lambda")
+    cup_lambda: float = _opt(0.95, "CUP's GAE-style lambda in the projection factor (1 - gamma lambda) / (1 - gamma)")
+    cg_iters: int = _opt(15, "second order: conjugate-gradient iterations")
+    cg_damping: float = _opt(0.1, "second order: damping added to the Fisher-vector product")
+    line_search_steps: int | None = _opt(None, "second order: backtracking steps (15; PCPO 200; NPG/RCPO none)")
+    step_fraction: float = _opt(0.8, "second order: backtracking shrink factor")
     normalize_obs: bool = _opt(True, "running mean/std observation normalisation (SafePO default)")
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
@@ -65,18 +101,33 @@ class TrainConfig:
     threads: int = _opt(1, "torch threads (1 is fastest for small MLPs on few cores)")
 
     def __post_init__(self) -> None:
+        for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
         self.validate()
+
+    @property
+    def second_order(self) -> bool:
+        """Whether the actor moves by a trust-region step (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO)."""
+        return self.algo in SECOND_ORDER
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay")
+        if self.algo not in ALGORITHM_NAMES:
+            raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(ALGORITHM_NAMES)}")
+        positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
+                    "cg_iters", "line_search_steps")
         for name in positive:
-            if getattr(self, name) < 1:
+            if getattr(self, name) is not None and getattr(self, name) < 1:  # None: unused by this algorithm
                 raise ValueError(f"config: {name} must be >= 1, got {getattr(self, name)}")
-        for name in ("actor_lr", "critic_lr", "lagrangian_lr", "target_kl", "max_grad_norm", "clip_ratio"):
+        if not self.second_order and not self.actor_lr > 0:
+            raise ValueError(f"config: actor_lr must be > 0, got {self.actor_lr}")
+        if not 0.0 < self.step_fraction < 1.0:
+            raise ValueError(f"config: step_fraction must be in (0, 1), got {self.step_fraction}")
+        for name in ("critic_lr", "lagrangian_lr", "target_kl", "max_grad_norm", "clip_ratio", "focops_temperature"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"config: {name} must be > 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda", "cost_gae_lambda"):
+        for name in ("gamma", "gae_lambda", "cost_gae_lambda", "cup_lambda"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"config: {name} must be in [0, 1], got {getattr(self, name)}")
         if self.cost_limit < 0:
@@ -89,10 +140,25 @@ class TrainConfig:
             raise ValueError(
                 f"config: total_steps ({self.total_steps}) is less than one epoch ({self.steps_per_epoch})"
             )
-        if self.algo not in get_args(get_type_hints(TrainConfig)["algo"]):
-            raise ValueError(f"config: unknown algo {self.algo!r}")
-        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+        if self.cg_damping < 0 or (self.multiplier_upper_bound is not None and self.multiplier_upper_bound < 0):
+            raise ValueError("config: cg_damping and multiplier_upper_bound must be >= 0")
+        if self.hidden_sizes and min(self.hidden_sizes) < 1:
             raise ValueError(f"config: hidden_sizes must be positive, got {self.hidden_sizes}")
+
+    @property
+    def network_sizes(self) -> list[int]:
+        """``hidden_sizes``, or when empty the paper's for the env (appendix: [256, 256] for the Ant and
+        Doggo navigation robots, [64, 64] otherwise)."""
+        if self.hidden_sizes:
+            return list(self.hidden_sizes)
+        from sg_torchrl.envs import registry_entry
+
+        try:
+            entry = registry_entry(self.env_id)
+        except KeyError:
+            return [64, 64]  # an unknown id fails with its own message when the env is built
+        large = entry.family == "navigation" and entry.robot in ("Ant", "Doggo")
+        return [256, 256] if large else [64, 64]
 
     @property
     def epochs(self) -> int:

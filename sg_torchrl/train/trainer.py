@@ -1,14 +1,14 @@
 """The on-policy safe training loop behind ``sg-train``.
 
-One epoch (SafePO's first-order loop, Safety-Gymnasium paper appendix):
+One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
 
 1. collect ``steps_per_epoch`` transitions from ``num_envs`` batched simulators;
 2. update the multiplier from the mean cost of the episodes finished in the epoch (before the
    policy update, as SafePO does; SafePO feeds a doubly smoothed 50-episode window mean instead,
    a quirk we do not reproduce);
 3. reward and cost GAE, batch-level advantage normalisation;
-4. up to ``update_iters`` shuffled passes of minibatch gradient steps on actor + both critics,
-   stopping once KL(old || new) over the batch exceeds ``target_kl``;
+4. the algorithm's update (:mod:`sg_torchrl.train.updates`): first-order minibatch passes with KL
+   early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
 5. log SafePO's metrics, checkpoint.
 
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
@@ -33,18 +33,18 @@ from tqdm.auto import tqdm
 import sg_torchrl
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
-from sg_torchrl.objectives import gaussian_kl, make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.objectives import make_cost_gae, make_gae, normalize_advantages
 from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.plot import plot_curves
+from sg_torchrl.train.updates import UpdateParts
 
 __all__ = ["Trainer", "CHECKPOINT_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_LOSS_TERMS = ("loss_objective", "loss_critic", "loss_cost_critic")
 
 
 @contextlib.contextmanager
@@ -81,7 +81,7 @@ class Trainer:
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
 
         self.actor, self.critic, self.cost_critic = make_actor_critics(
-            obs_dim, self.base_env.action_spec, cfg.hidden_sizes
+            obs_dim, self.base_env.action_spec, cfg.network_sizes
         )
         self.multiplier = self.algorithm.make_multiplier(cfg)
         self.loss = self.algorithm.make_loss(self.actor, self.critic, self.cost_critic, self.multiplier, cfg)
@@ -89,21 +89,26 @@ class Trainer:
         self.cost_gae = make_cost_gae(self.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
 
         critic_params = [*self.critic.parameters(), *self.cost_critic.parameters()]
-        self.parameters = [*self.actor.parameters(), *critic_params]
-        # One fused Adam with two parameter groups: SafePO's three Adam optimisers with the same
-        # arithmetic, but one kernel call per step instead of a Python loop over parameters.
-        self.optimizer = torch.optim.Adam(
-            [{"params": list(self.actor.parameters()), "lr": cfg.actor_lr}, {"params": critic_params, "lr": cfg.critic_lr}],
-            fused=True,
-        )
+        # One fused Adam with a parameter group per learning rate: SafePO's separate Adam optimisers
+        # with the same arithmetic, but one kernel call per step instead of a Python loop over
+        # parameters. Second-order methods move the actor by their trust-region step instead.
+        groups = [{"params": critic_params, "lr": cfg.critic_lr}]
+        if not cfg.second_order:
+            groups.insert(0, {"params": list(self.actor.parameters()), "lr": cfg.actor_lr})
+        self.optimizer = torch.optim.Adam(groups, fused=True)
         epochs = cfg.epochs
         # SafePO anneals the actor learning rate linearly to zero over the run; critics stay constant.
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, [lambda epoch: max(0.0, 1.0 - epoch / epochs), lambda epoch: 1.0]
+        anneal = [lambda epoch: max(0.0, 1.0 - epoch / epochs)] if not cfg.second_order else []
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, [*anneal, lambda epoch: 1.0])
+        self.minibatch_rng = torch.Generator().manual_seed(cfg.seed)
+        parts = UpdateParts(
+            actor=self.actor, critics=(self.critic, self.cost_critic), loss=self.loss, optimizer=self.optimizer,
+            rng=self.minibatch_rng, passes=cfg.update_iters, minibatch_size=cfg.minibatch_size,
+            target_kl=cfg.target_kl, max_grad_norm=cfg.max_grad_norm,
         )
+        self.policy_update = self.algorithm.make_update(parts, self.multiplier, cfg)
         self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
         self.stats = EpisodeStats()
-        self.minibatch_rng = torch.Generator().manual_seed(cfg.seed)
         self.epoch = 0
         self.total_steps = 0
         self.train_seconds = 0.0
@@ -175,7 +180,7 @@ class Trainer:
             "Train/Epoch": self.epoch,
             "Train/TotalSteps": self.total_steps,
             "Train/LagrangeMultiplier": lagrange,
-            "Train/LR": self.optimizer.param_groups[0]["lr"],
+            "Train/LR": 0.0 if self.cfg.second_order else self.optimizer.param_groups[0]["lr"],
             **update_info,
             "Time/Rollout": rollout_time,
             "Time/Update": update_time,
@@ -186,8 +191,7 @@ class Trainer:
         return metrics
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """Advantages, then minibatch passes with SafePO's KL early stop."""
-        cfg = self.cfg
+        """Advantages on the whole batch, then the algorithm's :class:`PolicyUpdate`."""
         with torch.no_grad():
             self.reward_gae(batch)
             self.cost_gae(batch)
@@ -195,41 +199,8 @@ class Trainer:
         raw_reward_adv = data["advantage"].mean().item()
         raw_cost_adv = data["cost_advantage"].mean().item()
         normalize_advantages(data)
-        old_loc, old_scale = data["loc"].clone(), data["scale"].clone()
-        size = data.numel()
-        sums = dict.fromkeys(_LOSS_TERMS, 0.0)
-        steps = 0
-        kl = 0.0
-        for iteration in range(cfg.update_iters):
-            shuffled = data[torch.randperm(size, generator=self.minibatch_rng)]
-            for start in range(0, size, cfg.minibatch_size):
-                out = self.loss(shuffled[start : start + cfg.minibatch_size])
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_cost_critic"]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                torch.nn.utils.clip_grad_norm_(self.parameters, cfg.max_grad_norm, foreach=True)
-                self.optimizer.step()
-                for name in _LOSS_TERMS:
-                    sums[name] += out[name].item()
-                steps += 1
-            kl = self._policy_kl(data, old_loc, old_scale)
-            if kl > cfg.target_kl:
-                break
-        return {
-            "Train/KL": kl,
-            "Train/StopIter": iteration + 1,
-            "Loss/Loss_actor": sums["loss_objective"] / steps,
-            "Loss/Loss_reward_critic": sums["loss_critic"] / steps,
-            "Loss/Loss_cost_critic": sums["loss_cost_critic"] / steps,
-            "Value/RewardAdv": raw_reward_adv,
-            "Value/CostAdv": raw_cost_adv,
-        }
-
-    @torch.no_grad()
-    def _policy_kl(self, data: TensorDictBase, old_loc: torch.Tensor, old_scale: torch.Tensor) -> float:
-        current = self.actor.get_dist_params(data.select("observation"))
-        loc, scale = current if isinstance(current, tuple) else (current["loc"], current["scale"])
-        return gaussian_kl(old_loc, old_scale, loc, scale).mean().item()
+        info = self.policy_update(data, self._last_mean_cost - self.cfg.cost_limit)
+        return {**info, "Value/RewardAdv": raw_reward_adv, "Value/CostAdv": raw_cost_adv}
 
     def finish(self) -> dict[str, float]:
         """Final evaluation, learning-curve PNG and summary."""

@@ -1,0 +1,203 @@
+"""How one epoch's batch moves the networks: the three update loops of SafePO, as objects.
+
+The trainer computes both advantages once per epoch (GAE, then SafePO's batch normalisation) and
+hands the flat batch to the algorithm's :class:`PolicyUpdate`:
+
+* :class:`FirstOrderUpdate` (PG, PPO, PPO-Lag, CPPO-PID, FOCOPS): shuffled minibatch passes of
+  one Adam step on actor + reward critic + cost critic, stopping once the batch KL to the rollout
+  policy exceeds ``target_kl`` (Safety-Gymnasium paper, appendix; SafePO's first-order loop).
+* :class:`TwoStageUpdate` (CUP, Yang et al. 2022): the first-order loop on the reward-only stage,
+  then actor-only passes of the projection loss towards the stage-one policy.
+* :class:`TrustRegionUpdate` (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): one trust-region step of the
+  actor on the whole batch (:mod:`sg_torchrl.objectives.trust_region`), then minibatch passes on
+  the two critics only.
+
+All three share :func:`minibatch_passes`, the one minibatch loop of the package.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor, nn
+
+from sg_torchrl.objectives import gaussian_kl
+
+__all__ = ["FirstOrderUpdate", "PolicyUpdate", "TrustRegionUpdate", "TwoStageUpdate", "UpdateParts", "minibatch_passes"]
+
+LossFn = Callable[[TensorDictBase], dict[str, Tensor]]
+
+
+@dataclass
+class UpdateParts:
+    """What every update loop works with (built by the trainer).
+
+    Attributes:
+        actor: the policy (writes ``loc`` / ``scale``).
+        critics: reward and cost critics.
+        loss: the algorithm's loss module.
+        optimizer: Adam over the actor (first order only) and the critics.
+        rng: generator of the minibatch order (checkpointed by the trainer).
+        passes, minibatch_size, target_kl, max_grad_norm: the config's values.
+    """
+
+    actor: nn.Module
+    critics: Sequence[nn.Module]
+    loss: nn.Module
+    optimizer: torch.optim.Optimizer
+    rng: torch.Generator
+    passes: int
+    minibatch_size: int
+    target_kl: float
+    max_grad_norm: float
+
+    def policy_kl(self, data: TensorDictBase, loc: Tensor, scale: Tensor) -> float:
+        """Mean KL(reference || current policy) over ``data``; ``loc`` / ``scale`` are the reference's."""
+        with torch.no_grad():
+            current = self.actor.get_dist_params(data.select("observation"))
+            return gaussian_kl(loc, scale, current["loc"], current["scale"]).mean().item()
+
+
+def minibatch_passes(
+    parts: UpdateParts,
+    data: TensorDictBase,
+    loss_fn: LossFn,
+    terms: Sequence[str],
+    parameters: Sequence[Tensor],
+    *,
+    passes: int,
+    minibatch_size: int,
+    stop: Callable[[], float] | None = None,
+) -> tuple[int, float, dict[str, float]]:
+    """Up to ``passes`` shuffled passes of one gradient step per minibatch on the sum of ``terms``.
+
+    After each pass ``stop()`` (a KL) is compared with ``parts.target_kl`` and the loop ends once it
+    is exceeded, SafePO's early stop. Gradients of ``parameters`` are norm-clipped at
+    ``parts.max_grad_norm`` before each optimiser step.
+
+    Returns:
+        ``(passes run, last stop() value or 0, mean of each term over the steps)``.
+    """
+    size = data.numel()
+    sums = dict.fromkeys(terms, 0.0)
+    steps, kl, done = 0, 0.0, 0
+    for done in range(1, passes + 1):
+        shuffled = data[torch.randperm(size, generator=parts.rng)]
+        for start in range(0, size, minibatch_size):
+            out = loss_fn(shuffled[start : start + minibatch_size])
+            total = sum(out[name] for name in terms)
+            parts.optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            torch.nn.utils.clip_grad_norm_(parameters, parts.max_grad_norm, foreach=True)
+            parts.optimizer.step()
+            for name in terms:
+                sums[name] += out[name].item()
+            steps += 1
+        if stop is not None:
+            kl = stop()
+            if kl > parts.target_kl:
+                break
+    return done, kl, {name: total / max(steps, 1) for name, total in sums.items()}
+
+
+def _critic_parameters(parts: UpdateParts) -> list[Tensor]:
+    return [p for critic in parts.critics for p in critic.parameters()]
+
+
+_ALL_TERMS = ("loss_objective", "loss_critic", "loss_cost_critic")
+
+
+class PolicyUpdate(abc.ABC):
+    """One epoch's update of the networks from the prepared batch."""
+
+    def __init__(self, parts: UpdateParts) -> None:
+        self.parts = parts
+
+    @abc.abstractmethod
+    def __call__(self, data: TensorDictBase, cost_violation: float) -> dict[str, float]:
+        """Update on ``data`` (flat, advantages normalised, rollout ``loc`` / ``scale`` inside).
+
+        ``cost_violation`` is :math:`J_c - d`, the epoch's mean episode cost minus the limit (read by
+        CPO and PCPO). Returns the epoch's update metrics under SafePO's names.
+        """
+
+    def _first_order(self, data: TensorDictBase, loss: nn.Module) -> dict[str, float]:
+        parts = self.parts
+        old_loc, old_scale = data["loc"].clone(), data["scale"].clone()
+        parameters = [*parts.actor.parameters(), *_critic_parameters(parts)]
+        passes, kl, means = minibatch_passes(
+            parts, data, loss, _ALL_TERMS, parameters, passes=parts.passes, minibatch_size=parts.minibatch_size,
+            stop=lambda: parts.policy_kl(data, old_loc, old_scale),
+        )
+        return {
+            "Train/KL": kl,
+            "Train/StopIter": passes,
+            "Loss/Loss_actor": means["loss_objective"],
+            "Loss/Loss_reward_critic": means["loss_critic"],
+            "Loss/Loss_cost_critic": means["loss_cost_critic"],
+        }
+
+
+class FirstOrderUpdate(PolicyUpdate):
+    """SafePO's first-order loop: minibatch Adam steps on the actor and both critics, KL early stop."""
+
+    def __call__(self, data: TensorDictBase, cost_violation: float) -> dict[str, float]:
+        return self._first_order(data, self.parts.loss)
+
+
+class TwoStageUpdate(PolicyUpdate):
+    """CUP's epoch (Yang et al. 2022, "Constrained Update Projection Approach to Safe Policy Optimization").
+
+    Stage one runs the first-order loop on ``loss.reward_stage`` (PPO on the reward advantage, both
+    critics trained). The stage-one policy's ``loc`` / ``scale`` are then written into the batch
+    (``stage1_loc`` / ``stage1_scale``) and stage two takes actor-only passes of the projection
+    loss ``loss`` until KL(stage one || current) exceeds ``target_kl``.
+    """
+
+    def __call__(self, data: TensorDictBase, cost_violation: float) -> dict[str, float]:
+        parts = self.parts
+        metrics = self._first_order(data, parts.loss.reward_stage)
+        with torch.no_grad():
+            stage1 = parts.actor.get_dist_params(data.select("observation"))
+        loc, scale = stage1["loc"].detach(), stage1["scale"].detach()
+        data.set("stage1_loc", loc)
+        data.set("stage1_scale", scale)
+        passes, kl, means = minibatch_passes(
+            parts, data, parts.loss, ("loss_objective",), list(parts.actor.parameters()), passes=parts.passes,
+            minibatch_size=parts.minibatch_size, stop=lambda: parts.policy_kl(data, loc, scale),
+        )
+        metrics.update({"Train/ProjectionStopIter": passes, "Train/ProjectionKL": kl,
+                        "Loss/Loss_projection": means["loss_objective"]})
+        return metrics
+
+
+class TrustRegionUpdate(PolicyUpdate):
+    """Second-order epoch: one trust-region step of the actor, then the critics' minibatch passes.
+
+    The step (``policy_step``, e.g. :class:`~sg_torchrl.objectives.CPOStep`) sees the whole batch with
+    the Lagrangian advantage ``multiplier.combine(A_r, A_c)`` (the reward advantage itself for the
+    unconstrained and projection methods, whose multiplier is :class:`~sg_torchrl.objectives.NoMultiplier`).
+    Critics then take ``passes`` passes of minibatch Adam steps (SafePO: 10 of 128 at lr 1e-3) with
+    no early stop.
+    """
+
+    def __init__(self, parts: UpdateParts, policy_step, multiplier) -> None:
+        super().__init__(parts)
+        self.policy_step = policy_step
+        self.multiplier = multiplier
+
+    def __call__(self, data: TensorDictBase, cost_violation: float) -> dict[str, float]:
+        parts = self.parts
+        advantage = self.multiplier.combine(data["advantage"], data["cost_advantage"])
+        metrics = dict(self.policy_step.step(data, advantage, data["cost_advantage"], cost_violation))
+        _, _, means = minibatch_passes(
+            parts, data, parts.loss.critic_losses, ("loss_critic", "loss_cost_critic"), _critic_parameters(parts),
+            passes=parts.passes, minibatch_size=parts.minibatch_size,
+        )
+        metrics.update({"Train/StopIter": parts.passes, "Loss/Loss_reward_critic": means["loss_critic"],
+                        "Loss/Loss_cost_critic": means["loss_cost_critic"]})
+        return metrics
