@@ -43,8 +43,9 @@ import torch
 import sg_torchrl
 from _report import write_json
 
-DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyCarGoal1-v0", "SafetyPointButton1-v0", "SafetyPointPush1-v0",
-               "SafetyHalfCheetahVelocity-v1", "SafetyHopperVelocity-v1", "SafetyAntVelocity-v1")
+DEFAULT_IDS = ("SafetyPointGoal1-v0", "SafetyCarGoal1-v0", "SafetyRacecarGoal1-v0", "SafetyDoggoGoal1-v0",
+               "SafetyAntGoal1-v0", "SafetyPointButton1-v0", "SafetyPointPush1-v0", "SafetyHalfCheetahVelocity-v1",
+               "SafetyHopperVelocity-v1", "SafetyAntVelocity-v1")
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # joints, mocap bodies, time, warm-start: a full restart point
 
 

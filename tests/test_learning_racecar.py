@@ -4,8 +4,12 @@ SafetyRacecarGoal1-v0 with the paper's PPO-Lag settings (Gaussian actor with uni
 env clipping actions to the actuators' control ranges). The initial policy asks for rear-axle speeds
 of about +-1 rad/s out of 20, so the car barely moves and its episode return stays near 0; the
 reward (distance gained towards the goal, plus 1 per goal reached) only grows once the policy
-learns to drive fast and steer towards the goal. The check: the mean return of the last epochs
-exceeds that of the first epochs by a clear margin.
+learns to drive fast and steer towards the goal. The check: the mean return of the last three
+epochs exceeds that of the first three by a clear margin.
+
+Measured with seed 0 (200k steps, 20 epochs of 10k, about 12.5 CPU minutes on one core): the
+per-epoch mean return rose steadily, -0.10, -0.07, -0.01, 0.06, 0.10, 0.18, ... 0.52, 0.53, 0.56
+(first three 0.06 below zero, last three 0.54 above): the margin asserted is half that gain.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from sg_torchrl.train import TrainConfig, Trainer
 torch.set_num_threads(1)
 
 NUM_ENVS, STEPS_PER_EPOCH = 10, 10_000  # 1000-step episodes: each epoch finishes exactly 10 episodes
+TOTAL_STEPS = 200_000
+MARGIN = 0.3  # EpRet gained between the first and the last three epochs
 
 
 def epoch_returns(output_dir: Path, total_steps: int, seed: int = 0) -> list[float]:
