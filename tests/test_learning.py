@@ -1,6 +1,8 @@
 """Slow learning checks (``pytest -m slow``): the safe algorithms actually satisfy the constraint.
 
-SafetySwimmerVelocity-v1 is the quickest velocity task whose *initial* policy breaks the limit
+One check per algorithm family: the Lagrangian first-order losses (PPO-Lag, CPPO-PID, FOCOPS,
+CUP), the Lagrangian trust-region step (TRPO-Lag) and the two constrained trust-region steps (CPO,
+PCPO). SafetySwimmerVelocity-v1 is the quickest velocity task whose *initial* policy breaks the limit
 (a random Swimmer exceeds the 0.2282 m/s threshold on about a third of its steps, an episode
 cost near 300 against a limit of 25), so the test fails unless the multiplier and the
 Lagrangian advantage drive the cost down.
@@ -8,7 +10,8 @@ Lagrangian advantage drive the cost down.
 With the paper's Lagrange learning rate (0.035) PPO-Lag needs more than 800k steps here: a run
 went 339 -> 50 within 200k steps, then crept down at ~35 while lambda was still rising (about
 0.035 per epoch). The check is about the mechanism, so PPO-Lag uses a faster multiplier
-(lr 0.2); CPPO-PID runs with the paper's PID gains.
+(lr 0.2), and so do the other Lagrangian algorithms; CPPO-PID runs with the paper's PID gains, CPO
+and PCPO with the paper's trust region (they need no multiplier).
 
 A Lagrange multiplier oscillates around the limit (the lag that PID control damps, Stooke et al.
 2020): with seed 0 PPO-Lag's 50-episode cost went 339 -> 19 by 300k steps and drifted back to
@@ -27,7 +30,18 @@ torch.set_num_threads(1)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo, options", [("ppo_lag", {"lagrangian_lr": 0.2}), ("cppo_pid", {})])
+@pytest.mark.parametrize(
+    "algo, options",
+    [
+        ("ppo_lag", {"lagrangian_lr": 0.2}),
+        ("cppo_pid", {}),
+        ("focops", {"lagrangian_lr": 0.2}),  # first order, bounded multiplier (nu <= 2)
+        ("cup", {"lagrangian_lr": 0.2}),  # first order, two stages
+        ("trpo_lag", {"lagrangian_lr": 0.2}),  # second order, Lagrangian
+        ("cpo", {}),  # second order, the constraint in the step itself
+        ("pcpo", {}),  # second order, projection
+    ],
+)
 def test_safe_algorithm_brings_episode_cost_under_the_limit(tmp_path, algo, options):
     cfg = TrainConfig(
         algo=algo, env_id="SafetySwimmerVelocity-v1", seed=0, num_envs=10, steps_per_epoch=10_000,
