@@ -53,10 +53,9 @@ from typing import TYPE_CHECKING, ClassVar
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import yaw_quat
 from sg_torchrl.envs.navigation.robots.base import (
+    FreeBodyRobot,
     FIXED_SENSORS,
-    Robot,
     SensorTerm,
     add_fixed_sensors,
     add_vision_camera,
@@ -84,7 +83,7 @@ _LEGS = (1, 2, 3, 4)
 _JOINTS = tuple(f"{part}_{k}" for k in _LEGS for part in ("hip", "ankle"))
 
 
-class Ant(Robot):
+class Ant(FreeBodyRobot):
     """The Ant robot (8 actuators: hip and ankle torque of each leg); see the module docstring."""
 
     name: ClassVar[str] = "Ant"
@@ -167,17 +166,13 @@ class Ant(Robot):
 
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)
-        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
         self._qpos_legs = np.array([int(model.joint(joint).qposadr[0]) for joint in _JOINTS])
         rest = np.zeros(len(_JOINTS))
         rest[1::2] = np.array(_ANKLE_SIGNS) * np.pi / 2  # ankles: feet straight down
         self._rest_angles = rest
 
     def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
-        root = self._qpos_root
-        qpos[:, root : root + 2] = xy
-        qpos[:, root + 2] = self.height
-        qpos[:, root + 3 : root + 7] = yaw_quat(yaw)
+        super().set_pose(model, qpos, xy, yaw)
         qpos[:, self._qpos_legs] = self._rest_angles
 
     def randomize_pose(self, qpos: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:

@@ -28,10 +28,12 @@ from typing import TYPE_CHECKING, ClassVar, Literal
 import mujoco
 import numpy as np
 
+from sg_torchrl.envs.navigation.objects.base import yaw_quat
+
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.world import Scene
 
-__all__ = ["Robot", "SensorTerm", "FIXED_SENSORS", "add_fixed_sensors", "add_vision_camera"]
+__all__ = ["FreeBodyRobot", "Robot", "SensorTerm", "FIXED_SENSORS", "add_fixed_sensors", "add_vision_camera"]
 
 FIXED_SENSORS = ("accelerometer", "velocimeter", "gyro", "magnetometer")
 _FIXED_SENSOR_TYPES = {
@@ -144,6 +146,25 @@ class Robot(abc.ABC):
     def is_alive(self, scene: Scene) -> np.ndarray:
         """Which simulators' robots are still alive, ``(N,)`` bool (reference section 5). Default: always."""
         return np.ones(scene.num_envs, dtype=bool)
+
+
+class FreeBodyRobot(Robot):
+    """A robot whose root body hangs on a free joint (Car, Racecar, Doggo, Ant): its start pose puts
+    the root at ``(x, y, height)``, level and turned by ``yaw`` about the vertical; every other joint
+    keeps the model's rest angle (``qpos0``) unless a subclass writes it after ``super().set_pose``."""
+
+    #: height of the root body above the floor at the start
+    height: ClassVar[float]
+
+    def bind(self, model: mujoco.MjModel) -> None:
+        super().bind(model)
+        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
+
+    def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
+        root = self._qpos_root
+        qpos[:, root : root + 2] = xy
+        qpos[:, root + 2] = self.height
+        qpos[:, root + 3 : root + 7] = yaw_quat(yaw)
 
 
 def _quat_to_mat(quat: np.ndarray, out: np.ndarray) -> None:

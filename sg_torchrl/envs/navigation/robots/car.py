@@ -31,12 +31,10 @@ from __future__ import annotations
 from typing import ClassVar
 
 import mujoco
-import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import yaw_quat
 from sg_torchrl.envs.navigation.robots.base import (
+    FreeBodyRobot,
     FIXED_SENSORS,
-    Robot,
     SensorTerm,
     add_fixed_sensors,
     add_vision_camera,
@@ -49,7 +47,7 @@ _BODY_RGBA = [0.7412, 0.0431, 0.1843, 1.0]
 _TRIM_RGBA = [0.0039, 0.1529, 0.3961, 1.0]
 
 
-class Car(Robot):
+class Car(FreeBodyRobot):
     """The Car robot (2 actuators: right and left wheel torque); see the module docstring."""
 
     name: ClassVar[str] = "Car"
@@ -106,13 +104,3 @@ class Car(Robot):
         joint = mujoco.mjtObj.mjOBJ_JOINT
         spec.add_sensor(name="ballangvel_rear", type=mujoco.mjtSensor.mjSENS_BALLANGVEL, objtype=joint, objname="rear")
         spec.add_sensor(name="ballquat_rear", type=mujoco.mjtSensor.mjSENS_BALLQUAT, objtype=joint, objname="rear")
-
-    def bind(self, model: mujoco.MjModel) -> None:
-        super().bind(model)
-        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
-
-    def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
-        root = self._qpos_root
-        qpos[:, root : root + 2] = xy
-        qpos[:, root + 2] = self.height
-        qpos[:, root + 3 : root + 7] = yaw_quat(yaw)

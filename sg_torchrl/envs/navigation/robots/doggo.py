@@ -45,12 +45,10 @@ from __future__ import annotations
 from typing import ClassVar
 
 import mujoco
-import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import yaw_quat
 from sg_torchrl.envs.navigation.robots.base import (
+    FreeBodyRobot,
     FIXED_SENSORS,
-    Robot,
     SensorTerm,
     add_fixed_sensors,
     add_vision_camera,
@@ -74,7 +72,7 @@ HINGES = (*(f"hip_{k}_z" for k in _LEGS), *(f"hip_{k}_y" for k in _LEGS), *(f"an
 TOUCH_SENSORS = (*(f"touch_ankle_{k}a" for k in _LEGS), *(f"touch_ankle_{k}b" for k in _LEGS))
 
 
-class Doggo(Robot):
+class Doggo(FreeBodyRobot):
     """The Doggo robot (12 actuators: hip azimuth, hip elevation, knee of each leg); see the module docstring."""
 
     name: ClassVar[str] = "Doggo"
@@ -165,14 +163,3 @@ class Doggo(Robot):
         joint = body.add_joint(name=name, type=_HINGE, axis=axis, range=limits, springref=springref,
                                limited=mujoco.mjtLimited.mjLIMITED_TRUE, armature=0.00005)
         joint.stiffness[0] = 0.0001
-
-    def bind(self, model: mujoco.MjModel) -> None:
-        super().bind(model)
-        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
-
-    def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
-        # The hinges keep the model's rest angles (qpos0: all 0), as in the reference's start state.
-        root = self._qpos_root
-        qpos[:, root : root + 2] = xy
-        qpos[:, root + 2] = self.height
-        qpos[:, root + 3 : root + 7] = yaw_quat(yaw)

@@ -60,8 +60,7 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import yaw_quat
-from sg_torchrl.envs.navigation.robots.base import Robot, add_fixed_sensors, add_vision_camera
+from sg_torchrl.envs.navigation.robots.base import FreeBodyRobot, add_fixed_sensors, add_vision_camera
 
 __all__ = ["Racecar"]
 
@@ -106,7 +105,7 @@ def _set_inertial(body: mujoco.MjsBody, parts: Sequence[Part]) -> None:
     body.inertia = inertia.tolist()
 
 
-class Racecar(Robot):
+class Racecar(FreeBodyRobot):
     """The Racecar robot (2 actuators: rear-axle velocity, front steering angle); see the module docstring."""
 
     name: ClassVar[str] = "Racecar"
@@ -177,13 +176,3 @@ class Racecar(Robot):
             actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
         add_fixed_sensors(spec, self.root_body)
-
-    def bind(self, model: mujoco.MjModel) -> None:
-        super().bind(model)
-        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
-
-    def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
-        root = self._qpos_root
-        qpos[:, root : root + 2] = xy
-        qpos[:, root + 2] = self.height
-        qpos[:, root + 3 : root + 7] = yaw_quat(yaw)
