@@ -1,0 +1,72 @@
+"""Safe multi-agent algorithms of the Safety-Gymnasium paper: MAPPO, HAPPO, MAPPO-Lag and MACPO.
+
+Over TorchRL's multi-agent layout (group ``("agents", ...)`` with batch ``[*B, n_agents]``, a
+global ``"state"`` for the centralised critics):
+
+* :func:`make_multi_agent_networks` / :class:`MultiAgentNetworks`: one actor, one reward critic and
+  one cost critic per agent (TorchRL :class:`~torchrl.modules.MultiAgentMLP` s without parameter
+  sharing, :class:`PerAgentMLP`), group-wise for collection and per agent for the updates;
+* :func:`make_multi_agent_gae`, :func:`make_multi_agent_cost_gae`: per-agent reward and cost GAE
+  (TorchRL's :class:`~torchrl.objectives.value.MultiAgentGAE`), standardised per agent;
+* :class:`SequentialAgentUpdate`: the random-order, one-agent-at-a-time round with HAPPO's running
+  ratio product :math:`M` (Kuba et al. 2022), the one piece every algorithm below runs through;
+* :class:`AgentPPOLoss`: one agent's factor-weighted clipped PPO with reward and cost critics
+  (TorchRL's :class:`~torchrl.objectives.multiagent.MAPPOLoss` with sg_torchrl's
+  :class:`~sg_torchrl.objectives.PPOLagLoss`); :class:`MAPPOLagMultiplier`: MAPPO-Lagrangian's
+  per-agent multiplier (Gu et al. 2023);
+* the rounds, ``update(batch, mean_episode_cost) -> dict[str, float]``: :class:`MAPPOUpdate`
+  (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate` and
+  :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPOStep` is the single-agent
+  :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy).
+"""
+
+from sg_torchrl.objectives.multi_agent.advantages import (
+    AGENT_VIEW_KEYS,
+    agent_view,
+    make_multi_agent_cost_gae,
+    make_multi_agent_gae,
+)
+from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
+from sg_torchrl.objectives.multi_agent.macpo import MACPOStep, MACPOUpdate
+from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
+from sg_torchrl.objectives.multi_agent.networks import (
+    AgentGaussianHead,
+    make_multi_agent_networks,
+    MultiAgentGaussianPolicy,
+    MultiAgentNetworks,
+    MultiAgentStateValue,
+    PerAgentMLP,
+)
+from sg_torchrl.objectives.multi_agent.sequential import AgentStage, SequentialAgentUpdate, SequentialResult
+from sg_torchrl.objectives.multi_agent.updates import (
+    HAPPOUpdate,
+    MAPPOLagUpdate,
+    MAPPOUpdate,
+    MultiAgentPPOUpdate,
+    MultiAgentUpdate,
+)
+
+__all__ = [
+    "AGENT_VIEW_KEYS",
+    "AgentGaussianHead",
+    "AgentPPOLoss",
+    "AgentStage",
+    "HAPPOUpdate",
+    "MACPOStep",
+    "MACPOUpdate",
+    "MAPPOLagMultiplier",
+    "MAPPOLagUpdate",
+    "MAPPOUpdate",
+    "MultiAgentGaussianPolicy",
+    "MultiAgentNetworks",
+    "MultiAgentPPOUpdate",
+    "MultiAgentStateValue",
+    "MultiAgentUpdate",
+    "PerAgentMLP",
+    "SequentialAgentUpdate",
+    "SequentialResult",
+    "agent_view",
+    "make_multi_agent_cost_gae",
+    "make_multi_agent_gae",
+    "make_multi_agent_networks",
+]
