@@ -17,7 +17,9 @@ For every env id and batch size ``N`` this measures, in the same process and int
   reached; the raw loop never resets). Objects the env moves before every sub-step (gremlins)
   stand still in the raw loop, which keeps MuJoCo's single ``mj_step(frame_skip)`` call.
 
-Works for any registered id (navigation and velocity alike). ``benchmarks/reset_time.py`` measures
+Works for any registered id (navigation, velocity and multi-agent velocity alike: a multi-agent env's
+group action is mapped to the robot's actuators for the raw loop; ``benchmarks/multi_agent_throughput.py``
+sets the multi-agent envs beside their single-agent robots). ``benchmarks/reset_time.py`` measures
 reset times; ``--reset-time`` adds its one-simulator reset median to this table.
 
 Both report env steps per second (``N * steps / seconds``), best of ``--repeats`` runs after a
@@ -50,20 +52,30 @@ _STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # joints, mocap bodies, time, warm
 
 
 def _fixed_action(env, seed: int) -> torch.Tensor:
-    """One in-bounds random action per simulator, drawn once."""
+    """One in-bounds random action per simulator (per agent for multi-agent envs), drawn once."""
     generator = torch.Generator().manual_seed(seed)
-    low, high = env.action_spec.space.low, env.action_spec.space.high
+    box = env.full_action_spec[env.action_key].space
+    low, high = box.low, box.high
     return low + (high - low) * torch.rand(low.shape, generator=generator)
+
+
+def _robot_control(env, action: torch.Tensor) -> np.ndarray:
+    """The ``(N, nu)`` control the raw loop writes: the action itself, or a multi-agent env's group
+    action mapped to the robot's actuators."""
+    if hasattr(env, "robot_control"):
+        return env.robot_control(action)
+    return action.double().numpy()
 
 
 def time_ours(env, td, action: torch.Tensor, steps: int, warmup: int) -> float:
     """Seconds for ``steps`` calls of ``env.step_and_maybe_reset``, starting from the reset ``td``."""
+    key = env.action_key  # ("agents", "action") for multi-agent envs
     for _ in range(warmup):
-        td.set("action", action)
+        td.set(key, action)
         _, td = env.step_and_maybe_reset(td)
     start = time.perf_counter()
     for _ in range(steps):
-        td.set("action", action)
+        td.set(key, action)
         _, td = env.step_and_maybe_reset(td)
     return time.perf_counter() - start
 
@@ -105,7 +117,7 @@ def measure(env_id: str, num_envs: int, steps: int, repeats: int, warmup: int, s
             raw_step_only: bool = False, reset_time: bool = False) -> dict:
     env = sg_torchrl.make(env_id, num_envs=num_envs, seed=seed)
     action = _fixed_action(env, seed)
-    raw_action = action.double().numpy()
+    raw_action = _robot_control(env, action)
     physics = env.physics  # the env's own compiled model and post-step work
     post = physics.post_constraint and not raw_step_only
     forward = physics.forward_after_step and not raw_step_only

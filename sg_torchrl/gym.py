@@ -45,7 +45,7 @@ API
 
 Gymnasium's registry and the 6-tuple
 ------------------------------------
-Importing this module registers, for every id of :func:`sg_torchrl.list_envs`, the id itself and
+Importing this module registers, for every single-agent id of :func:`sg_torchrl.list_envs`, the id itself and
 its twin ``<Name>Gymnasium-v<k>`` in gymnasium's registry (:func:`register_envs`, idempotent; call
 it again after registering new sg_torchrl ids). What ``gymnasium.make`` (1.4) does to an env: it
 wraps it in ``PassiveEnvChecker`` (whose first ``step`` raises ``gymnasium.error.Error`` unless the
@@ -189,6 +189,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
                 "the gymnasium façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N) "
                 "for a batched TorchRL env"
             )
+        if registry_entry(env_id).multi_agent:
+            raise ValueError(f"{env_id!r} is a multi-agent env: use sg_torchrl.pettingzoo.make({env_id!r})")
         if "max_episode_steps" in options and options["max_episode_steps"] is None:
             options["max_episode_steps"] = _NO_LIMIT
         self.env_id = env_id
@@ -370,6 +372,8 @@ def register_envs() -> list[str]:
     added = []
     registry = gymnasium.envs.registry
     for env_id in list_envs():
+        if registry_entry(env_id).multi_agent:  # PettingZoo envs: sg_torchrl.pettingzoo
+            continue
         twin_id = gymnasium_twin_id(env_id)
         episode_steps = registry_entry(env_id).max_episode_steps
         for gym_id, settings in (

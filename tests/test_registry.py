@@ -96,6 +96,19 @@ REFERENCE_SIZES_BY_ID = {
 }
 
 
+# Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
+MULTI_AGENT_SIZES = {
+    "Safety2x4AntVelocity-v0": ([(21, 4), (21, 4)], 27, 2.522),
+    "Safety4x2AntVelocity-v0": ([(18, 2)] * 4, 27, 2.418),
+    "Safety2x3HalfCheetahVelocity-v0": ([(12, 3), (12, 3)], 17, 3.227),
+    "Safety6x1HalfCheetahVelocity-v0": ([(9, 1), (9, 1), (8, 1), (9, 1), (9, 1), (8, 1)], 17, 2.932),
+    "Safety3x1HopperVelocity-v0": ([(8, 1), (9, 1), (8, 1)], 11, 0.9613),
+    "Safety9|8HumanoidVelocity-v0": ([(248, 9), (176, 8)], 376, 0.58),
+    "Safety2x1SwimmerVelocity-v0": ([(6, 1), (6, 1)], 8, 0.04891),
+    "Safety2x3Walker2dVelocity-v0": ([(11, 3), (11, 3)], 17, 1.641),
+}
+
+
 def make_env(env_id: str, num_envs: int = 3, seed: int = 0, **options):
     return sg_torchrl.make(env_id, num_envs=num_envs, seed=seed, **options)
 
@@ -108,13 +121,21 @@ class TestListEnvs:
         expected = {f"Safety{robot}Velocity-v{v}" for robot in REFERENCE_SIZES for v in (0, 1)}
         assert set(ids) == expected
 
+    def test_multi_agent_velocity_family_has_eight_ids(self):
+        ids = sg_torchrl.list_envs(family="multi_agent_velocity")
+        assert set(ids) == set(MULTI_AGENT_SIZES)
+        assert all(registry_entry(i).multi_agent for i in ids)
+        assert not any(registry_entry(i).multi_agent for i in sg_torchrl.list_envs(family="velocity"))
+
     def test_filter_by_robot(self):
-        # "Ant" names a velocity robot and a navigation robot: the family tells them apart.
+        # "Ant" names a velocity, a navigation and a multi-agent robot: the family tells them apart.
         velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == velocity
         navigation = sg_torchrl.list_envs(family="navigation", robot="Ant")
         assert len(navigation) == 13 and "SafetyAntGoal1-v0" in navigation
-        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation)
+        multi_agent = sg_torchrl.list_envs(family="multi_agent_velocity", robot="Ant")
+        assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
+        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation + multi_agent)
 
     def test_unknown_family_is_empty(self):
         assert sg_torchrl.list_envs(family="no-such-family") == []
@@ -172,12 +193,27 @@ class TestEveryId:
         rollout = env.rollout(steps, break_when_any_done=False)
         assert rollout.batch_size == torch.Size([3, steps])
         nxt = rollout["next"]
-        for key in ("reward", "cost"):
-            assert nxt[key].shape == (3, steps, 1), key
+        multi_agent = registry_entry(env_id).multi_agent
+        # Multi-agent envs: TorchRL's group layout (reward, observation per agent; state, cost at the root too).
+        reward_key, observation_key = ("reward", "observation")
+        if multi_agent:
+            reward_key, observation_key = ("agents", "reward"), ("agents", "observation")
+        assert env.reward_key == reward_key
+        for key in (reward_key, "cost"):
+            assert nxt[key].shape[:2] == (3, steps) and nxt[key].shape[-1] == 1, key
             assert nxt[key].dtype == torch.float32, key
             assert torch.isfinite(nxt[key]).all(), key
-        assert torch.isfinite(nxt["observation"]).all()
-        assert nxt["observation"].dtype == torch.float32
+        assert torch.isfinite(nxt[observation_key]).all()
+        assert nxt[observation_key].dtype == torch.float32
+        if multi_agent:
+            agents = env.num_agents
+            for key in ("reward", "cost", "done", "terminated", "truncated"):
+                assert nxt["agents", key].shape == (3, steps, agents, 1), key
+            # One robot: every agent shares the team reward, the cost and the episode flags.
+            for key in ("cost", "done", "terminated", "truncated"):
+                assert (nxt["agents", key] == nxt[key].unsqueeze(-2)).all(), key
+            assert (nxt["agents", "reward"] == nxt["agents", "reward"][..., :1, :]).all()
+            assert torch.isfinite(nxt["state"]).all()
         assert set(nxt["cost_info"].keys()) == set(env.constraint_names)
         for name in env.constraint_names:
             assert nxt["cost_info", name].shape == (3, steps, 1), name
@@ -192,6 +228,14 @@ class TestEveryId:
 
     def test_sizes_match_reference(self, env_id):
         env = make_env(env_id, num_envs=1)
+        if registry_entry(env_id).multi_agent:
+            agents, state_dim, threshold = MULTI_AGENT_SIZES[env_id]
+            assert list(zip(env.observation_sizes, env.action_sizes)) == agents
+            assert env.observation_spec["agents", "observation"].shape == (1, len(agents), max(o for o, _ in agents))
+            assert env.full_action_spec[env.action_key].shape == (1, len(agents), max(a for _, a in agents))
+            assert env.observation_spec["state"].shape == (1, state_dim)
+            assert env.velocity_threshold == threshold
+            return
         obs_size, act_size = REFERENCE_SIZES_BY_ID.get(env_id) or REFERENCE_SIZES[registry_entry(env_id).robot]
         assert env.observation_spec["observation"].shape == (1, obs_size)
         assert env.action_spec.shape == (1, act_size)

@@ -16,7 +16,10 @@ import torch
 
 from sg_torchrl.envs.base import SafeEnv
 
-__all__ = ["EnvEntry", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+__all__ = ["EnvEntry", "MULTI_AGENT_FAMILIES", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+
+#: Families whose envs use TorchRL's multi-agent layout (group ``"agents"``, no root ``observation``).
+MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity"})
 
 
 class UnknownEnvError(KeyError):
@@ -33,7 +36,7 @@ class EnvEntry:
     Args:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
         constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
-        family: ``"velocity"``, ``"navigation"``, ...
+        family: ``"velocity"``, ``"navigation"``, ``"multi_agent_velocity"``, ...
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
@@ -48,6 +51,11 @@ class EnvEntry:
     max_episode_steps: int
     level: int | None = None
     kwargs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def multi_agent(self) -> bool:
+        """The env emits TorchRL's multi-agent layout (see :data:`MULTI_AGENT_FAMILIES`)."""
+        return self.family in MULTI_AGENT_FAMILIES
 
 
 _REGISTRY: dict[str, EnvEntry] = {}
@@ -145,5 +153,24 @@ def _register_navigation() -> None:
                 )
 
 
+def _register_multi_agent_velocity() -> None:
+    from sg_torchrl.envs.multi_agent import SCENARIOS, MultiAgentVelocityEnv
+
+    for scenario in SCENARIOS.values():
+        for conf in scenario.partitions:
+            register(
+                EnvEntry(
+                    env_id=f"Safety{conf}{scenario.robot}Velocity-v0",
+                    constructor=MultiAgentVelocityEnv,
+                    family="multi_agent_velocity",
+                    robot=scenario.robot,
+                    task="Velocity",
+                    max_episode_steps=1000,
+                    kwargs={"scenario": scenario.robot, "agent_conf": conf},
+                )
+            )
+
+
 _register_velocity()
 _register_navigation()
+_register_multi_agent_velocity()

@@ -31,6 +31,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         version: env version; selects the cost threshold (and, for the Swimmer, whether the
             cost uses planar speed (v0) or x velocity (v1)).
         velocity_threshold: override the version's threshold.
+        planar_cost: override the version's velocity measure: ``True`` prices the planar speed
+            ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
+            velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
@@ -49,6 +52,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         cost_mode: CostMode = "indicator",
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,
+        planar_cost: bool | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -71,7 +75,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self._init_qpos = model.qpos0.copy()
         self._init_qvel = np.zeros(model.nv)
         self._dt = model.opt.timestep * spec.frame_skip
-        self._planar_cost = version in spec.planar_cost_versions
+        self._planar_cost = version in spec.planar_cost_versions if planar_cost is None else bool(planar_cost)
         self._torso_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         self._body_mass = model.body_mass[:, None] / model.body_mass.sum()
         self._position_before = np.zeros((num_envs, 2 if spec.planar else 1))

@@ -1,0 +1,263 @@
+"""PettingZoo façade: Safety-Gymnasium's multi-agent API (``make_ma``) on top of the TorchRL envs.
+
+This is the migration path for code written against ``safety_gymnasium.make_ma(scenario, conf)``:
+
+>>> import sg_torchrl.pettingzoo
+>>> env = sg_torchrl.pettingzoo.make("Safety2x4AntVelocity-v0")
+>>> observations, infos = env.reset(seed=0)
+>>> actions = {agent: env.action_space(agent).sample() for agent in env.agents}
+>>> observations, rewards, costs, terminations, truncations, infos = env.step(actions)
+>>> env.state().shape
+(27,)
+
+API
+---
+* :func:`make` ``(env_id, *, cost_in_info=False, render_mode=None, **options)`` builds one
+  simulator of the multi-agent sg_torchrl env ``env_id`` (``sg_torchrl.make(env_id, num_envs=1,
+  **options)``) and wraps it in a :class:`pettingzoo.ParallelEnv`.
+* :class:`SafeParallelEnv` (the default): ``step(actions)`` returns Safety-Gymnasium's **6-tuple**
+  ``(observations, rewards, costs, terminations, truncations, infos)``, each a dict keyed by agent
+  (``"agent_0"``, ...). Observations are ``float64`` arrays of each agent's true (unpadded) size,
+  rewards and costs python floats (the team reward, and each agent's cost: the velocity indicator,
+  equal for all agents), the flags python bools, and ``infos[agent]`` holds ``cost_<name>`` per
+  constraint plus ``cost_sum``. ``reset(seed=None, options=None)`` returns ``(observations,
+  infos)`` with empty infos; ``options`` are accepted and ignored (as MaMuJoCo's v4 robots do).
+  ``state()`` is the global state (the robot's v4 observation, ``float64``), ``state_space`` its box.
+* :class:`CostInInfoParallelEnv` (``make(env_id, cost_in_info=True)``): the standard PettingZoo
+  **5-tuple** ``(observations, rewards, terminations, truncations, infos)`` with each agent's cost in
+  ``infos[agent]["cost"]``. This is the variant that passes ``pettingzoo.test.parallel_api_test``,
+  which unpacks exactly five values from ``step`` and so cannot accept the 6-tuple.
+* Episodes: when the robot's episode ends (terminated or truncated) every agent is done at once and
+  ``agents`` becomes empty, as in MaMuJoCo. ``step`` before ``reset`` or after the end raises
+  :class:`sg_torchrl.gym.EpisodeEndedError`; an action dict that misses a live agent, names an unknown
+  one, has the wrong shape or is not finite raises ``ValueError``. Actions outside the bounds are clipped.
+* Seeding: ``reset(seed=s)`` re-seeds the simulator (same seed, same initial observations and, with the
+  same actions, the same trajectory); ``reset()`` continues the random stream.
+* The values are exactly the TorchRL env's (``float32`` observations and rewards converted to python
+  / ``float64``; actions converted to ``float32``, the action spec's dtype): a policy trained with
+  TorchRL sees the same inputs through the façade.
+
+Speed
+-----
+For a :class:`~sg_torchrl.envs.multi_agent.MultiAgentVelocityEnv` the step runs the env's numpy
+hooks directly (the sequence of its ``_step``, without building TensorDicts), as the gymnasium façade
+does; other multi-agent envs go through the public TorchRL ``step``. Both give identical data.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pettingzoo
+import torch
+from gymnasium import spaces
+from tensordict import TensorDict
+
+from sg_torchrl.envs.multi_agent import GROUP as _GROUP
+from sg_torchrl.envs.multi_agent import MultiAgentVelocityEnv
+from sg_torchrl.envs.registry import registry_entry
+from sg_torchrl.envs.registry import make as make_torchrl_env
+from sg_torchrl.gym import _RENDER_OPTIONS, EpisodeEndedError, _render_options
+
+__all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
+
+
+def make(env_id: str, *, cost_in_info: bool = False, render_mode: str | None = None, **options: Any) -> SafeParallelEnv:
+    """Build a PettingZoo ``ParallelEnv`` for one simulator of the multi-agent sg_torchrl env ``env_id``.
+
+    Args:
+        env_id: a multi-agent id, e.g. ``"Safety2x4AntVelocity-v0"``
+            (``sg_torchrl.list_envs(family="multi_agent_velocity")``).
+        cost_in_info: ``False``: Safety-Gymnasium's 6-tuple step (:class:`SafeParallelEnv`);
+            ``True``: PettingZoo's 5-tuple with ``infos[agent]["cost"]`` (:class:`CostInInfoParallelEnv`).
+        render_mode: ``None`` or ``"rgb_array"`` (then ``width``, ``height``, ``camera`` options too).
+        **options: sg_torchrl options, e.g. ``max_episode_steps=500``, ``cost_mode="raw"``, ``seed=0``.
+    """
+    cls = CostInInfoParallelEnv if cost_in_info else SafeParallelEnv
+    return cls(env_id, render_mode=render_mode, **options)
+
+
+class SafeParallelEnv(pettingzoo.ParallelEnv):
+    """One multi-agent sg_torchrl simulator behind Safety-Gymnasium's ``make_ma`` API (6-tuple step).
+
+    Args:
+        env_id: a multi-agent id of :func:`sg_torchrl.list_envs`.
+        render_mode: ``None`` or ``"rgb_array"``.
+        **options: sg_torchrl options (see :func:`make`).
+
+    The wrapped TorchRL env is :attr:`torchrl_env` (``batch_size=[1]``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "name": "sg_torchrl", "is_parallelizable": True}
+
+    def __init__(self, env_id: str, render_mode: str | None = None, **options: Any) -> None:
+        if not registry_entry(env_id).multi_agent:
+            raise ValueError(f"{env_id!r} is a single-agent env: use sg_torchrl.gym.make({env_id!r})")
+        if render_mode not in (None, "rgb_array"):
+            raise NotImplementedError(
+                f"render_mode={render_mode!r} is not supported: sg_torchrl envs render headless "
+                "(pass render_mode='rgb_array' or None)"
+            )
+        if "num_envs" in options:
+            raise TypeError("the PettingZoo façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N)")
+        render_options = {key: options.pop(key) for key in _RENDER_OPTIONS if key in options}
+        env = make_torchrl_env(env_id, num_envs=1, **options)
+        self._env = env
+        self.env_id = env_id
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "name": env_id}
+        self._render_options = _render_options(env, render_mode, render_options)
+        self.possible_agents = list(env.agent_names)
+        self.agents: list[str] = []
+        self._sizes = dict(zip(self.possible_agents, env.observation_sizes))
+        self._action_sizes = dict(zip(self.possible_agents, env.action_sizes))
+        self.observation_spaces = {
+            agent: spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float64) for agent, size in self._sizes.items()
+        }
+        bounds = env.full_action_spec[_GROUP, "action"].space
+        low, high = bounds.low[0].numpy(), bounds.high[0].numpy()
+        self.action_spaces = {
+            agent: spaces.Box(low[i, :size], high[i, :size], dtype=np.float32)
+            for i, (agent, size) in enumerate(self._action_sizes.items())
+        }
+        self.state_space = spaces.Box(-np.inf, np.inf, shape=(env.state_dim,), dtype=np.float64)
+        self._action_buffer = np.zeros(tuple(env.full_action_spec[_GROUP, "action"].shape), dtype=np.float32)
+        self._constraints = tuple(env.observation_spec["cost_info"].keys())
+        self._state = np.zeros(env.state_dim)
+        # Numpy fast path only where the step is MultiAgentVelocityEnv's own (see the module docstring).
+        self._fast = isinstance(env, MultiAgentVelocityEnv) and type(env)._step is MultiAgentVelocityEnv._step
+        self._closed = False
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def torchrl_env(self):
+        """The wrapped TorchRL env (one simulator)."""
+        return self._env
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        """Agent ``agent``'s observation box (its true size); the same object on every call."""
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Box:
+        """Agent ``agent``'s action box (its actuators' control ranges); the same object on every call."""
+        return self.action_spaces[agent]
+
+    # ------------------------------------------------------------------ PettingZoo API
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream."""
+        self._check_open()
+        if seed is not None:
+            self._env.set_seed(int(seed), static_seed=True)
+        arrays = self._env.reset().numpy()
+        self.agents = list(self.possible_agents)
+        return self._observations(arrays), {agent: {} for agent in self.agents}
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict, dict]:
+        """Advance one step: ``(observations, rewards, costs, terminations, truncations, infos)``."""
+        return self._transition(actions)
+
+    def state(self) -> np.ndarray:
+        """The global state after the last ``reset``/``step`` (the robot's v4 observation)."""
+        return self._state.copy()
+
+    def render(self) -> np.ndarray | None:
+        """The simulator as an ``(height, width, 3)`` ``uint8`` array (``render_mode="rgb_array"``)."""
+        self._check_open()
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' to make")
+            return None
+        return self._env.render(0, **self._render_options)
+
+    def close(self) -> None:
+        """Release the simulator; calling it twice is allowed."""
+        if not self._closed:
+            self._closed = True
+            self.agents = []
+            self._env.close(raise_if_closed=False)
+
+    # ------------------------------------------------------------------ internals
+    def _check_open(self) -> None:
+        if self._closed:
+            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
+
+    def _observations(self, arrays: dict) -> dict[str, np.ndarray]:
+        """Per-agent ``float64`` observations (true sizes) from the env's output (as nested numpy
+        dicts, see ``MultiAgentVelocityEnv._output_arrays``); records the state."""
+        group = arrays[_GROUP]["observation"][0].astype(np.float64)
+        self._state = arrays["state"][0].astype(np.float64)
+        return {agent: group[i, : self._sizes[agent]] for i, agent in enumerate(self.possible_agents)}
+
+    def _group_action(self, actions: dict[str, Any]) -> np.ndarray:
+        """The ``(1, A, Da)`` float32 group action the TorchRL env receives (padding slots 0)."""
+        if not isinstance(actions, dict):
+            raise ValueError(f"{self.env_id}: actions must be a dict keyed by agent, got {type(actions).__name__}")
+        unknown = set(actions) - set(self.possible_agents)
+        missing = set(self.agents) - set(actions)
+        if unknown or missing:
+            raise ValueError(
+                f"{self.env_id}: actions must hold one entry per live agent {self.agents}; "
+                f"unknown {sorted(unknown)}, missing {sorted(missing)}"
+            )
+        buffer = self._action_buffer
+        buffer[:] = 0.0
+        for i, agent in enumerate(self.possible_agents):
+            array = np.asarray(actions[agent], dtype=np.float32)
+            expected = self.action_spaces[agent].shape
+            if array.shape != expected:
+                raise ValueError(f"{self.env_id}: action of {agent} has shape {array.shape}, expected {expected}")
+            if not np.isfinite(array).all():
+                raise ValueError(f"{self.env_id}: action of {agent} is not finite: {array}")
+            buffer[0, i, : expected[0]] = array
+        return buffer.copy()
+
+    def _transition(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict, dict]:
+        if not self.agents:
+            self._check_open()
+            raise EpisodeEndedError(
+                f"{self.env_id}: call reset() before step(): the episode has not started or has ended "
+                "(terminated or truncated)"
+            )
+        env, action = self._env, self._group_action(actions)
+        if self._fast:
+            out = env._output_arrays(*env._transition_arrays(env.robot_control(action)))
+        else:
+            td = TensorDict({(_GROUP, "action"): torch.from_numpy(action).to(env.device)}, batch_size=env.batch_size)
+            out = env.step(td).get("next").cpu().numpy()
+        observations = self._observations(out)
+        group = out[_GROUP]
+        reward = group["reward"][0, :, 0].tolist()
+        cost = group["cost"][0, :, 0].tolist()
+        terminated = group["terminated"][0, :, 0].tolist()
+        truncated = group["truncated"][0, :, 0].tolist()
+        cost_info = {f"cost_{name}": float(out["cost_info"][name][0, 0]) for name in self._constraints}
+        agents = self.possible_agents
+        rewards = dict(zip(agents, reward))
+        costs = dict(zip(agents, cost))
+        terminations = dict(zip(agents, map(bool, terminated)))
+        truncations = dict(zip(agents, map(bool, truncated)))
+        infos = {agent: {**cost_info, "cost_sum": costs[agent]} for agent in agents}
+        if any(terminated) or any(truncated):
+            self.agents = []
+        return observations, rewards, costs, terminations, truncations, infos
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.env_id!r})"
+
+
+class CostInInfoParallelEnv(SafeParallelEnv):
+    """:class:`SafeParallelEnv` with PettingZoo's 5-tuple step; each agent's cost is ``infos[agent]["cost"]``.
+
+    For code (and tests such as ``pettingzoo.test.parallel_api_test``) that expects a plain
+    :class:`pettingzoo.ParallelEnv`.
+    """
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Advance one step: ``(observations, rewards, terminations, truncations, infos)``, costs in ``infos``."""
+        observations, rewards, costs, terminations, truncations, infos = self._transition(actions)
+        for agent, cost in costs.items():
+            infos[agent]["cost"] = cost
+        return observations, rewards, terminations, truncations, infos
