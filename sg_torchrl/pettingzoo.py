@@ -18,19 +18,23 @@ API
 * :class:`SafeParallelEnv` (the default): ``step(actions)`` returns Safety-Gymnasium's **6-tuple**
   ``(observations, rewards, costs, terminations, truncations, infos)``, each a dict keyed by agent
   (``"agent_0"``, ...). Observations are ``float64`` arrays of each agent's true (unpadded) size,
-  rewards and costs python floats (the team reward, and each agent's cost: the velocity indicator,
-  equal for all agents), the flags python bools, and ``infos[agent]`` holds ``cost_<name>`` per
-  constraint plus ``cost_sum``. ``reset(seed=None, options=None)`` returns ``(observations,
-  infos)`` with empty infos; ``options`` are accepted and ignored (as MaMuJoCo's v4 robots do).
-  ``state()`` is the global state (the robot's v4 observation, ``float64``), ``state_space`` its box.
+  rewards and costs python floats (each agent's ``("agents", "reward")`` and ``("agents", "cost")``:
+  for the velocity ids the team reward and the velocity indicator, equal for all agents; for the
+  MultiGoal ids each agent's own), the flags python bools, and ``infos[agent]`` holds ``cost_<name>``
+  per constraint (the agent's own where the env reports per-agent entries, else the team's) plus
+  ``cost_sum``. ``reset(seed=None, options=None)`` returns ``(observations, infos)`` with empty
+  infos; ``options`` are accepted and ignored (as MaMuJoCo's v4 robots do). ``state()`` is the
+  global state (the env's ``"state"``: the robot's v4 observation, or the MultiGoal joint observation;
+  ``float64``), ``state_space`` its box.
 * :class:`CostInInfoParallelEnv` (``make(env_id, cost_in_info=True)``): the standard PettingZoo
   **5-tuple** ``(observations, rewards, terminations, truncations, infos)`` with each agent's cost in
   ``infos[agent]["cost"]``. This is the variant that passes ``pettingzoo.test.parallel_api_test``,
   which unpacks exactly five values from ``step`` and so cannot accept the 6-tuple.
-* Episodes: when the robot's episode ends (terminated or truncated) every agent is done at once and
-  ``agents`` becomes empty, as in MaMuJoCo. ``step`` before ``reset`` or after the end raises
-  :class:`sg_torchrl.gym.EpisodeEndedError`; an action dict that misses a live agent, names an unknown
-  one, has the wrong shape or is not finite raises ``ValueError``. Actions outside the bounds are clipped.
+* Episodes: when the episode ends (terminated or truncated) every agent is done at once and
+  ``agents`` becomes empty, as in MaMuJoCo and Safety-Gymnasium's multi-agent navigation. ``step``
+  before ``reset`` or after the end raises :class:`sg_torchrl.gym.EpisodeEndedError`; an action dict
+  that misses a live agent, names an unknown one, has the wrong shape or is not finite raises
+  ``ValueError``. Actions outside the bounds are clipped.
 * Seeding: ``reset(seed=s)`` re-seeds the simulator (same seed, same initial observations and, with the
   same actions, the same trajectory); ``reset()`` continues the random stream.
 * The values are exactly the TorchRL env's (``float32`` observations and rewards converted to python
@@ -39,9 +43,10 @@ API
 
 Speed
 -----
-For a :class:`~sg_torchrl.envs.multi_agent.MultiAgentVelocityEnv` the step runs the env's numpy
-hooks directly (the sequence of its ``_step``, without building TensorDicts), as the gymnasium façade
-does; other multi-agent envs go through the public TorchRL ``step``. Both give identical data.
+For the envs built on :class:`~sg_torchrl.envs.multi_agent.AgentGroupMixin` (every registered
+multi-agent env) the step runs the env's numpy hooks directly (the sequence of the mixin's ``_step``,
+without building TensorDicts), as the gymnasium façade does; other multi-agent envs (or subclasses
+that override ``_step``) go through the public TorchRL ``step``. Both give identical data.
 """
 
 from __future__ import annotations
@@ -56,7 +61,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.multi_agent import GROUP as _GROUP
-from sg_torchrl.envs.multi_agent import MultiAgentVelocityEnv
+from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 from sg_torchrl.gym import _RENDER_OPTIONS, EpisodeEndedError, _render_options
@@ -68,8 +73,8 @@ def make(env_id: str, *, cost_in_info: bool = False, render_mode: str | None = N
     """Build a PettingZoo ``ParallelEnv`` for one simulator of the multi-agent sg_torchrl env ``env_id``.
 
     Args:
-        env_id: a multi-agent id, e.g. ``"Safety2x4AntVelocity-v0"``
-            (``sg_torchrl.list_envs(family="multi_agent_velocity")``).
+        env_id: a multi-agent id, e.g. ``"Safety2x4AntVelocity-v0"`` or ``"SafetyPointMultiGoal1-v0"``
+            (``sg_torchrl.list_envs(family="multi_agent_velocity")``, ``family="multi_agent_navigation"``).
         cost_in_info: ``False``: Safety-Gymnasium's 6-tuple step (:class:`SafeParallelEnv`);
             ``True``: PettingZoo's 5-tuple with ``infos[agent]["cost"]`` (:class:`CostInInfoParallelEnv`).
         render_mode: ``None`` or ``"rgb_array"`` (then ``width``, ``height``, ``camera`` options too).
@@ -126,8 +131,8 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         self._action_buffer = np.zeros(tuple(env.full_action_spec[_GROUP, "action"].shape), dtype=np.float32)
         self._constraints = tuple(env.observation_spec["cost_info"].keys())
         self._state = np.zeros(env.state_dim)
-        # Numpy fast path only where the step is MultiAgentVelocityEnv's own (see the module docstring).
-        self._fast = isinstance(env, MultiAgentVelocityEnv) and type(env)._step is MultiAgentVelocityEnv._step
+        # Numpy fast path only where the step is AgentGroupMixin's own (see the module docstring).
+        self._fast = isinstance(env, AgentGroupMixin) and type(env)._step is AgentGroupMixin._step
         self._closed = False
 
     # ------------------------------------------------------------------ properties
@@ -161,7 +166,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         return self._transition(actions)
 
     def state(self) -> np.ndarray:
-        """The global state after the last ``reset``/``step`` (the robot's v4 observation)."""
+        """The global state after the last ``reset``/``step`` (the env's ``"state"``)."""
         return self._state.copy()
 
     def render(self) -> np.ndarray | None:
@@ -186,7 +191,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
 
     def _observations(self, arrays: dict) -> dict[str, np.ndarray]:
         """Per-agent ``float64`` observations (true sizes) from the env's output (as nested numpy
-        dicts, see ``MultiAgentVelocityEnv._output_arrays``); records the state."""
+        dicts, see ``AgentGroupMixin._output_arrays``); records the state."""
         group = arrays[_GROUP]["observation"][0].astype(np.float64)
         self._state = arrays["state"][0].astype(np.float64)
         return {agent: group[i, : self._sizes[agent]] for i, agent in enumerate(self.possible_agents)}
@@ -233,13 +238,18 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         cost = group["cost"][0, :, 0].tolist()
         terminated = group["terminated"][0, :, 0].tolist()
         truncated = group["truncated"][0, :, 0].tolist()
-        cost_info = {f"cost_{name}": float(out["cost_info"][name][0, 0]) for name in self._constraints}
         agents = self.possible_agents
+        agent_info = group.get("cost_info")  # per-agent entries where the env has them, else the team's
+        cost_info = [
+            {f"cost_{name}": float(agent_info[name][0, i, 0] if agent_info else out["cost_info"][name][0, 0])
+             for name in self._constraints}
+            for i in range(len(agents))
+        ]
         rewards = dict(zip(agents, reward))
         costs = dict(zip(agents, cost))
         terminations = dict(zip(agents, map(bool, terminated)))
         truncations = dict(zip(agents, map(bool, truncated)))
-        infos = {agent: {**cost_info, "cost_sum": costs[agent]} for agent in agents}
+        infos = {agent: {**info, "cost_sum": costs[agent]} for agent, info in zip(agents, cost_info)}
         if any(terminated) or any(truncated):
             self.agents = []
         return observations, rewards, costs, terminations, truncations, infos

@@ -86,7 +86,9 @@ class TestAntSpecs:
         # The velocity family's Ant is a different env under the same robot name; the family tells them apart.
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         multi_agent = ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]  # MaMuJoCo partitions of the velocity Ant
-        assert sg_torchrl.list_envs(robot="Ant") == sorted([*ant_ids, "SafetyAntVelocity-v0", "SafetyAntVelocity-v1", *multi_agent])
+        multi_goal = [f"SafetyAntMultiGoal{level}-v0" for level in range(3)]  # two Ants in one navigation world
+        assert sg_torchrl.list_envs(robot="Ant") == sorted(
+            [*ant_ids, "SafetyAntVelocity-v0", "SafetyAntVelocity-v1", *multi_agent, *multi_goal])
 
     @pytest.mark.parametrize("env_id", sorted(ANT_SIZES))
     def test_sizes_and_physics_options(self, env_id):

@@ -109,6 +109,19 @@ MULTI_AGENT_SIZES = {
 }
 
 
+# Multi-agent navigation (Safety-Gymnasium's MultiGoal): per-agent (observation, action) sizes and the state size.
+# Every agent observes the joint vector: both robots' sensors (Point 12, Ant 40 each), then each robot's lidars
+# (16 bins per object: goal_red, goal_blue; levels 1-2 add hazards and vases).
+MULTI_GOAL_SIZES = {
+    "SafetyPointMultiGoal0-v0": ([(88, 2)] * 2, 88),
+    "SafetyPointMultiGoal1-v0": ([(152, 2)] * 2, 152),
+    "SafetyPointMultiGoal2-v0": ([(152, 2)] * 2, 152),
+    "SafetyAntMultiGoal0-v0": ([(144, 8)] * 2, 144),
+    "SafetyAntMultiGoal1-v0": ([(208, 8)] * 2, 208),
+    "SafetyAntMultiGoal2-v0": ([(208, 8)] * 2, 208),
+}
+
+
 def make_env(env_id: str, num_envs: int = 3, seed: int = 0, **options):
     return sg_torchrl.make(env_id, num_envs=num_envs, seed=seed, **options)
 
@@ -127,6 +140,12 @@ class TestListEnvs:
         assert all(registry_entry(i).multi_agent for i in ids)
         assert not any(registry_entry(i).multi_agent for i in sg_torchrl.list_envs(family="velocity"))
 
+    def test_multi_agent_navigation_family_has_six_ids(self):
+        ids = sg_torchrl.list_envs(family="multi_agent_navigation")
+        assert set(ids) == set(MULTI_GOAL_SIZES)
+        assert all(registry_entry(i).multi_agent and registry_entry(i).task == "MultiGoal" for i in ids)
+        assert not any("MultiGoal" in i for i in sg_torchrl.list_envs(family="navigation"))
+
     def test_filter_by_robot(self):
         # "Ant" names a velocity, a navigation and a multi-agent robot: the family tells them apart.
         velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
@@ -135,7 +154,9 @@ class TestListEnvs:
         assert len(navigation) == 13 and "SafetyAntGoal1-v0" in navigation
         multi_agent = sg_torchrl.list_envs(family="multi_agent_velocity", robot="Ant")
         assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
-        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation + multi_agent)
+        multi_goal = sg_torchrl.list_envs(family="multi_agent_navigation", robot="Ant")
+        assert multi_goal == [f"SafetyAntMultiGoal{level}-v0" for level in range(3)]
+        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation + multi_agent + multi_goal)
 
     def test_unknown_family_is_empty(self):
         assert sg_torchrl.list_envs(family="no-such-family") == []
@@ -209,10 +230,16 @@ class TestEveryId:
             agents = env.num_agents
             for key in ("reward", "cost", "done", "terminated", "truncated"):
                 assert nxt["agents", key].shape == (3, steps, agents, 1), key
-            # One robot: every agent shares the team reward, the cost and the episode flags.
-            for key in ("cost", "done", "terminated", "truncated"):
+            # Every agent shares the episode flags.
+            for key in ("done", "terminated", "truncated"):
                 assert (nxt["agents", key] == nxt[key].unsqueeze(-2)).all(), key
-            assert (nxt["agents", "reward"] == nxt["agents", "reward"][..., :1, :]).all()
+            if registry_entry(env_id).family == "multi_agent_velocity":
+                # One robot: every agent shares the team reward and the cost.
+                assert (nxt["agents", "cost"] == nxt["cost"].unsqueeze(-2)).all()
+                assert (nxt["agents", "reward"] == nxt["agents", "reward"][..., :1, :]).all()
+            else:
+                # Several robots: each agent pays its own cost; the team's is 1 when some agent paid.
+                torch.testing.assert_close(nxt["cost"], nxt["agents", "cost"].amax(dim=-2))
             assert torch.isfinite(nxt["state"]).all()
         assert set(nxt["cost_info"].keys()) == set(env.constraint_names)
         for name in env.constraint_names:
@@ -228,6 +255,13 @@ class TestEveryId:
 
     def test_sizes_match_reference(self, env_id):
         env = make_env(env_id, num_envs=1)
+        if registry_entry(env_id).family == "multi_agent_navigation":
+            agents, state_dim = MULTI_GOAL_SIZES[env_id]
+            assert list(zip(env.observation_sizes, env.action_sizes)) == agents
+            assert env.observation_spec["agents", "observation"].shape == (1, len(agents), agents[0][0])
+            assert env.full_action_spec[env.action_key].shape == (1, len(agents), agents[0][1])
+            assert env.observation_spec["state"].shape == (1, state_dim)
+            return
         if registry_entry(env_id).multi_agent:
             agents, state_dim, threshold = MULTI_AGENT_SIZES[env_id]
             assert list(zip(env.observation_sizes, env.action_sizes)) == agents

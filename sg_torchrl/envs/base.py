@@ -308,18 +308,28 @@ class SafeEnv(EnvBase, abc.ABC):
         return array
 
     def _isolate(self, diverged, observation, reward, costs, terminated, truncated):
-        """Reset diverged simulators and report them truncated with zero reward and cost."""
+        """Reset diverged simulators and report them truncated with zero reward and cost.
+
+        Rewards and costs may carry trailing dimensions (one value per agent, ``(N, A)``).
+        """
         self.physics_errors += int(diverged.sum())
         indices = np.flatnonzero(diverged)
         self._reset_sims(indices)
         self._elapsed[indices] = 0
-        observation = np.where(diverged[:, None], 0.0, observation)
-        reward = np.where(diverged, 0.0, reward)
-        costs = {name: np.where(diverged, 0.0, value) for name, value in costs.items()}
+
+        def zeroed(value: np.ndarray) -> np.ndarray:
+            return np.where(diverged.reshape(-1, *([1] * (np.ndim(value) - 1))), 0.0, value)
+
+        observation = zeroed(observation)
+        reward = zeroed(reward)
+        costs = {name: zeroed(value) for name, value in costs.items()}
         return observation, reward, costs, terminated & ~diverged, truncated | diverged
 
     def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        total = sum(costs.values(), np.zeros(self.num_envs))
+        """The total cost and the ``cost_info`` entries for raw per-constraint ``costs``, each ``(N,)``
+        (or ``(N, A)``, one value per agent: then per agent), under :attr:`cost_mode`."""
+        shape = np.shape(next(iter(costs.values()))) if costs else (self.num_envs,)
+        total = sum(costs.values(), np.zeros(shape))
         if self.cost_mode == "indicator":
             return (total > 0).astype(np.float32), {k: (v > 0).astype(np.float32) for k, v in costs.items()}
         return total, costs

@@ -3,9 +3,15 @@
 SafePO normalises observations with gymnasium's running mean/variance (parallel Welford update,
 initial count 1e-4, epsilon 1e-8, no clipping), updating the statistics with every observation
 *before* normalising it. :class:`RunningObservationNorm` is that rule as a TorchRL transform whose
-statistics are buffers, so checkpoints restore them; ``.eval()`` freezes them. Statistics are
-updated from stepped observations (reset observations are normalised but not counted) (SafePO kept
-updating during evaluation, a quirk we do not reproduce).
+statistics are buffers, so checkpoints restore them; :meth:`~RunningObservationNorm.freeze` (or
+:meth:`~RunningObservationNorm.frozen_copy`) stops them moving. Statistics are updated from
+stepped observations (reset observations are normalised but not counted) (SafePO kept updating
+during evaluation, a quirk we do not reproduce).
+
+Freezing is a flag of its own, not ``nn.Module.training``: TorchRL puts every transform in eval
+mode when it is attached to a ``TransformedEnv`` (or appended to a ``Compose``), so a
+``training``-gated update would never run (TorchRL's own ``VecNorm`` has ``freeze()`` for the same
+reason).
 """
 
 from __future__ import annotations
@@ -27,6 +33,9 @@ class RunningObservationNorm(Transform):
         in_keys: entries to normalise in place (default ``["observation"]``).
         epsilon: added to the variance before the square root.
         initial_count: pseudo-count of the initial (mean 0, variance 1) statistics.
+
+    Attributes:
+        frozen: when ``True``, stepping normalises without updating the statistics.
     """
 
     def __init__(
@@ -42,6 +51,23 @@ class RunningObservationNorm(Transform):
         self.register_buffer("mean", torch.zeros(*shape, dtype=torch.float64))
         self.register_buffer("var", torch.ones(*shape, dtype=torch.float64))
         self.register_buffer("count", torch.tensor(initial_count, dtype=torch.float64))
+        self.frozen = False
+
+    def freeze(self) -> RunningObservationNorm:
+        """Stop updating the statistics (evaluation); returns ``self``."""
+        self.frozen = True
+        return self
+
+    def unfreeze(self) -> RunningObservationNorm:
+        """Resume updating the statistics; returns ``self``."""
+        self.frozen = False
+        return self
+
+    def frozen_copy(self) -> RunningObservationNorm:
+        """A frozen, detached copy with the same statistics (for an evaluation env)."""
+        copy = RunningObservationNorm(self.mean.shape, in_keys=self.in_keys, epsilon=self.epsilon)
+        copy.load_state_dict(self.state_dict())
+        return copy.freeze()
 
     @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
@@ -60,7 +86,7 @@ class RunningObservationNorm(Transform):
     def _step(self, tensordict, next_tensordict):
         # Statistics learn from stepped observations only: on a partial reset the reset
         # TensorDict also carries the other simulators' observations, already counted here.
-        if self.training:
+        if not self.frozen:
             for key in self.in_keys:
                 self.update(next_tensordict.get(key))
         return self._call(next_tensordict)

@@ -19,7 +19,10 @@ from sg_torchrl.envs.base import SafeEnv
 __all__ = ["EnvEntry", "MULTI_AGENT_FAMILIES", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
 
 #: Families whose envs use TorchRL's multi-agent layout (group ``"agents"``, no root ``observation``).
-MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity"})
+MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigation"})
+
+#: Robots of the multi-agent navigation ids (Safety-Gymnasium's paper and SafePO name these six).
+MULTI_AGENT_NAVIGATION_ROBOTS = ("Point", "Ant")
 
 
 class UnknownEnvError(KeyError):
@@ -36,7 +39,7 @@ class EnvEntry:
     Args:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
         constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
-        family: ``"velocity"``, ``"navigation"``, ``"multi_agent_velocity"``, ...
+        family: ``"velocity"``, ``"navigation"``, ``"multi_agent_velocity"``, ``"multi_agent_navigation"``.
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
@@ -171,6 +174,28 @@ def _register_multi_agent_velocity() -> None:
             )
 
 
+def _register_multi_agent_navigation() -> None:
+    from sg_torchrl.envs.multi_agent import MultiAgentNavigationEnv
+    from sg_torchrl.envs.navigation import MULTI_AGENT_TASKS
+
+    for task, levels in MULTI_AGENT_TASKS.items():
+        for level, factory in sorted(levels.items()):
+            for robot in MULTI_AGENT_NAVIGATION_ROBOTS:
+                register(
+                    EnvEntry(
+                        env_id=f"Safety{robot}{task}{level}-v0",
+                        constructor=MultiAgentNavigationEnv,
+                        family="multi_agent_navigation",
+                        robot=robot,
+                        task=task,
+                        level=level,
+                        max_episode_steps=factory().max_episode_steps,
+                        kwargs={"robot": robot, "task": task, "level": level},
+                    )
+                )
+
+
 _register_velocity()
 _register_navigation()
 _register_multi_agent_velocity()
+_register_multi_agent_navigation()

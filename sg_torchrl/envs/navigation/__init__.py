@@ -5,22 +5,25 @@ Layout of this package:
 * ``world.py``   ``MjSpec`` world builder, compiled-model cache, :class:`Scene` (batched state views)
 * ``robots/``    :class:`Robot` interface and the robots (``ROBOTS``)
 * ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
-* ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``)
+* ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
 * ``layout.py``  vectorised layout sampling with keep-outs
 * ``lidar.py``   vectorised pseudo-lidar
-* ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above
+* ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above (its multi-agent
+                 interface: :class:`sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv`)
 """
 
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.objects import FreeObject, Goal, Hazards, NavObject, StaticObject, Vases
 from sg_torchrl.envs.navigation.objects import CircleZone, Sigwalls
 from sg_torchrl.envs.navigation.robots import ROBOTS, Ant, Car, Doggo, Point, Racecar, Robot
-from sg_torchrl.envs.navigation.tasks import TASKS, GoalTask, Task, make_task
+from sg_torchrl.envs.navigation.tasks import MULTI_AGENT_TASKS, TASKS, GoalTask, MultiGoalTask, Task, make_task
 from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Pillars, PushBox
+from sg_torchrl.envs.navigation.objects import AgentGoal, GoalBlue, GoalRed
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
 
 __all__ = [
+    "AgentGoal",
     "Ant",
     "ButtonTask",
     "Buttons",
@@ -35,7 +38,11 @@ __all__ = [
     "CircleZone",
     "FreeObject",
     "Goal",
+    "GoalBlue",
+    "GoalRed",
     "GoalTask",
+    "MULTI_AGENT_TASKS",
+    "MultiGoalTask",
     "Hazards",
     "NavObject",
     "NavigationEnv",

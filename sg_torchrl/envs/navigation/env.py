@@ -12,6 +12,14 @@ observation: robot sensors, then one 16-bin pseudo-lidar per lidar-observed obje
 (:attr:`NavigationEnv.observation_slices` names every part). ``cost`` is the indicator of the summed
 raw costs by default (``cost_mode="raw"``: the sum itself); ``cost_info`` holds one entry per
 constraint, e.g. ``hazards``, ``vases_contact``, ``vases_velocity``.
+
+Several robots (a multi-agent task, ``Task.num_agents > 1``: MultiGoal): the world holds one robot per
+agent (:attr:`NavigationEnv.robots`, named ``agent_<i>/...`` in the model), the layout places them
+first, and reward and costs are computed per agent (``(N, A)`` buffers). The observation is each
+robot's sensors, then each robot's lidar groups seen from that robot (Safety-Gymnasium's multi-agent
+order). This env's own interface is then the joint control of all robots: the action is every
+robot's actuators, the reward and each raw cost the sum over agents. The multi-agent interface is
+:class:`sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv` (the registered ids).
 """
 
 from __future__ import annotations
@@ -26,14 +34,14 @@ from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_ve
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
-from sg_torchrl.envs.navigation.world import Scene, build_spec, compiled_model
+from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model
 from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, RenderMixin
 
 __all__ = ["NavigationEnv"]
 
 
 class NavigationEnv(RenderMixin, MujocoSafeEnv):
-    """A navigation task at one level with one robot, batched over ``num_envs`` simulators.
+    """A navigation task at one level with its robot (one per agent), batched over ``num_envs`` simulators.
 
     Args:
         robot: a key of :data:`~sg_torchrl.envs.navigation.robots.ROBOTS` (``"Point"``).
@@ -51,9 +59,11 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     Attributes:
         observation_slices: ``{name: slice}`` of every observation part (``"accelerometer"``, ...,
             ``"goal_lidar"``, ``"hazards_lidar"``, ...).
-        layout: ``(N, M, 2)`` the layout each simulator's episode started from (item 0 the agent,
-            then :attr:`LayoutSampler.slices <sg_torchrl.envs.navigation.layout.LayoutSampler>`).
-        scene: the simulators and their state views; ``task``, ``robot``: the composition.
+        layout: ``(N, M, 2)`` the layout each simulator's episode started from (item 0 the agent, items
+            ``0 .. A-1`` the agents of a multi-agent task, then
+            :attr:`LayoutSampler.slices <sg_torchrl.envs.navigation.layout.LayoutSampler>`).
+        scene: the simulators and their state views; ``task``, ``robot``: the composition; ``robots``:
+            one robot per agent (``robots[0] is robot``).
     """
 
     def __init__(
@@ -74,58 +84,75 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if robot not in ROBOTS:
             raise ValueError(f"unknown navigation robot {robot!r}; choose from {sorted(ROBOTS)}")
-        self.robot = ROBOTS[robot]()
         self.task = task if isinstance(task, Task) else make_task(task, level)
+        count = self.task.num_agents
+        options = self.task.robot_options.get(robot, {})
+        #: the robots, one per agent (``robots[0]`` is :attr:`robot`); several share the world under name prefixes
+        self.robots = [ROBOTS[robot](agent_prefix(i, count), **options) for i in range(count)]
+        self.robot = self.robots[0]
         objects = self.task.objects
         for obj in objects:
             obj.for_robot(self.robot)  # before the world (and its cache key) is built
         if lidar not in ("pseudo", "natural"):
             raise ValueError(f"lidar must be 'pseudo' or 'natural', got {lidar!r}")
         model = compiled_model(  # natural lidar re-assigns geom groups: its own model
-            (self.robot.name, *self.task.key, *(("natural_lidar",) if lidar == "natural" else ())),
-            lambda: build_spec(self.robot, objects, self.task.floor_half_size),
+            (*self.robot.spec_key(), *self.task.key, *((("agents", count),) if count > 1 else ()),
+             *(("natural_lidar",) if lidar == "natural" else ())),
+            lambda: build_spec(self.robots, objects, self.task.floor_half_size),
         )
-        self.robot.bind(model)
-        self.scene = Scene(model, num_envs, self.robot)
+        for each in self.robots:
+            each.bind(model)
+        self.scene = Scene(model, num_envs, self.robots)
         self.physics = self.scene.physics
         for obj in objects:
             obj.bind(self.scene)
         agent_keepout = self.robot.keepout if self.task.agent_keepout is None else self.task.agent_keepout
-        self.layout_sampler = LayoutSampler(self.task.extents, agent_keepout, objects, self.task.agent_placements)
+        self.layout_sampler = LayoutSampler(self.task.extents, agent_keepout, objects, self.task.agent_placements,
+                                            num_agents=count)
         self.layout = np.zeros((num_envs, self.layout_sampler.size, 2))
-        # In-goal-layout items (for re-sampling a goal mid-episode): the agent and every object but movers.
+        # In-goal-layout items (for re-sampling a goal mid-episode): the agents and every object but movers.
         self._layout_objects = [obj for obj in objects if obj.in_goal_layout]
 
-        # Observation layout: robot sensors, then one lidar group per observed object.
+        # Observation layout: each robot's sensors, then per robot one lidar group per observed object, seen
+        # from that robot (Safety-Gymnasium's order, single- and multi-agent). Several robots: the entries of
+        # robot i are named "agent_i/<entry>".
         self.observation_slices: dict[str, slice] = {}
+        labels = [""] if count == 1 else [f"agent_{i}/" for i in range(count)]
         column = 0
-        for name, width in self.robot.observation_names():
-            self.observation_slices[name] = slice(column, column + width)
-            column += width
-        self._robot_columns = slice(0, column)
-        self._lidar_groups: list[tuple[NavObject, slice]] = []
-        self._compass_groups: list[tuple[NavObject, slice]] = []
-        for obj in objects:
-            if obj.lidar:
-                part = slice(column, column + self.task.lidar_bins)
-                self.observation_slices[f"{obj.name}_lidar"] = part
-                self._lidar_groups.append((obj, part))
-                column = part.stop
-            if compass and obj.compass_target:
-                part = slice(column, column + 2)
-                self.observation_slices[f"{obj.name}_comp"] = part
-                self._compass_groups.append((obj, part))
-                column = part.stop
+        self._robot_columns: list[slice] = []
+        for each, label in zip(self.robots, labels):
+            start = column
+            for name, width in each.observation_names():
+                self.observation_slices[label + name] = slice(column, column + width)
+                column += width
+            self._robot_columns.append(slice(start, column))
+        self._lidar_groups: list[list[tuple[NavObject, slice]]] = []  # per robot
+        self._compass_groups: list[list[tuple[NavObject, slice]]] = []
+        for label in labels:
+            lidar_groups, compass_groups = [], []
+            for obj in objects:
+                if obj.lidar:
+                    part = slice(column, column + self.task.lidar_bins)
+                    self.observation_slices[f"{label}{obj.name}_lidar"] = part
+                    lidar_groups.append((obj, part))
+                    column = part.stop
+                if compass and obj.compass_target:
+                    part = slice(column, column + 2)
+                    self.observation_slices[f"{label}{obj.name}_comp"] = part
+                    compass_groups.append((obj, part))
+                    column = part.stop
+            self._lidar_groups.append(lidar_groups)
+            self._compass_groups.append(compass_groups)
         self._natural_lidar = None if lidar == "pseudo" else NaturalLidar(
-            self.scene, [obj for obj, _ in self._lidar_groups], num_bins=self.task.lidar_bins,
+            self.scene, [obj for obj, _ in self._lidar_groups[0]], num_bins=self.task.lidar_bins,
             max_dist=self.task.lidar_max_dist)
         self._constrained = [obj for obj in objects if obj.cost_names]
-        constraint_names = [name for obj in self._constrained for name in obj.cost_names]
+        constraint_names = [name for obj in self._constrained for name in obj.cost_names] + list(self.task.cost_names)
 
-        # Hot-path buffers, filled in place (SafeEnv copies what it emits).
+        # Hot-path buffers, filled in place (SafeEnv copies what it emits): reward and raw costs per agent.
         self._observation = np.zeros((num_envs, column))
-        self._reward = np.zeros(num_envs)
-        self._costs: dict[str, np.ndarray] = {name: np.zeros(num_envs) for name in constraint_names}
+        self._agent_reward = np.zeros((num_envs, count))
+        self._agent_costs: dict[str, np.ndarray] = {name: np.zeros((num_envs, count)) for name in constraint_names}
         self._terminated = np.zeros(num_envs, dtype=bool)
         low, high = self.physics.ctrl_range
         super().__init__(
@@ -162,11 +189,13 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
 
         Args:
             indices: simulator indices (``n`` of them).
-            xy: ``(n, M, 2)`` positions in layout order: item 0 the robot, then each object's
-                instances at ``layout_sampler.slice_of(obj)``. Keep-outs are not checked.
+            xy: ``(n, M, 2)`` positions in layout order: item 0 the robot (items ``0 .. A-1`` the
+                robots of a multi-agent task, in agent order), then each object's instances at
+                ``layout_sampler.slice_of(obj)``. Keep-outs are not checked.
             yaw: ``(n, M)`` headings (default 0: the robot faces +x).
-            rngs: one generator per simulator for the robot's spawn noise
-                (:meth:`Robot.randomize_pose`, the Ant's); ``None`` starts exactly at rest.
+            rngs: one generator per simulator for the robots' spawn noise
+                (:meth:`Robot.randomize_pose`, the Ant's; robot 0's draws first); ``None`` starts
+                exactly at rest.
 
         The physics is reset to this layout at rest and the task's episode state restarts (e.g. the
         distance to the goal); step counters are left alone (``reset`` handles those). Used by
@@ -177,9 +206,10 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         xy = np.asarray(xy, dtype=np.float64).reshape(len(indices), sampler.size, 2)
         yaw = np.zeros(xy.shape[:2]) if yaw is None else np.asarray(yaw, dtype=np.float64).reshape(xy.shape[:2])
         rows = scene.reset_buffers(len(indices))
-        self.robot.set_pose(scene.model, rows.qpos, xy[:, 0], yaw[:, 0])
-        if rngs is not None:
-            self.robot.randomize_pose(rows.qpos, rngs)
+        for item, robot in enumerate(self.robots):
+            robot.set_pose(scene.model, rows.qpos, xy[:, item], yaw[:, item])
+            if rngs is not None:
+                robot.randomize_pose(rows.qpos, rngs)
         for obj in self.task.objects:
             part = sampler.slice_of(obj)
             obj.place(scene, indices, rows, xy[:, part], yaw[:, part])
@@ -190,12 +220,12 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     def resample(self, obj: NavObject, index: int) -> bool:
         """Move every instance of ``obj`` in simulator ``index`` to a new position (layout keep-out rule).
 
-        The other items are the robot and all objects (movers excepted) at their current
+        The other items are the robots and all objects (movers excepted) at their current
         positions. Returns False if no position was found (the task then ends the episode).
         """
         sampler = self.layout_sampler
-        others_xy = [self.scene.agent_xy()[index][None]]
-        others_keepout = [sampler.keepouts[:1]]
+        others_xy = [view.agent_xy()[index][None] for view in self.scene.views]
+        others_keepout = [sampler.keepouts[: len(self.robots)]]
         for other in self._layout_objects:
             if other is not obj:
                 others_xy.append(other.positions(self.scene)[index])
@@ -221,46 +251,53 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self.physics.step(action, self.frame_skip)
         # Reward, then costs, on the state the physics ended in; then task events (a reached goal
         # moves), so that the observation below already shows the new goal.
-        reward = self.task.reward(self)
+        reward = np.reshape(self.task.reward(self), self._agent_reward.shape)  # one column per agent
         clip = self.task.reward_clip
         if clip is None:
-            self._reward[:] = reward
+            self._agent_reward[:] = reward
         else:
-            np.clip(reward, -clip, clip, out=self._reward)
+            np.clip(reward, -clip, clip, out=self._agent_reward)
+        views = self.scene.views
         for obj in self._constrained:
-            for name, value in obj.costs(self.scene).items():
-                self._costs[name][:] = value
+            obj.agent_costs(views, self._agent_costs)
+        self.task.agent_costs(self, self._agent_costs)
         self._terminated[:] = self.task.after_step(self)
-        self._terminated |= ~self.robot.is_alive(self.scene)
+        for robot, view in zip(self.robots, views):  # one robot dead ends the episode (the reference's rule)
+            self._terminated |= ~robot.is_alive(view)
 
     def _observe(self) -> np.ndarray:
         scene, obs = self.scene, self._observation
-        self.robot.observe(scene.sensordata(), obs[:, self._robot_columns])
-        position, rotation = scene.agent_pos(), scene.agent_mat()
+        sensordata = scene.sensordata()
+        for robot, columns in zip(self.robots, self._robot_columns):
+            robot.observe(sensordata, obs[:, columns])
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
         natural = self._natural_lidar
-        if natural is not None:
-            natural.prepare(scene)
-        for obj, part in self._lidar_groups:
+        for view, lidar_groups, compass_groups in zip(scene.views, self._lidar_groups, self._compass_groups):
+            position, rotation = view.agent_pos(), view.agent_mat()
             if natural is not None:
-                natural.observe(scene, obj, out=obs[:, part])
-            else:
-                pseudo_lidar(position, rotation, obj.positions(scene), num_bins=bins, max_dist=max_dist,
-                             out=obs[:, part])
-        for obj, part in self._compass_groups:
-            compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
+                natural.prepare(view)
+            for obj, part in lidar_groups:
+                if natural is not None:
+                    natural.observe(view, obj, out=obs[:, part])
+                else:
+                    pseudo_lidar(position, rotation, obj.positions(scene), num_bins=bins, max_dist=max_dist,
+                                 out=obs[:, part])
+            for obj, part in compass_groups:
+                compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
         self.task.after_observe(self, obs)
         return obs
 
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
-        return self._reward
+        """The (clipped) reward, summed over agents: the single-agent interface of a multi-agent task is
+        the team's joint control (the multi-agent env reads the per-agent values)."""
+        return self._agent_reward.sum(axis=1)
 
     def _compute_cost(self) -> dict[str, np.ndarray]:
-        return self._costs
+        """Each constraint's raw cost, summed over agents (one agent: its own)."""
+        return {name: value.sum(axis=1) for name, value in self._agent_costs.items()}
 
     def _compute_terminated(self) -> np.ndarray:
         return self._terminated
-
 
     # ------------------------------------------------------------------ snapshots
     def _physics_state(self):

@@ -1,12 +1,13 @@
 """Layout sampling (reference section 6), vectorised with numpy.
 
-Items are placed one by one in a fixed order: the agent, then every object instance in world
-order (:func:`~sg_torchrl.envs.navigation.world.world_order`; ``hazard0, hazard1, ...``). For each
+Items are placed one by one in a fixed order: the agent (the agents, one after the other, in a
+multi-agent task), then every object instance in world order
+(:func:`~sg_torchrl.envs.navigation.world.world_order`; ``hazard0, hazard1, ...``). For each
 item up to 100 candidate points are drawn uniformly from its region (the task extents shrunk by
 the item's keep-out, or one of its ``placements`` rectangles, shrunk the same way and chosen with
 probability proportional to area, or its fixed location); the first candidate whose distance to
 every placed item is at least ``own keepout + other keepout`` is taken. If an item finds none,
-the whole layout is redrawn, up to 10000 times. Then the agent yaw and one yaw per object
+the whole layout is redrawn, up to 10000 times. Then one yaw per agent and one yaw per object
 instance are drawn uniformly in ``[0, 2 pi)``.
 
 The 100 candidates of every item are drawn in one generator call per layout attempt and tested
@@ -76,9 +77,11 @@ class LayoutSampler:
         agent_keepout: the agent's keep-out radius.
         objects: the task objects, in world order.
         agent_placements: rectangles for the agent (default: the extents).
+        num_agents: number of agents (robots), items ``0 .. num_agents - 1``, all placed with the
+            agent's keep-out and placements.
 
     Attributes:
-        slices: item range of each object in the layout arrays (the agent is item 0).
+        slices: item range of each object in the layout arrays (the agents come first: item 0, ...).
         keepouts: ``(M,)`` keep-out radius per item.
     """
 
@@ -88,12 +91,16 @@ class LayoutSampler:
         agent_keepout: float,
         objects: Sequence[NavObject],
         agent_placements: np.ndarray | None = None,
+        num_agents: int = 1,
     ) -> None:
+        if num_agents < 1:
+            raise ValueError(f"num_agents must be >= 1, got {num_agents}")
         extents = np.asarray(extents, dtype=np.float64).reshape(1, 4)
         self.objects = list(objects)
+        self.num_agents = int(num_agents)
         agent_rects = extents if agent_placements is None else agent_placements
-        regions = [Region.make(agent_rects, agent_keepout)]
-        keepouts = [agent_keepout]
+        regions = [Region.make(agent_rects, agent_keepout)] * self.num_agents
+        keepouts = [agent_keepout] * self.num_agents
         self.slices: dict[int, slice] = {}
         for obj in self.objects:
             start = len(regions)
@@ -121,7 +128,7 @@ class LayoutSampler:
         return self.slices[id(obj)]
 
     def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """One layout: positions ``(M, 2)`` and yaws ``(M,)`` (item 0 is the agent)."""
+        """One layout: positions ``(M, 2)`` and yaws ``(M,)`` (the agents first)."""
         size = self.size
         xy = np.empty((size, 2))
         if not self._place_all(self._draw_candidates(rng), xy):
@@ -153,7 +160,7 @@ class LayoutSampler:
         attempts where none of those fits.
         """
         xy = np.empty((attempts, self.size, 2))
-        xy[:, 0] = self.regions[0].draw(rng, attempts)  # the agent: its first candidate always fits
+        xy[:, 0] = self.regions[0].draw(rng, attempts)  # the first agent: its first candidate always fits
         alive = np.arange(attempts)  # attempts that placed every item so far
         for item in range(1, self.size):
             count, region = len(alive), self.regions[item]

@@ -12,10 +12,16 @@ model. (Safety-Gymnasium regenerates and recompiles its XML on every reset: abou
 Object order in the world, the layout and the observation: static objects (mocap bodies: goal,
 hazards, pillars, buttons, ...), then free bodies (vases, the push box), then mocap-driven movers
 (gremlins), each group in the order the task level lists them (reference section 2).
+
+Several robots (multi-agent tasks): :func:`build_spec` adds them one after the other, each under its
+name prefix (:attr:`Robot.prefix <sg_torchrl.envs.navigation.robots.base.Robot>`, e.g.
+``"agent_1/"``), and :class:`Scene` keeps one agent-relative view per robot
+(:meth:`Scene.for_robot`), so objects compute each robot's cost with the code they use for one.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -29,7 +35,7 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
     from sg_torchrl.envs.navigation.robots.base import Robot
 
-__all__ = ["ResetBuffers", "Scene", "build_spec", "compiled_model", "world_order"]
+__all__ = ["ResetBuffers", "Scene", "agent_prefix", "build_spec", "compiled_model", "prefix_robot", "world_order"]
 
 _MODELS: dict[Hashable, mujoco.MjModel] = {}
 
@@ -39,11 +45,29 @@ def world_order(objects: Sequence[NavObject]) -> list[NavObject]:
     return sorted(objects, key=lambda obj: obj.kind_rank)
 
 
-def build_spec(robot: Robot, objects: Sequence[NavObject], floor_half_size: float) -> mujoco.MjSpec:
-    """The world as an ``MjSpec``: robot options and defaults, floor, robot, then the objects."""
+def agent_prefix(index: int, count: int) -> str:
+    """Name prefix of robot ``index`` of ``count`` in one world: none for a single robot (the names of
+    the single-agent worlds), ``"agent_<index>/"`` for several."""
+    return "" if count == 1 else f"agent_{index}/"
+
+
+def build_spec(
+    robot: Robot | Sequence[Robot], objects: Sequence[NavObject], floor_half_size: float
+) -> mujoco.MjSpec:
+    """The world as an ``MjSpec``: robot options and defaults, the robot(s), the floor, then the objects.
+
+    ``robot`` is one robot or a sequence of them (several robots share one world: their options and
+    defaults must agree, as they do for robots of one class); each robot's elements are renamed
+    with its prefix (:func:`prefix_robot`).
+    """
+    robots = list(robot) if isinstance(robot, Sequence) else [robot]
     spec = mujoco.MjSpec()
-    spec.modelname = f"{robot.name.lower()}_navigation"
-    robot.build(spec)  # first: its defaults are the world's (the reference reads them from the robot file)
+    spec.modelname = f"{robots[0].name.lower()}_navigation"
+    for each in robots:  # first: their defaults are the world's (the reference reads them from the robot file)
+        counts = _ElementCounts.of(spec)
+        each.build(spec)
+        if each.prefix:
+            prefix_robot(spec, each, counts)
     spec.worldbody.add_light(name="sun", pos=[0.0, 0.0, 4.0], dir=[0.0, 0.0, -1.0], castshadow=False,
                              diffuse=[1.0, 1.0, 1.0], specular=[0.0, 0.0, 0.0])
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6,
@@ -51,6 +75,59 @@ def build_spec(robot: Robot, objects: Sequence[NavObject], floor_half_size: floa
     for obj in world_order(objects):
         obj.add_to(spec)
     return spec
+
+
+@dataclass(frozen=True)
+class _ElementCounts:
+    """How many sensors, actuators, equalities and excludes a spec held before a robot was built into it."""
+
+    sensors: int
+    actuators: int
+    equalities: int
+    excludes: int
+    tendons: int
+
+    @classmethod
+    def of(cls, spec: mujoco.MjSpec) -> _ElementCounts:
+        return cls(len(spec.sensors), len(spec.actuators), len(spec.equalities), len(spec.excludes),
+                   len(spec.tendons))
+
+
+_TREE_ELEMENTS = (mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_GEOM,
+                  mujoco.mjtObj.mjOBJ_SITE, mujoco.mjtObj.mjOBJ_CAMERA, mujoco.mjtObj.mjOBJ_LIGHT)
+
+
+def prefix_robot(spec: mujoco.MjSpec, robot: Robot, before: _ElementCounts) -> None:
+    """Prepend ``robot.prefix`` to the names of everything ``robot.build`` just added to ``spec``.
+
+    The robot's elements are its body tree (rooted at ``robot.root_body``: bodies, joints, geoms,
+    sites, cameras, lights) and the sensors, actuators, equality constraints and contact excludes
+    added after ``before`` was counted. ``MjSpec`` resolves references by name at compile time and
+    does not follow renames, so every reference those elements hold (an actuator's target, a
+    sensor's object, the bodies of an exclude, ...) is prefixed too: a robot only refers to its
+    own elements. Tendons are not supported (no robot has one).
+    """
+    prefix = robot.prefix
+    if len(spec.tendons) != before.tendons:
+        raise NotImplementedError(f"{robot.name}: robots with tendons cannot be prefixed")
+
+    def rename(element, *fields: str) -> None:
+        for name in ("name", *fields):
+            value = getattr(element, name)
+            if value:
+                setattr(element, name, prefix + value)
+
+    root = spec.body(robot.root_body)
+    for element in [root, *(e for kind in _TREE_ELEMENTS for e in root.find_all(kind))]:
+        rename(element)
+    for sensor in spec.sensors[before.sensors:]:
+        rename(sensor, "objname", "refname")
+    for actuator in spec.actuators[before.actuators:]:
+        rename(actuator, "target", "refsite", "slidersite")
+    for equality in spec.equalities[before.equalities:]:
+        rename(equality, "name1", "name2")
+    for exclude in spec.excludes[before.excludes:]:
+        rename(exclude, "bodyname1", "bodyname2")
 
 
 def compiled_model(key: Hashable, build: Callable[[], mujoco.MjSpec]) -> mujoco.MjModel:
@@ -80,17 +157,18 @@ class Scene:
     Args:
         model: the compiled world.
         num_envs: number of simulators.
-        robot: the (bound) robot of this world.
+        robot: the (bound) robot of this world, or its robots in agent order.
+
+    Agent-relative views (:meth:`agent_pos`, :meth:`planar_distance`, :attr:`robot_geoms`,
+    :meth:`robot_contacts`, ...) refer to one robot: the first. :meth:`for_robot` gives the same
+    simulators seen from another robot; :attr:`views` lists one scene per robot.
     """
 
-    def __init__(self, model: mujoco.MjModel, num_envs: int, robot: Robot) -> None:
+    def __init__(self, model: mujoco.MjModel, num_envs: int, robot: Robot | Sequence[Robot]) -> None:
         self.model = model
         self.num_envs = num_envs
-        self.robot = robot
+        self.robots: list[Robot] = list(robot) if isinstance(robot, Sequence) else [robot]
         self.physics = MujocoBatch(model, num_envs, fields=("xpos", "xmat", "sensordata"), forward_after_step=True)
-        self.agent_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.root_body)
-        #: which geoms belong to the robot (its whole body tree), ``(ngeom,)`` bool
-        self.robot_geoms = model.body_rootid[model.geom_bodyid] == self.agent_body
         mocap_bodies = np.flatnonzero(model.body_mocapid >= 0)
         order = model.body_mocapid[mocap_bodies]
         self._mocap_pos = np.empty((model.nmocap, 3))
@@ -99,8 +177,31 @@ class Scene:
         self._mocap_quat[order] = model.body_quat[mocap_bodies]
         self._xpos = self.physics.field("xpos")
         self._xmat = self.physics.field("xmat").reshape(num_envs, model.nbody, 3, 3)
-        self._robot_contacts = np.zeros((num_envs, model.ngeom))  # see robot_contacts
+        self._attach(self.robots[0])
+        views = [self]
+        for other in self.robots[1:]:
+            view = copy.copy(self)  # shares the simulators and state caches; agent-relative fields are replaced
+            view._attach(other)
+            views.append(view)
+        #: one scene per robot, in agent order (the first robot's is this scene; :meth:`for_robot`)
+        self.views: list[Scene] = views
+        for view in views[1:]:
+            view.views = views
+
+    def _attach(self, robot: Robot) -> None:
+        """Make ``robot`` the one the agent-relative views refer to."""
+        model = self.model
+        self.robot = robot
+        self.agent_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.qualified(robot.root_body))
+        #: which geoms belong to the robot (its whole body tree), ``(ngeom,)`` bool
+        self.robot_geoms = model.body_rootid[model.geom_bodyid] == self.agent_body
+        self._robot_contacts = np.zeros((self.num_envs, model.ngeom))  # see robot_contacts
         self._contacts_version = -1
+
+    def for_robot(self, index: int) -> Scene:
+        """These simulators seen from robot ``index`` (0: this scene): its agent-relative views refer
+        to that robot; everything else is shared."""
+        return self.views[index]
 
     def reset_buffers(self, count: int) -> ResetBuffers:
         """Fresh state rows for ``count`` simulators: the model's rest state, mocaps where the model put them."""

@@ -4,7 +4,7 @@ from sg_torchrl.envs.navigation.objects.base import FreeObject, NavObject, Stati
 from sg_torchrl.envs.navigation.objects.buttons import Buttons, GoalMarker
 from sg_torchrl.envs.navigation.objects.circle import CircleZone
 from sg_torchrl.envs.navigation.objects.contacts import ContactCost
-from sg_torchrl.envs.navigation.objects.goal import Goal
+from sg_torchrl.envs.navigation.objects.goal import AgentGoal, Goal, GoalBlue, GoalRed
 from sg_torchrl.envs.navigation.objects.gremlins import Gremlins
 from sg_torchrl.envs.navigation.objects.hazards import Hazards
 from sg_torchrl.envs.navigation.objects.pillars import Pillars
@@ -12,5 +12,6 @@ from sg_torchrl.envs.navigation.objects.push_box import PushBox
 from sg_torchrl.envs.navigation.objects.sigwalls import Sigwalls
 from sg_torchrl.envs.navigation.objects.vases import Vases
 
-__all__ = ["Buttons", "CircleZone", "ContactCost", "FreeObject", "Goal", "GoalMarker", "Gremlins", "Hazards",
-           "NavObject", "Pillars", "PushBox", "Sigwalls", "StaticObject", "Vases", "yaw_quat"]
+__all__ = ["AgentGoal", "Buttons", "CircleZone", "ContactCost", "FreeObject", "Goal", "GoalBlue", "GoalMarker",
+           "GoalRed", "Gremlins", "Hazards", "NavObject", "Pillars", "PushBox", "Sigwalls", "StaticObject", "Vases",
+           "yaw_quat"]

@@ -10,7 +10,8 @@ An object describes ``num`` identical instances (``hazard0``, ``hazard1``, ...).
   positions or free-joint ``qpos``), :meth:`NavObject.positions` reads current positions;
 * **observation**: ``lidar=True`` adds a 16-bin ``<name>_lidar`` group over :meth:`positions`;
 * **cost**: :attr:`NavObject.cost_names` and :meth:`NavObject.costs`, raw values vectorised over
-  the batch (``constrained=False`` keeps the object in the world but costs nothing).
+  the batch (``constrained=False`` keeps the object in the world but costs nothing); with several
+  robots, :meth:`NavObject.agent_costs` says what each robot pays.
 
 Two bases cover the usual cases: :class:`StaticObject` (mocap bodies: never moved by physics,
 repositioned by writing ``mocap_pos``: goal, hazards, pillars, buttons) and :class:`FreeObject`
@@ -148,6 +149,17 @@ class NavObject(abc.ABC):
     def costs(self, scene: Scene) -> dict[str, np.ndarray]:
         """Raw cost of each entry of :attr:`cost_names` for the current state, each ``(N,)``."""
         return {}
+
+    def agent_costs(self, views: Sequence[Scene], out: dict[str, np.ndarray]) -> None:
+        """Write every robot's raw cost entries for the current state: ``out[name][:, a]`` ``(N, A)``
+        is what robot ``a`` pays (``views[a]``: the scene seen from it, :meth:`Scene.for_robot`).
+
+        Default: each robot pays :meth:`costs` computed from its own point of view (its distance to
+        a hazard, its contacts with a vase, ...). With one robot this is exactly :meth:`costs`.
+        """
+        for agent, view in enumerate(views):
+            for name, value in self.costs(view).items():
+                out[name][:, agent] = value
 
     # ------------------------------------------------------------------ snapshots
     def state_dict(self) -> dict:

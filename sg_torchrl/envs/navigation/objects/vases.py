@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import ClassVar
 
 import mujoco
 import numpy as np
 
 from sg_torchrl.envs.navigation.objects.base import FreeObject
-from sg_torchrl.envs.navigation.world import Scene
+from sg_torchrl.envs.navigation.world import ResetBuffers, Scene
 
 __all__ = ["Vases"]
 
@@ -23,6 +24,12 @@ class Vases(FreeObject):
       ``velocity_threshold`` (1e-4 m/s).
 
     Safety-Gymnasium also defines a displacement cost with coefficient 0, so it never appears.
+
+    Several robots (Safety-Gymnasium's multi-agent tasks, :meth:`agent_costs`): each robot pays
+    for its own contacts, and the speed of a moving vase is charged to the robot that touched it
+    last in the episode (:attr:`last_toucher`; robots are visited in agent order, each marking the
+    vases it touches now before its speed cost is summed, as the reference does). A vase nobody
+    has touched costs nobody.
     """
 
     name: ClassVar[str] = "vases"
@@ -43,6 +50,22 @@ class Vases(FreeObject):
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_BOX, size=[self.size] * 3,
                       density=self.density, group=0, rgba=[0.0, 1.0, 1.0, 1.0])
 
+    def bind(self, scene: Scene) -> None:
+        super().bind(scene)
+        self._geom_ids = np.flatnonzero(self.geom_mask)  # one box per vase: in instance order
+        #: ``(N, num)`` the robot that touched each vase last this episode (-1: none); several robots only
+        self.last_toucher = np.full((scene.num_envs, self.num), -1, dtype=np.int64)
+
+    def place(self, scene: Scene, indices: np.ndarray, rows: ResetBuffers, xy: np.ndarray, yaw: np.ndarray) -> None:
+        super().place(scene, indices, rows, xy, yaw)
+        self.last_toucher[indices] = -1
+
+    def state_dict(self) -> dict:
+        return {"last_toucher": self.last_toucher.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.last_toucher[:] = state.get("last_toucher", -1)  # snapshots from before multi-agent tasks: none
+
     @property
     def cost_names(self) -> tuple[str, ...]:
         return ("vases_contact", "vases_velocity") if self.constrained else ()
@@ -55,3 +78,15 @@ class Vases(FreeObject):
             "vases_contact": scene.physics.count_contacts(self.geom_mask, scene.robot_geoms),
             "vases_velocity": np.where(speeds >= self.velocity_threshold, speeds, 0.0).sum(axis=1),
         }
+
+    def agent_costs(self, views: Sequence[Scene], out: dict[str, np.ndarray]) -> None:
+        if len(views) == 1 or not self.constrained:
+            super().agent_costs(views, out)
+            return
+        speeds = self.speeds(views[0])
+        moving = np.where(speeds >= self.velocity_threshold, speeds, 0.0)
+        for agent, view in enumerate(views):
+            touching = view.robot_contacts()[:, self._geom_ids]  # (N, num) contacts of each vase with this robot
+            out["vases_contact"][:, agent] = touching.sum(axis=1)
+            self.last_toucher[touching > 0] = agent
+            out["vases_velocity"][:, agent] = np.where(self.last_toucher == agent, moving, 0.0).sum(axis=1)

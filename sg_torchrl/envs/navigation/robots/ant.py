@@ -43,6 +43,11 @@ Note on ``agent_qvel``: reference/safety_gymnasium_semantics.md calls it the fre
 velocity, but Safety-Gymnasium's model file defines it as a frame angular-velocity sensor on the torso
 site, i.e. the torso's angular velocity in world axes (the gyro reads the same vector in body axes).
 This model reproduces the model file, since the values, not the name, are what a policy sees.
+
+Multi-agent variant: Safety-Gymnasium's multi-agent navigation tasks (MultiGoal) load their own
+``ant.xml``, identical but for a density of 50000 on the four foot capsules (about 10.6 kg per foot
+against 0.01 kg for the rest of the ant). ``Ant(foot_density=50000.0)`` builds that variant; the
+task asks for it (``Task.robot_options``).
 """
 
 from __future__ import annotations
@@ -106,6 +111,15 @@ class Ant(FreeBodyRobot):
         *(SensorTerm(joint, "sincos") for joint in _JOINTS),
     )
 
+    def __init__(self, prefix: str = "", *, foot_density: float | None = None) -> None:
+        """``foot_density``: density of the four foot capsules (default: the world default, 5). The
+        multi-agent tasks' Ant has 50000 (Safety-Gymnasium's multi-agent ``ant.xml``)."""
+        super().__init__(prefix)
+        self.foot_density = foot_density
+
+    def spec_key(self) -> tuple:
+        return super().spec_key() if self.foot_density is None else (*super().spec_key(), self.foot_density)
+
     def build(self, spec: mujoco.MjSpec) -> None:
         spec.option.timestep = self.timestep
         spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -160,13 +174,14 @@ class Ant(FreeBodyRobot):
         low, high = self.ankle_range
         foot.add_joint(name=f"ankle_{k}", type=_HINGE, axis=[-sign * dy, sign * dx, 0.0],  # s_k (z x d_k)
                        range=sorted([sign * low, sign * high]))
+        density = {} if self.foot_density is None else {"density": self.foot_density}
         foot.add_geom(name=f"foot_{k}", type=_CAPSULE, size=[r, 0.0, 0.0],
                       fromto=[0.0, 0.0, 0.0, 0.1 * dx, 0.1 * dy, 0.0],
-                      rgba=_FOOT_RGBA if k in (1, 4) else _TAN)
+                      rgba=_FOOT_RGBA if k in (1, 4) else _TAN, **density)
 
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)
-        self._qpos_legs = np.array([int(model.joint(joint).qposadr[0]) for joint in _JOINTS])
+        self._qpos_legs = np.array([int(model.joint(self.qualified(joint)).qposadr[0]) for joint in _JOINTS])
         rest = np.zeros(len(_JOINTS))
         rest[1::2] = np.array(_ANKLE_SIGNS) * np.pi / 2  # ankles: feet straight down
         self._rest_angles = rest

@@ -16,6 +16,12 @@ declares this list as :attr:`Robot.observation_terms`, one :class:`SensorTerm` p
 Adding a robot: subclass :class:`Robot`, implement :meth:`build` and :meth:`set_pose`, declare
 ``observation_terms`` (and ``is_alive`` if it can fall over, as the Ant does), then add the class
 to :data:`sg_torchrl.envs.navigation.robots.ROBOTS`.
+
+Several robots in one world (the multi-agent tasks): each robot instance has a name ``prefix``
+(``""`` for the one robot of a single-agent world). :meth:`build` always uses the plain names
+(``"agent"``, ``"accelerometer"``, ...); the world builder then prefixes every element the robot
+added and every reference between them (:func:`~sg_torchrl.envs.navigation.world.build_spec`), and
+the robot looks its elements up in the compiled model through :meth:`Robot.qualified`.
 """
 
 from __future__ import annotations
@@ -88,8 +94,21 @@ class Robot(abc.ABC):
     frame_skip: ClassVar[int] = 10
     observation_terms: ClassVar[tuple[SensorTerm, ...]] = tuple(SensorTerm(name) for name in FIXED_SENSORS)
 
-    def __init__(self) -> None:
+    def __init__(self, prefix: str = "") -> None:
+        #: prepended to the name of every element of this robot in the world (see the module docstring)
+        self.prefix = prefix
         self._columns: list[tuple[SensorTerm, int, int]] = []  # (term, sensordata address, width)
+        #: ids of this robot's actuators in the compiled model, in action order (set by :meth:`bind`)
+        self.actuator_ids = np.zeros(0, dtype=np.int64)
+
+    def qualified(self, name: str) -> str:
+        """The world's name of this robot's element ``name`` (as :meth:`build` called it)."""
+        return self.prefix + name
+
+    def spec_key(self) -> tuple:
+        """What :meth:`build` depends on: part of the compiled-model cache key. Robots with build
+        options extend it."""
+        return (self.name,)
 
     # ------------------------------------------------------------------ model
     @abc.abstractmethod
@@ -98,11 +117,18 @@ class Robot(abc.ABC):
 
     # ------------------------------------------------------------------ binding
     def bind(self, model: mujoco.MjModel) -> None:
-        """Resolve sensor addresses (and anything else :meth:`set_pose` needs) in ``model``."""
+        """Resolve sensor addresses and actuators (and anything else :meth:`set_pose` needs) in ``model``."""
         self._columns = []
         for term in self.observation_terms:
-            sensor = model.sensor(term.sensor)
+            sensor = model.sensor(self.qualified(term.sensor))
             self._columns.append((term, int(sensor.adr[0]), int(sensor.dim[0])))
+        self.actuator_ids = np.array(
+            [u for u in range(model.nu) if model.actuator(u).name.startswith(self.prefix)], dtype=np.int64)
+
+    @property
+    def action_size(self) -> int:
+        """Number of actuators (action values) of this robot; known once bound."""
+        return len(self.actuator_ids)
 
     @property
     def observation_size(self) -> int:
@@ -158,7 +184,8 @@ class FreeBodyRobot(Robot):
 
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)
-        self._qpos_root = int(model.joint(self.root_body).qposadr[0])  # x, y, z, qw, qx, qy, qz
+        root = model.joint(self.qualified(self.root_body))
+        self._qpos_root = int(root.qposadr[0])  # x, y, z, qw, qx, qy, qz
 
     def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
         root = self._qpos_root

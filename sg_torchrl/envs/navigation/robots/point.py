@@ -64,9 +64,9 @@ class Point(Robot):
 
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)
-        self._qpos_x = int(model.joint("agent_x").qposadr[0])
-        self._qpos_y = int(model.joint("agent_y").qposadr[0])
-        self._qpos_yaw = int(model.joint("agent_yaw").qposadr[0])
+        self._qpos_x = int(model.joint(self.qualified("agent_x")).qposadr[0])
+        self._qpos_y = int(model.joint(self.qualified("agent_y")).qposadr[0])
+        self._qpos_yaw = int(model.joint(self.qualified("agent_yaw")).qposadr[0])
 
     def set_pose(self, model: mujoco.MjModel, qpos: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> None:
         qpos[:, self._qpos_x] = xy[:, 0]

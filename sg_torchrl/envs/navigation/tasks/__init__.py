@@ -2,6 +2,8 @@
 
 ``TASKS[task][level]`` builds a fresh :class:`Task` (with fresh objects) for one env; the registry
 registers ``Safety{Robot}{Task}{Level}-v0`` for every task level and every robot.
+``MULTI_AGENT_TASKS`` holds the tasks with several robots (MultiGoal), registered in the multi-agent
+layout for the robots Safety-Gymnasium names them with (``sg_torchrl.envs.multi_agent``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from sg_torchrl.envs.navigation.tasks.base import Task
 from sg_torchrl.envs.navigation.tasks.button import BUTTON_LEVELS, ButtonTask
 from sg_torchrl.envs.navigation.tasks.circle import CIRCLE_LEVELS, CircleTask
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
+from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
 from sg_torchrl.envs.navigation.tasks.push import PUSH_LEVELS, PushTask
 from sg_torchrl.envs.navigation.tasks.run import RUN_LEVELS, RunTask
 
@@ -23,14 +26,20 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "Run": RUN_LEVELS,
 }
 
+MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {
+    "MultiGoal": MULTI_GOAL_LEVELS,
+}
+
 
 def make_task(name: str, level: int) -> Task:
-    """A fresh ``name`` task at ``level``."""
-    if name not in TASKS:
-        raise ValueError(f"unknown navigation task {name!r}; choose from {sorted(TASKS)}")
-    if level not in TASKS[name]:
-        raise ValueError(f"{name} has levels {sorted(TASKS[name])}, got {level}")
-    return TASKS[name][level]()
+    """A fresh ``name`` task (single- or multi-agent) at ``level``."""
+    levels = TASKS.get(name) or MULTI_AGENT_TASKS.get(name)
+    if levels is None:
+        raise ValueError(f"unknown navigation task {name!r}; choose from {sorted([*TASKS, *MULTI_AGENT_TASKS])}")
+    if level not in levels:
+        raise ValueError(f"{name} has levels {sorted(levels)}, got {level}")
+    return levels[level]()
 
 
-__all__ = ["ButtonTask", "CircleTask", "GoalTask", "PushTask", "RunTask", "TASKS", "Task", "make_task"]
+__all__ = ["ButtonTask", "CircleTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RunTask",
+           "TASKS", "Task", "make_task"]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import numpy as np
 
@@ -38,6 +38,10 @@ class Task(abc.ABC):
     """
 
     name: ClassVar[str]
+    #: robots in the world (each an agent; more than one: a multi-agent task, see ``multi_goal``)
+    num_agents: ClassVar[int] = 1
+    #: build options of the robots this task uses, per robot name (e.g. ``{"Ant": {"foot_density": ...}}``)
+    robot_options: ClassVar[dict[str, dict[str, Any]]] = {}
     max_episode_steps: ClassVar[int] = 1000
     floor_half_size: ClassVar[float] = 3.5
     lidar_max_dist: ClassVar[float | None] = 3.0
@@ -86,7 +90,16 @@ class Task(abc.ABC):
 
     @abc.abstractmethod
     def reward(self, env: NavigationEnv) -> np.ndarray:
-        """Reward of the step just simulated, ``(N,)`` (before clipping)."""
+        """Reward of the step just simulated, ``(N,)`` (before clipping); ``(N, A)``, one per agent, when
+        the task has several agents."""
+
+    @property
+    def cost_names(self) -> tuple[str, ...]:
+        """Constraints of the task itself, beyond its objects' (e.g. robots touching each other). Default: none."""
+        return ()
+
+    def agent_costs(self, env: NavigationEnv, out: dict[str, np.ndarray]) -> None:
+        """Write the raw cost of each of :attr:`cost_names` for every agent into ``out[name]`` ``(N, A)``."""
 
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         """Events after reward and cost (goal reached, timers); returns which simulators terminate, ``(N,)`` bool."""

@@ -1,0 +1,189 @@
+"""Multi-agent navigation: ``Safety{Point,Ant}MultiGoal{0,1,2}-v0`` in TorchRL's multi-agent layout.
+
+Safety-Gymnasium's safe multi-agent navigation tasks: two robots of one kind share a navigation
+world, each an agent with its own goal, its own reward and its own costs
+(:mod:`sg_torchrl.envs.navigation.tasks.multi_goal` has the task's facts).
+:class:`MultiAgentNavigationEnv` is the navigation engine's
+:class:`~sg_torchrl.envs.navigation.NavigationEnv` built for such a task (one compiled world with
+both robots, layouts with every keep-out, per-robot lidar, per-agent reward and costs, seeding,
+partial resets, divergence isolation: all inherited) behind TorchRL's multi-agent interface
+(:class:`~sg_torchrl.envs.multi_agent.group.AgentGroupMixin`).
+
+TensorDict layout (:mod:`.group`; ``A = 2`` agents, ``agent_i`` drives robot ``i``):
+
+* ``("agents", "observation")`` ``(N, A, D)``: with ``agent_view="joint"`` (default) every agent
+  observes Safety-Gymnasium's one observation vector, which it hands to each agent: robot 0's sensors,
+  robot 1's sensors, then robot 0's lidars (``goal_red``, ``goal_blue``, then the level's objects,
+  each seen from robot 0), then robot 1's (seen from robot 1); :attr:`observation_slices` names
+  every part (``"agent_1/hazards_lidar"``, ...). ``D`` is the reference's size: Point 88 / 152 / 152,
+  Ant 144 / 208 / 208 at levels 0 / 1 / 2. With ``agent_view="own"`` agent ``i`` observes only its
+  own part, robot ``i``'s sensors then its lidars (Point 44 / 76 / 76, Ant 72 / 104 / 104): the
+  single-agent observation of its robot with one more goal lidar. ``("agents", "observation_mask")``
+  is all ``True`` (both agents have the same size).
+* ``("agents", "action")`` ``(N, A, Da)``: robot ``i``'s actuators (Point 2, Ant 8), clipped to their
+  control range.
+* ``("agents", "reward")`` ``(N, A, 1)``: **each agent's own reward** (progress towards its own goal,
+  +1 on reaching it); not shared.
+* ``("agents", "cost")`` ``(N, A, 1)``: **each agent's own cost**: the indicator of the sum of its own
+  raw costs (``cost_mode="raw"``: the sum); ``("agents", "cost_info", name)`` ``(N, A, 1)`` per
+  constraint (``hazards``, ``vases_contact``, ``vases_velocity``, ``contact_other``).
+* ``("agents", "done" | "terminated" | "truncated")``: shared: the agents live one episode (a failed goal
+  re-sampling or a dead Ant ends it for both).
+* ``"state"`` ``(N, S)``: the joint observation vector above (``S`` = the joint ``D``); it holds
+  every agent's own part.
+* ``"cost"`` and ``("cost_info", name)`` ``(N, 1)``: the team: per constraint the agents' raw costs
+  summed, then the indicator, i.e. 1 when some agent paid (``cost_mode="raw"``: the sums).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+
+from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.multi_agent.group import GROUP, AgentGroupMixin, agent_column, root_column
+from sg_torchrl.envs.navigation.env import NavigationEnv
+from sg_torchrl.envs.navigation.lidar import LidarMode
+from sg_torchrl.envs.navigation.tasks import Task
+
+__all__ = ["AgentView", "MultiAgentNavigationEnv"]
+
+#: What each agent observes: the joint observation vector (the reference's) or its own robot's part.
+AgentView = Literal["joint", "own"]
+
+
+class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
+    """A multi-agent navigation task (several robots, one world) in TorchRL's multi-agent layout, batched.
+
+    Args:
+        robot: the robot of every agent, a key of :data:`~sg_torchrl.envs.navigation.robots.ROBOTS`.
+        task: a multi-agent task of :data:`~sg_torchrl.envs.navigation.tasks.MULTI_AGENT_TASKS`
+            (``"MultiGoal"``) or a fresh task instance.
+        level: the task level (0, 1, 2).
+        agent_view: ``"joint"`` (default, the reference's: every agent observes the joint vector) or
+            ``"own"`` (each agent its own robot's sensors and lidars); see the module docstring.
+        num_envs, device, seed, cost_mode, max_episode_steps, lidar, compass: see
+            :class:`~sg_torchrl.envs.navigation.NavigationEnv`.
+
+    See the module docstring for the TensorDict layout.
+    """
+
+    def __init__(
+        self,
+        robot: str = "Point",
+        task: str | Task = "MultiGoal",
+        level: int = 1,
+        *,
+        agent_view: AgentView = "joint",
+        num_envs: int = 1,
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+        cost_mode: CostMode = "indicator",
+        max_episode_steps: int | None = None,
+        lidar: LidarMode = "pseudo",
+        compass: bool = False,
+    ) -> None:
+        if agent_view not in ("joint", "own"):
+            raise ValueError(f"agent_view must be 'joint' or 'own', got {agent_view!r}")
+        self.agent_view: AgentView = agent_view
+        super().__init__(robot, task, level, num_envs=num_envs, device=device, seed=seed, cost_mode=cost_mode,
+                         max_episode_steps=max_episode_steps, lidar=lidar, compass=compass)
+        self._observation_mask = np.ones((num_envs, *self._agent_index.shape), dtype=bool)
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def num_agents(self) -> int:
+        return len(self.robots)
+
+    @property
+    def observation_sizes(self) -> tuple[int, ...]:
+        """Observation length per agent (all equal)."""
+        return (self._agent_index.shape[1],) * self.num_agents
+
+    @property
+    def action_sizes(self) -> tuple[int, ...]:
+        """Number of actuators per agent: its robot's."""
+        return tuple(robot.action_size for robot in self.robots)
+
+    @property
+    def observation_dim(self) -> int:
+        """Per-agent observation length ``D``."""
+        return self._agent_index.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        """Length ``S`` of ``"state"``, the joint observation vector."""
+        return self._observation.shape[1]
+
+    @property
+    def _action_slot(self) -> np.ndarray:
+        return self._slots
+
+    def _agent_columns(self) -> np.ndarray:
+        """``(A, D)`` the columns of the joint vector each agent observes (see ``agent_view``)."""
+        joint = self._observation.shape[1]
+        if self.agent_view == "joint":
+            return np.tile(np.arange(joint), (self.num_agents, 1))
+        own = []
+        for sensors, lidars, compasses in zip(self._robot_columns, self._lidar_groups, self._compass_groups):
+            parts = sorted([sensors, *(part for _, part in lidars), *(part for _, part in compasses)],
+                           key=lambda part: part.start)
+            own.append(np.concatenate([np.arange(part.start, part.stop) for part in parts]))
+        return np.stack(own)
+
+    def _make_specs(self, observation_dim: int) -> None:
+        # Called by the base constructor once the observation layout is known: resolve the agents' columns here.
+        self._agent_index = self._agent_columns()
+        # The robots are of one kind: agent a's slot k drives the k-th actuator of robot a.
+        actuators = np.stack([robot.actuator_ids for robot in self.robots])  # (A, Da)
+        self._slots = np.empty(self.physics.model.nu, dtype=np.int64)
+        self._slots[actuators.reshape(-1)] = np.arange(actuators.size)
+        self._make_group_specs(
+            observation_width=self._agent_index.shape[1],
+            state_dim=observation_dim,
+            action_low=self._action_low[actuators],
+            action_high=self._action_high[actuators],
+            constraint_names=self.constraint_names,
+            agent_constraints=self.constraint_names,
+        )
+
+    # ------------------------------------------------------------------ hooks
+    def _compute_reward(self, action: np.ndarray) -> np.ndarray:
+        """Each agent's own (clipped) reward, ``(N, A)``."""
+        return self._agent_reward
+
+    def _compute_cost(self) -> dict[str, np.ndarray]:
+        """Each agent's own raw cost per constraint, ``(N, A)`` each."""
+        return self._agent_costs
+
+    # ------------------------------------------------------------------ output
+    def _output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
+        """The step's (or, with ``reward=None``, the reset's) output as a nested dict of fresh numpy arrays
+        (the layout of the module docstring). The PettingZoo façade reads it directly."""
+        n, agents = self.num_envs, self.num_agents
+        per_agent = {name: np.broadcast_to(np.reshape(value, (n, -1)), (n, agents)) for name, value in costs.items()}
+        agent_cost, agent_info = self._aggregate_cost(per_agent)
+        team_cost, team_info = self._aggregate_cost({name: value.sum(axis=1) for name, value in per_agent.items()})
+        done = terminated | truncated
+        group = {
+            "observation": observation[:, self._agent_index].astype(np.float32),
+            "observation_mask": self._observation_mask.copy(),
+            "cost": agent_column(agent_cost, n, agents, np.float32),
+            "cost_info": {name: agent_column(value, n, agents, np.float32) for name, value in agent_info.items()},
+            "terminated": agent_column(terminated, n, agents, np.bool_),
+            "truncated": agent_column(truncated, n, agents, np.bool_),
+            "done": agent_column(done, n, agents, np.bool_),
+        }
+        if reward is not None:
+            group["reward"] = agent_column(reward, n, agents, np.float32)
+        return {
+            "state": np.array(observation, dtype=np.float32),
+            "cost": root_column(team_cost, n, np.float32),
+            "cost_info": {name: root_column(value, n, np.float32) for name, value in team_info.items()},
+            "terminated": root_column(terminated, n, np.bool_),
+            "truncated": root_column(truncated, n, np.bool_),
+            "done": root_column(done, n, np.bool_),
+            GROUP: group,
+        }
