@@ -39,15 +39,19 @@ class TestRunningObservationNorm:
         np.testing.assert_allclose(norm.var.numpy(), reference.var, rtol=1e-12)
         assert norm.count.item() == pytest.approx(reference.count)
 
-    def test_transformed_env_passes_specs_and_freezes_in_eval(self):
+    def test_transformed_env_passes_specs_updates_and_freezes(self):
         env, norm = normalised_env()
         check_env_specs(env)
+        initial = norm.count.item()
         env.rollout(5)
+        # TorchRL puts attached transforms in eval mode: the statistics must move regardless.
         count = norm.count.item()
-        norm.eval()
+        assert count == pytest.approx(initial + 5 * 3)
+        norm.freeze()
         env.rollout(5)
         assert norm.count.item() == count
-        norm.train()
+        copy = norm.unfreeze().frozen_copy()
+        assert copy.frozen and torch.equal(copy.mean, norm.mean)
         env.rollout(5)
         assert norm.count.item() > count
 
@@ -74,7 +78,7 @@ class TestRolloutCollector:
         straight, straight_env = fresh()
         straight.collect()
         state = straight.state_dict()
-        norm_state = straight_env.transform.state_dict()
+        norm_state = {k: v.clone() for k, v in straight_env.transform.state_dict().items()}  # buffers move on
         rng_state = torch.get_rng_state()
         expected = straight.collect()
 

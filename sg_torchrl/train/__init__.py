@@ -1,6 +1,8 @@
-"""``sg-train``: typed config, the on-policy safe training loop, logging and checkpoints.
+"""``sg-train``: typed config, the on-policy safe training loops, logging and checkpoints.
 
-Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option.
+Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. The twelve
+single-agent algorithms run in :class:`Trainer`, the four multi-agent ones (``--algo mappo``,
+``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`.
 """
 
 from __future__ import annotations
@@ -9,24 +11,38 @@ import sys
 
 from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import PRESETS, TrainConfig, parse_args
-from sg_torchrl.train.trainer import Trainer
+from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTrainer
+from sg_torchrl.train.trainer import EpochTrainer, Trainer
 
-__all__ = ["ALGORITHMS", "PRESETS", "TrainConfig", "Trainer", "main", "train"]
+__all__ = [
+    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "MultiAgentTrainer", "TrainConfig", "Trainer",
+    "algorithm_title", "main", "train", "trainer_class",
+]
+
+
+def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
+    """:class:`MultiAgentTrainer` for the multi-agent algorithms, :class:`Trainer` for the rest."""
+    return MultiAgentTrainer if cfg.multi_agent else Trainer
+
+
+def algorithm_title(algo: str) -> str:
+    """Display name of an ``--algo`` value (``"mappo_lag"`` -> ``"MAPPO-Lag"``)."""
+    table = MULTI_AGENT_ALGORITHMS if algo in MULTI_AGENT_ALGORITHMS else ALGORITHMS
+    return table[algo].title
 
 
 def train(cfg: TrainConfig) -> dict[str, float]:
     """Run (or continue, when ``cfg.resume`` is set) one experiment; returns the final metrics."""
-    checkpoint = None
-    if cfg.resume:
-        checkpoint = Trainer.load_checkpoint(cfg.resume)
-    return Trainer(cfg, checkpoint).run()
+    cls = trainer_class(cfg)
+    checkpoint = cls.load_checkpoint(cfg.resume) if cfg.resume else None
+    return cls(cfg, checkpoint).run()
 
 
 def _resolve_resume(cfg: TrainConfig, argv: list[str]) -> TrainConfig:
     """On ``--resume``, the saved config wins except for the flags given on this command line."""
     if not cfg.resume:
         return cfg
-    saved = Trainer.load_checkpoint(cfg.resume)["config"]
+    saved = EpochTrainer.load_checkpoint(cfg.resume)["config"]
     given = {arg[2:].split("=")[0].replace("-", "_") for arg in argv if arg.startswith("--")}
     values = {**saved, **{k: v for k, v in cfg.to_dict().items() if k in given}, "resume": cfg.resume}
     return TrainConfig(**values)
@@ -42,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     metrics = train(cfg)
     run_dir = cfg.run_dir
     print()
-    print(f"{ALGORITHMS[cfg.algo].title} on {cfg.env_id}, seed {cfg.seed}: {metrics.get('Train/TotalSteps', 0):.0f} env steps")
+    print(f"{algorithm_title(cfg.algo)} on {cfg.env_id}, seed {cfg.seed}: {metrics.get('Train/TotalSteps', 0):.0f} env steps")
     print(f"  training (last 50 episodes): EpRet {metrics.get('Metrics/EpRet', float('nan')):.1f}  "
           f"EpCost {metrics.get('Metrics/EpCost', float('nan')):.1f}  (cost limit {cfg.cost_limit:g})")
     if "Metrics/EvalEpRet" in metrics:

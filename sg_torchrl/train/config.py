@@ -10,7 +10,20 @@ and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built:
   and both critics, 40 passes of minibatch 64, KL early stop at 0.02, clip 0.2;
 * second order (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): trust region 0.01, conjugate gradient 15
   iterations with damping 0.1, line search 15 steps of fraction 0.8 (PCPO 200), critics Adam 1e-3
-  for 10 passes of minibatch 128, no actor learning rate.
+  for 10 passes of minibatch 128, no actor learning rate;
+* multi agent (MAPPO, HAPPO, MAPPO-Lag, MACPO; :mod:`sg_torchrl.train.multi_agent`): 10,000 steps
+  per update (episode length 1000 x 10 simulators), MLP [128, 128], Adam 5e-4 for actors and
+  critics, 5 epochs of one minibatch (the whole batch), clip 0.2, KL early stop 0.016, MAPPO-Lag's
+  multiplier init 1e-5 and SGD step 0.78; MACPO: trust region 0.01, 10 conjugate-gradient
+  iterations, 10 line-search steps of fraction 0.5, 15 critic epochs. SafePO's settings the paper
+  does not list: gradient-norm clip 10, no critic L2. Observations are normalised (running mean /
+  std per agent and feature, and of the state): SafePO feeds raw observations to networks that
+  start with a LayerNorm of their input, ours (TorchRL's ``MultiAgentMLP``) have none, and on raw
+  Humanoid observations their initial action means reach tens (control cost dominates the reward).
+
+A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
+a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
+match.
 """
 
 from __future__ import annotations
@@ -20,27 +33,55 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from types import UnionType
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
-__all__ = ["ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "SECOND_ORDER", "TrainConfig", "PRESETS", "parse_args"]
+__all__ = [
+    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER", "TrainConfig", "PRESETS",
+    "parse_args",
+]
 
-AlgorithmName = Literal[
+SingleAgentAlgorithmName = Literal[
     "pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"
 ]
-ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)
-SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"})
+MultiAgentAlgorithmName = Literal["mappo", "happo", "mappo_lag", "macpo"]
+AlgorithmName = Literal[SingleAgentAlgorithmName, MultiAgentAlgorithmName]
+#: The single-agent algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
+ALGORITHM_NAMES: tuple[str, ...] = get_args(SingleAgentAlgorithmName)
+#: The multi-agent algorithms (rows of :data:`sg_torchrl.train.multi_agent.MULTI_AGENT_ALGORITHMS`).
+MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = get_args(MultiAgentAlgorithmName)
+#: Algorithms whose actor moves by a trust-region step (no actor learning rate).
+SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"})
 
-_FIRST_ORDER_DEFAULTS = dict(actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64, target_kl=0.02)
-_SECOND_ORDER_DEFAULTS = dict(actor_lr=0.0, critic_lr=1e-3, update_iters=10, minibatch_size=128, target_kl=0.01,
-                              line_search_steps=15)
+_SINGLE_AGENT_DEFAULTS = dict(
+    env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
+    lagrangian_init=1e-3, lagrangian_lr=0.035, cg_iters=15, step_fraction=0.8, normalize_obs=True,
+)
+_FIRST_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64,
+                             target_kl=0.02)
+_SECOND_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=0.0, critic_lr=1e-3, update_iters=10,
+                              minibatch_size=128, target_kl=0.01, line_search_steps=15)
+# Paper, multi-agent rows (10,000 steps per update from 10 simulators of 1000-step episodes, one
+# minibatch: ``minibatch_size`` at least the batch); SafePO's multi-agent scripts for what the paper
+# does not list (gradient clip 10 per network, critics without L2). Observation normalisation stands
+# in for the input LayerNorm of SafePO's networks (see the module docstring).
+_MULTI_AGENT_DEFAULTS = dict(
+    env_id="Safety2x3HalfCheetahVelocity-v0", steps_per_epoch=10_000, actor_lr=5e-4, critic_lr=5e-4, update_iters=5,
+    minibatch_size=10_000, target_kl=0.016, max_grad_norm=10.0, critic_l2=0.0, lagrangian_init=1e-5,
+    lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
+)
 #: Paper appendix table, per algorithm. FOCOPS and CUP bound their multiplier nu by 2.0 (the table's
 #: "nu 2.00"; SafePO's CUP script uses 0.2). Fields not listed here have one default for all.
 ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: dict(_FIRST_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name not in SECOND_ORDER},
-    **{name: dict(_SECOND_ORDER_DEFAULTS) for name in SECOND_ORDER},
+    **{name: dict(_SECOND_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name in SECOND_ORDER},
     "focops": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
     "cup": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
     "pcpo": dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200),
+    **{name: dict(_MULTI_AGENT_DEFAULTS) for name in MULTI_AGENT_ALGORITHM_NAMES},
+    # MACPO: trust region 0.01, CG 10, 10 search steps of 0.5, 15 critic epochs ("SGD iters").
+    "macpo": dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, target_kl=0.01, update_iters=15, cg_iters=10,
+                  line_search_steps=10, step_fraction=0.5),
 }
 
 
@@ -54,31 +95,42 @@ def _opt(default: Any, help: str, **kwargs: Any) -> Any:
 class TrainConfig:
     """One experiment. Every field is a command-line flag (``--total-steps 200000``)."""
 
-    algo: AlgorithmName = _opt("ppo_lag", "safe RL algorithm")
-    env_id: str = _opt("SafetyHalfCheetahVelocity-v1", "Safety-Gymnasium env id (sg_torchrl.list_envs())")
+    algo: AlgorithmName = _opt("ppo_lag", "safe RL algorithm (mappo, happo, mappo_lag, macpo: multi-agent)")
+    env_id: str | None = _opt(
+        None, "Safety-Gymnasium env id (sg_torchrl.list_envs()); default SafetyHalfCheetahVelocity-v1, for "
+        "multi-agent algorithms Safety2x3HalfCheetahVelocity-v0")
     seed: int = _opt(0, "seed of the simulators, the networks and the minibatch order")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
-    steps_per_epoch: int = _opt(20_000, "env steps per epoch (one policy update); a multiple of num_envs")
+    steps_per_epoch: int | None = _opt(
+        None, "env steps per epoch (one policy update), a multiple of num_envs (20000; multi-agent 10000)")
     cost_limit: float = _opt(25.0, "episode cost limit d of the constrained MDP")
     gamma: float = _opt(0.99, "discount of reward and cost")
     gae_lambda: float = _opt(0.95, "GAE lambda of the reward advantage")
     cost_gae_lambda: float = _opt(0.95, "GAE lambda of the cost advantage")
     hidden_sizes: list[int] = _opt(
-        (), "hidden layer sizes of actor and critics (tanh MLPs); default: the paper's, 256 256 for the Ant and "
-        "Doggo navigation robots, else 64 64")
-    actor_lr: float | None = _opt(None, "actor Adam learning rate, linearly annealed to 0 (first order: 3e-4)")
-    critic_lr: float | None = _opt(None, "reward and cost critic Adam learning rate (first order 3e-4, second 1e-3)")
-    update_iters: int | None = _opt(None, "passes over the epoch's data (first order 40, second order 10 critic passes)")
-    minibatch_size: int | None = _opt(None, "samples per gradient step (first order 64, second order 128)")
+        (), "hidden layer sizes of actor and critics; default: the paper's, tanh 256 256 for the Ant and "
+        "Doggo navigation robots, else tanh 64 64; multi-agent: ReLU 128 128")
+    actor_lr: float | None = _opt(
+        None, "actor Adam learning rate (first order: 3e-4, linearly annealed to 0; multi-agent 5e-4, constant)")
+    critic_lr: float | None = _opt(
+        None, "reward and cost critic Adam learning rate (first order 3e-4, second 1e-3, multi-agent 5e-4)")
+    update_iters: int | None = _opt(
+        None, "passes over the epoch's data (first order 40, second order 10 critic passes; multi-agent 5 epochs "
+        "per agent, MACPO 15 critic epochs)")
+    minibatch_size: int | None = _opt(
+        None, "samples per gradient step (first order 64, second order 128; multi-agent 10000: the whole batch)")
     clip_ratio: float = _opt(0.2, "PPO ratio clip epsilon")
     target_kl: float | None = _opt(
-        None, "first order: stop the passes once KL(old || new) exceeds this (0.02); second order: the trust "
-        "region delta (0.01)")
-    max_grad_norm: float = _opt(40.0, "global gradient-norm clip over actor and critics")
-    critic_l2: float = _opt(1e-3, "L2 penalty on critic weights")
-    lagrangian_init: float = _opt(1e-3, "initial Lagrange multiplier (PID: initial integral)")
-    lagrangian_lr: float = _opt(0.035, "Lagrange multiplier Adam learning rate")
+        None, "first order: stop the passes once KL(old || new) exceeds this (0.02; multi-agent 0.016, per "
+        "agent); second order: the trust region delta (0.01)")
+    max_grad_norm: float | None = _opt(
+        None, "gradient-norm clip: global over actor and critics (40); multi-agent per network (10)")
+    critic_l2: float | None = _opt(None, "L2 penalty on critic weights (1e-3; multi-agent 0)")
+    lagrangian_init: float | None = _opt(
+        None, "initial Lagrange multiplier (1e-3; PID: initial integral; MAPPO-Lag 1e-5, one per agent)")
+    lagrangian_lr: float | None = _opt(
+        None, "Lagrange multiplier learning rate (Adam 0.035; MAPPO-Lag: SGD 0.78 after every minibatch step)")
     pid_kp: float = _opt(0.1, "CPPO-PID proportional gain")
     pid_ki: float = _opt(0.01, "CPPO-PID integral gain")
     pid_kd: float = _opt(0.01, "CPPO-PID derivative gain")
@@ -86,11 +138,14 @@ class TrainConfig:
     multiplier_upper_bound: float | None = _opt(None, "cap of the Lagrange multiplier (FOCOPS and CUP: 2.0)")
     focops_temperature: float = _opt(1.5, "FOCOPS temperature lambda")
     cup_lambda: float = _opt(0.95, "CUP's GAE-style lambda in the projection factor (1 - gamma lambda) / (1 - gamma)")
-    cg_iters: int = _opt(15, "second order: conjugate-gradient iterations")
+    cg_iters: int | None = _opt(None, "second order: conjugate-gradient iterations (15; MACPO 10)")
     cg_damping: float = _opt(0.1, "second order: damping added to the Fisher-vector product")
-    line_search_steps: int | None = _opt(None, "second order: backtracking steps (15; PCPO 200; NPG/RCPO none)")
-    step_fraction: float = _opt(0.8, "second order: backtracking shrink factor")
-    normalize_obs: bool = _opt(True, "running mean/std observation normalisation (SafePO default)")
+    line_search_steps: int | None = _opt(
+        None, "second order: backtracking steps (15; PCPO 200; MACPO 10; NPG/RCPO none)")
+    step_fraction: float | None = _opt(None, "second order: backtracking shrink factor (0.8; MACPO 0.5)")
+    normalize_obs: bool | None = _opt(
+        None, "running mean/std observation normalisation (default on; multi-agent: each agent's observation, "
+        "per agent, and the global state)")
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
     run_name: str | None = _opt(None, "run directory name (default: <env>/<algo>/seed-<seed>)")
@@ -108,13 +163,20 @@ class TrainConfig:
 
     @property
     def second_order(self) -> bool:
-        """Whether the actor moves by a trust-region step (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO)."""
+        """Whether the actor moves by a trust-region step (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO, MACPO)."""
         return self.algo in SECOND_ORDER
+
+    @property
+    def multi_agent(self) -> bool:
+        """Whether the algorithm is one of the multi-agent ones (MAPPO, HAPPO, MAPPO-Lag, MACPO)."""
+        return self.algo in MULTI_AGENT_ALGORITHM_NAMES
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        if self.algo not in ALGORITHM_NAMES:
-            raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(ALGORITHM_NAMES)}")
+        names = ALGORITHM_NAMES + MULTI_AGENT_ALGORITHM_NAMES
+        if self.algo not in names:
+            raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(names)}")
+        self._validate_env_kind()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps")
         for name in positive:
@@ -145,12 +207,41 @@ class TrainConfig:
         if self.hidden_sizes and min(self.hidden_sizes) < 1:
             raise ValueError(f"config: hidden_sizes must be positive, got {self.hidden_sizes}")
 
+    def _validate_env_kind(self) -> None:
+        """A multi-agent algorithm needs a multi-agent env id and a single-agent one a single-agent id.
+
+        Unknown ids pass here: building the env reports them with the closest registered ids.
+        """
+        from sg_torchrl.envs import registry_entry
+
+        try:
+            env_multi_agent = registry_entry(self.env_id).multi_agent
+        except KeyError:
+            return
+        if env_multi_agent == self.multi_agent:
+            return
+        if self.multi_agent:
+            raise ValueError(
+                f"config: algo {self.algo!r} is a multi-agent algorithm but env_id {self.env_id!r} is a single-agent "
+                f"env; give a multi-agent env id (e.g. Safety2x3HalfCheetahVelocity-v0, "
+                f"sg_torchrl.list_envs(family='multi_agent_velocity')) or a single-agent algo "
+                f"({', '.join(ALGORITHM_NAMES)})"
+            )
+        raise ValueError(
+            f"config: algo {self.algo!r} is a single-agent algorithm but env_id {self.env_id!r} is a multi-agent "
+            f"env; give a multi-agent algo ({', '.join(MULTI_AGENT_ALGORITHM_NAMES)}) or a single-agent env id "
+            f"(e.g. SafetyHalfCheetahVelocity-v1)"
+        )
+
     @property
     def network_sizes(self) -> list[int]:
-        """``hidden_sizes``, or when empty the paper's for the env (appendix: [256, 256] for the Ant and
-        Doggo navigation robots, [64, 64] otherwise)."""
+        """``hidden_sizes``, or when empty the paper's for the algorithm and env (appendix: [128, 128]
+        for the multi-agent algorithms; [256, 256] for the Ant and Doggo navigation robots, [64, 64]
+        otherwise)."""
         if self.hidden_sizes:
             return list(self.hidden_sizes)
+        if self.multi_agent:
+            return [128, 128]
         from sg_torchrl.envs import registry_entry
 
         try:
@@ -193,6 +284,9 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 def _flag_type(hint: Any):
+    optional = [a for a in get_args(hint) if a is not type(None)] if get_origin(hint) in (Union, UnionType) else []
+    if len(optional) == 1:  # ``X | None``: parse as X
+        hint = optional[0]
     origin = get_origin(hint)
     if hint is bool:
         return lambda text: {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}[

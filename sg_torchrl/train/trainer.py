@@ -14,10 +14,16 @@ One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
 observation normaliser, simulator states and generators, the collector's carry, episode
 statistics, torch RNG states), so ``--resume`` continues bit-identically.
+
+:class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
+metrics, the progress bar, logging, checkpoint files, the final summary and plot);
+:class:`Trainer` (single agent) and :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer`
+supply the networks, the update and the evaluation.
 """
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import json
 import time
@@ -42,7 +48,7 @@ from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts
 
-__all__ = ["Trainer", "CHECKPOINT_NAME"]
+__all__ = ["CHECKPOINT_NAME", "EpochTrainer", "Trainer"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -62,8 +68,203 @@ def _without_distribution_validation() -> Iterator[None]:
         torch.distributions.Distribution.set_default_validate_args(previous)
 
 
-class Trainer:
-    """Build everything a run needs from a :class:`TrainConfig` and run its epochs.
+class EpochTrainer(abc.ABC):
+    """The epoch loop every ``sg-train`` trainer shares; subclasses supply the algorithm.
+
+    A subclass builds its env, networks, :attr:`collector` and :attr:`stats` after calling
+    ``super().__init__(cfg)`` (which sets the thread count and seeds torch first, so networks are
+    initialised from ``cfg.seed``), then calls :meth:`_start` to restore a checkpoint and open the
+    logger. It implements four hooks:
+
+    * :meth:`_learn`: everything one epoch's batch changes (multiplier, advantages, networks);
+      returns ``Train/LagrangeMultiplier``, ``Train/LR`` and the update's metrics;
+    * :meth:`_evaluate`: the deterministic evaluation of :meth:`finish`;
+    * :meth:`_algorithm_state` / :meth:`_load_algorithm_state`: the checkpoint entries beyond the
+      shared ones (epoch counters, collector, episode statistics, torch RNG).
+
+    Episode statistics are team-level (return, cost, length of finished episodes); the mean cost of
+    the episodes finished in an epoch is :attr:`last_mean_cost` (kept from the previous epoch when
+    none finished), SafePO's :math:`J_c`.
+    """
+
+    title: str
+    collector: RolloutCollector
+    stats: EpisodeStats
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.epoch = 0
+        self.total_steps = 0
+        self.train_seconds = 0.0
+        self._last_mean_cost = 0.0
+
+    def _start(self, checkpoint: dict[str, Any] | None) -> None:
+        """Restore ``checkpoint`` (when given) and open the run's logger; the last step of ``__init__``."""
+        cfg = self.cfg
+        if checkpoint is not None:
+            self._restore(checkpoint)
+        self.logger = RunLogger(
+            cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
+            config=cfg.to_dict(), resume=checkpoint is not None,
+        )
+
+    @property
+    def last_mean_cost(self) -> float:
+        """Mean cost of the episodes finished in the last epoch that finished any (0 before)."""
+        return self._last_mean_cost
+
+    # ------------------------------------------------------------------ hooks
+    @abc.abstractmethod
+    def _learn(self, batch: TensorDictBase) -> dict[str, float]:
+        """Update multiplier and networks from the epoch's ``(N, T)`` batch; returns the update metrics."""
+
+    @abc.abstractmethod
+    def _evaluate(self) -> dict[str, float]:
+        """``cfg.eval_episodes`` deterministic episodes (``Metrics/EvalEpRet``, ``Metrics/EvalEpCost``, ...)."""
+
+    @abc.abstractmethod
+    def _algorithm_state(self) -> dict[str, Any]:
+        """Checkpoint entries of the networks, optimisers, multipliers and normalisers."""
+
+    @abc.abstractmethod
+    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`_algorithm_state` saved."""
+
+    # ------------------------------------------------------------------ epochs
+    def run(self, max_epochs: int | None = None) -> dict[str, float]:
+        """Train until the budget is spent (or ``max_epochs`` more epochs), then checkpoint.
+
+        Returns the last epoch's metrics, plus the evaluation summary when the run finished.
+        """
+        cfg = self.cfg
+        cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        cfg.save(cfg.run_dir / "config.json")
+        last_epoch = cfg.epochs if max_epochs is None else min(cfg.epochs, self.epoch + max_epochs)
+        metrics: dict[str, float] = {}
+        bar = tqdm(total=cfg.epochs * cfg.steps_per_epoch, initial=self.total_steps, unit="step",
+                   disable=not cfg.progress, desc=f"{self.title} {cfg.env_id}", dynamic_ncols=True)
+        try:
+            while self.epoch < last_epoch:
+                metrics = self.train_epoch()
+                bar.update(cfg.steps_per_epoch)
+                bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}", EpCost=f"{metrics['Metrics/EpCost']:.1f}",
+                                lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
+                if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
+                    self.save_checkpoint()
+            if self.epoch >= cfg.epochs:
+                metrics.update(self.finish())
+        finally:
+            bar.close()
+        return metrics
+
+    def train_epoch(self) -> dict[str, float]:
+        """One epoch: collect, update (multiplier and networks), log."""
+        with _without_distribution_validation():
+            return self._train_epoch()
+
+    def _train_epoch(self) -> dict[str, float]:
+        start = time.perf_counter()
+        batch = self.collector.collect()
+        rollout_time = time.perf_counter() - start
+        self.stats.update(batch)
+        finished = self.stats.pop_finished()
+        if finished["cost"].numel():
+            self._last_mean_cost = finished["cost"].mean().item()
+
+        update_start = time.perf_counter()
+        learned = self._learn(batch)
+        update_time = time.perf_counter() - update_start
+        self.epoch += 1
+        self.total_steps += batch.numel()
+        epoch_time = time.perf_counter() - start
+        self.train_seconds += epoch_time
+
+        window = self.stats.window(50)
+        metrics = {
+            "Metrics/EpRet": window.get("return", float("nan")),
+            "Metrics/EpCost": window.get("cost", float("nan")),
+            "Metrics/EpLen": window.get("length", float("nan")),
+            "Metrics/EpochEpCost": self._last_mean_cost,
+            "Train/Epoch": self.epoch,
+            "Train/TotalSteps": self.total_steps,
+            **learned,
+            "Time/Rollout": rollout_time,
+            "Time/Update": update_time,
+            "Time/Total": self.train_seconds,
+            "Time/FPS": batch.numel() / epoch_time,
+        }
+        self.logger.log(metrics, step=self.total_steps)
+        return metrics
+
+    def finish(self) -> dict[str, float]:
+        """Final evaluation, learning-curve PNG and summary."""
+        cfg = self.cfg
+        last10 = self.stats.window(10)
+        summary: dict[str, float] = {
+            "Final/EpRetLast10": last10.get("return", float("nan")),
+            "Final/EpCostLast10": last10.get("cost", float("nan")),
+        }
+        if cfg.eval_episodes > 0:
+            evaluation = self._evaluate()
+            self.logger.log({**evaluation, "Train/TotalSteps": self.total_steps}, step=self.total_steps)
+            summary.update(evaluation)
+        (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": self.total_steps,
+                                                              "Time/Total": self.train_seconds}, indent=2))
+        history = [row for row in self.logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
+        plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
+                    title=f"{self.title} on {cfg.env_id} (seed {cfg.seed})")
+        self.logger.close()
+        return summary
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.cfg.run_dir / CHECKPOINT_NAME
+
+    def save_checkpoint(self, path: Path | None = None) -> Path:
+        path = path or self.checkpoint_path
+        state = {
+            "config": self.cfg.to_dict(),
+            "epoch": self.epoch,
+            "total_steps": self.total_steps,
+            "train_seconds": self.train_seconds,
+            "last_mean_cost": self._last_mean_cost,
+            **self._algorithm_state(),
+            "collector": self.collector.state_dict(),
+            "stats": self.stats.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+        }
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
+        return path
+
+    @staticmethod
+    def load_checkpoint(path: str | Path) -> dict[str, Any]:
+        """Read a checkpoint file, or ``<run dir>/checkpoint.pt`` when given a run directory."""
+        path = Path(path)
+        if path.is_dir():
+            path = path / CHECKPOINT_NAME
+        if not path.exists():
+            raise FileNotFoundError(f"no checkpoint at {path}")
+        # Our own file: it holds numpy simulator states, which weights_only loading rejects.
+        return torch.load(path, weights_only=False)
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.epoch = state["epoch"]
+        self.total_steps = state["total_steps"]
+        self.train_seconds = state["train_seconds"]
+        self._last_mean_cost = state["last_mean_cost"]
+        self._load_algorithm_state(state)
+        self.collector.load_state_dict(state["collector"])
+        self.stats.load_state_dict(state["stats"])
+        torch.set_rng_state(state["torch_rng"])
+
+
+class Trainer(EpochTrainer):
+    """Build everything a single-agent run needs from a :class:`TrainConfig` and run its epochs.
 
     Args:
         cfg: the experiment.
@@ -71,10 +272,9 @@ class Trainer:
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
-        self.cfg = cfg
-        torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
+        super().__init__(cfg)
         self.algorithm = ALGORITHMS[cfg.algo]
+        self.title = self.algorithm.title
         self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed)
         obs_dim = self.base_env.observation_dim
         self.obs_norm = RunningObservationNorm((obs_dim,)) if cfg.normalize_obs else None
@@ -109,86 +309,19 @@ class Trainer:
         self.policy_update = self.algorithm.make_update(parts, self.multiplier, cfg)
         self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
         self.stats = EpisodeStats()
-        self.epoch = 0
-        self.total_steps = 0
-        self.train_seconds = 0.0
-        self._last_mean_cost = 0.0
-        if checkpoint is not None:
-            self._restore(checkpoint)
-        self.logger = RunLogger(
-            cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
-            config=cfg.to_dict(), resume=checkpoint is not None,
-        )
+        self._start(checkpoint)
 
     # ------------------------------------------------------------------ epochs
-    def run(self, max_epochs: int | None = None) -> dict[str, float]:
-        """Train until the budget is spent (or ``max_epochs`` more epochs), then checkpoint.
-
-        Returns the last epoch's metrics, plus the evaluation summary when the run finished.
-        """
-        cfg = self.cfg
-        cfg.run_dir.mkdir(parents=True, exist_ok=True)
-        cfg.save(cfg.run_dir / "config.json")
-        last_epoch = cfg.epochs if max_epochs is None else min(cfg.epochs, self.epoch + max_epochs)
-        metrics: dict[str, float] = {}
-        bar = tqdm(total=cfg.epochs * cfg.steps_per_epoch, initial=self.total_steps, unit="step",
-                   disable=not cfg.progress, desc=f"{self.algorithm.title} {cfg.env_id}", dynamic_ncols=True)
-        try:
-            while self.epoch < last_epoch:
-                metrics = self.train_epoch()
-                bar.update(cfg.steps_per_epoch)
-                bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}", EpCost=f"{metrics['Metrics/EpCost']:.1f}",
-                                lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
-                if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
-                    self.save_checkpoint()
-            if self.epoch >= cfg.epochs:
-                metrics.update(self.finish())
-        finally:
-            bar.close()
-        return metrics
-
-    def train_epoch(self) -> dict[str, float]:
-        """One epoch: collect, update the multiplier, update the networks, log."""
-        with _without_distribution_validation():
-            return self._train_epoch()
-
-    def _train_epoch(self) -> dict[str, float]:
-        start = time.perf_counter()
-        batch = self.collector.collect()
-        rollout_time = time.perf_counter() - start
-        self.stats.update(batch)
-        finished = self.stats.pop_finished()
-        if finished["cost"].numel():
-            self._last_mean_cost = finished["cost"].mean().item()
+    def _learn(self, batch: TensorDictBase) -> dict[str, float]:
+        """Multiplier from the epoch's episode cost (before the policy update, as SafePO), then :meth:`update`."""
         lagrange = self.multiplier.update(self._last_mean_cost).item()
-
-        update_start = time.perf_counter()
         update_info = self.update(batch)
-        update_time = time.perf_counter() - update_start
         self.scheduler.step()
-        self.epoch += 1
-        self.total_steps += batch.numel()
-        epoch_time = time.perf_counter() - start
-        self.train_seconds += epoch_time
-
-        window = self.stats.window(50)
-        metrics = {
-            "Metrics/EpRet": window.get("return", float("nan")),
-            "Metrics/EpCost": window.get("cost", float("nan")),
-            "Metrics/EpLen": window.get("length", float("nan")),
-            "Metrics/EpochEpCost": self._last_mean_cost,
-            "Train/Epoch": self.epoch,
-            "Train/TotalSteps": self.total_steps,
+        return {
             "Train/LagrangeMultiplier": lagrange,
             "Train/LR": 0.0 if self.cfg.second_order else self.optimizer.param_groups[0]["lr"],
             **update_info,
-            "Time/Rollout": rollout_time,
-            "Time/Update": update_time,
-            "Time/Total": self.train_seconds,
-            "Time/FPS": batch.numel() / epoch_time,
         }
-        self.logger.log(metrics, step=self.total_steps)
-        return metrics
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """Advantages on the whole batch, then the algorithm's :class:`PolicyUpdate`."""
@@ -202,78 +335,27 @@ class Trainer:
         info = self.policy_update(data, self._last_mean_cost - self.cfg.cost_limit)
         return {**info, "Value/RewardAdv": raw_reward_adv, "Value/CostAdv": raw_cost_adv}
 
-    def finish(self) -> dict[str, float]:
-        """Final evaluation, learning-curve PNG and summary."""
+    def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
-        last10 = self.stats.window(10)
-        summary: dict[str, float] = {
-            "Final/EpRetLast10": last10.get("return", float("nan")),
-            "Final/EpCostLast10": last10.get("cost", float("nan")),
-        }
-        if cfg.eval_episodes > 0:
-            evaluation = evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
-                                         obs_norm=self.obs_norm)
-            self.logger.log({**evaluation, "Train/TotalSteps": self.total_steps}, step=self.total_steps)
-            summary.update(evaluation)
-        (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": self.total_steps,
-                                                              "Time/Total": self.train_seconds}, indent=2))
-        history = [row for row in self.logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
-        plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
-                    title=f"{self.algorithm.title} on {cfg.env_id} (seed {cfg.seed})")
-        self.logger.close()
-        return summary
+        return evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
+                               obs_norm=self.obs_norm)
 
     # ------------------------------------------------------------------ checkpoints
-    @property
-    def checkpoint_path(self) -> Path:
-        return self.cfg.run_dir / CHECKPOINT_NAME
-
-    def save_checkpoint(self, path: Path | None = None) -> Path:
-        path = path or self.checkpoint_path
-        state = {
-            "config": self.cfg.to_dict(),
-            "epoch": self.epoch,
-            "total_steps": self.total_steps,
-            "train_seconds": self.train_seconds,
-            "last_mean_cost": self._last_mean_cost,
+    def _algorithm_state(self) -> dict[str, Any]:
+        return {
             "loss": self.loss.state_dict(),
             "multiplier": self.multiplier.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
             "obs_norm": None if self.obs_norm is None else self.obs_norm.state_dict(),
-            "collector": self.collector.state_dict(),
-            "stats": self.stats.state_dict(),
-            "torch_rng": torch.get_rng_state(),
             "minibatch_rng": self.minibatch_rng.get_state(),
         }
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
-        return path
 
-    @staticmethod
-    def load_checkpoint(path: str | Path) -> dict[str, Any]:
-        """Read a checkpoint file, or ``<run dir>/checkpoint.pt`` when given a run directory."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / CHECKPOINT_NAME
-        if not path.exists():
-            raise FileNotFoundError(f"no checkpoint at {path}")
-        # Our own file: it holds numpy simulator states, which weights_only loading rejects.
-        return torch.load(path, weights_only=False)
-
-    def _restore(self, state: dict[str, Any]) -> None:
-        self.epoch = state["epoch"]
-        self.total_steps = state["total_steps"]
-        self.train_seconds = state["train_seconds"]
-        self._last_mean_cost = state["last_mean_cost"]
+    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
         self.loss.load_state_dict(state["loss"])
         self.multiplier.load_state_dict(state["multiplier"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         if self.obs_norm is not None:
             self.obs_norm.load_state_dict(state["obs_norm"])
-        self.collector.load_state_dict(state["collector"])
-        self.stats.load_state_dict(state["stats"])
-        torch.set_rng_state(state["torch_rng"])
         self.minibatch_rng.set_state(state["minibatch_rng"])
