@@ -6,8 +6,9 @@ each) and a cell whose ``summary.json`` exists is reused, so an interrupted benc
 
 Per (env, algorithm) the table gives, as the Safety-Gymnasium paper's tables do, J^R and J^C (mean
 over seeds of the last 10 training episodes' return and cost), the normalised J^R / J^R(PPO) (our
-PPO run on the same env and budget, when it is in the benchmark) and J^C / cost limit, the seconds
-per update of a 20,000-step epoch, and the published numbers from
+PPO run on the same env and budget, when it is in the benchmark; MAPPO for the multi-agent
+algorithms on the multi-agent ids) and J^C / cost limit, the seconds per update of one epoch
+(20,000 steps; multi-agent 10,000), and the published numbers from
 ``shared/reference/paper_results.csv`` (10M steps) with their own normalisation.
 
     python benchmarks/algorithms.py --envs SafetyPointGoal1-v0 --algos ppo ppo_lag cpo --seeds 0 1 2 \\
@@ -29,22 +30,32 @@ PAPER_RESULTS = Path(__file__).resolve().parents[1].parent / "shared" / "referen
 PAPER_NAMES = {
     "pg": "PG", "ppo": "PPO", "ppo_lag": "PPO-Lag", "cppo_pid": "CPPO-PID", "focops": "FOCOPS", "cup": "CUP",
     "npg": "NPG", "trpo": "TRPO", "trpo_lag": "TRPO-Lag", "rcpo": "RCPO", "cpo": "CPO", "pcpo": "PCPO",
+    "mappo": "MAPPO", "happo": "HAPPO", "mappo_lag": "MAPPO-Lag", "macpo": "MACPO",
 }
+#: The unconstrained baseline each algorithm's J^R is normalised by (the paper's tables).
+MULTI_AGENT = frozenset({"mappo", "happo", "mappo_lag", "macpo"})
+PAPER_TABLES = ("single_agent_raw", "multi_agent_raw")
+
+
+def baseline(algo: str) -> str:
+    """``"mappo"`` for the multi-agent algorithms, ``"ppo"`` for the single-agent ones."""
+    return "mappo" if algo in MULTI_AGENT else "ppo"
 
 
 def paper_env_name(env_id: str) -> str:
-    """``SafetyPointGoal1-v0`` -> ``PointGoal1``; ``SafetyHalfCheetahVelocity-v1`` -> ``HalfCheetahVel``."""
+    """``SafetyPointGoal1-v0`` -> ``PointGoal1``; ``SafetyHalfCheetahVelocity-v1`` -> ``HalfCheetahVel``;
+    ``Safety2x3HalfCheetahVelocity-v0`` -> ``2x3HalfCheetahVel``."""
     name = re.sub(r"^Safety|-v\d+$", "", env_id)
     return re.sub(r"Velocity$", "Vel", name)
 
 
 def load_paper_results(path: Path = PAPER_RESULTS) -> dict[tuple[str, str], tuple[float, float]]:
-    """``{(paper env, paper algorithm): (reward, cost)}`` of the single-agent table (empty if absent)."""
+    """``{(paper env, paper algorithm): (reward, cost)}`` of the single- and multi-agent tables (empty if absent)."""
     if not path.exists():
         return {}
     with path.open() as handle:
         return {(row["env"], row["algorithm"]): (float(row["reward"]), float(row["cost"]))
-                for row in csv.DictReader(handle) if row["table"] == "single_agent_raw"}
+                for row in csv.DictReader(handle) if row["table"] in PAPER_TABLES}
 
 
 def run_dir(output_dir: str, env_id: str, algo: str, seed: int) -> Path:
@@ -112,7 +123,7 @@ def table(args: argparse.Namespace) -> str:
         f"Budget {args.total_steps:,} env steps per run; seeds {' '.join(map(str, args.seeds))}; "
         f"cost limit {args.cost_limit:g}. Paper: 10M steps.",
         "",
-        "| env | algorithm | seeds | J^R | J^C | J^R / J^R(PPO) | J^C / limit | update s / epoch "
+        "| env | algorithm | seeds | J^R | J^C | J^R / J^R(PPO or MAPPO) | J^C / limit | update s / epoch "
         "| paper J^R | paper J^C | paper J^R / PPO | paper J^C / limit |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -122,10 +133,10 @@ def table(args: argparse.Namespace) -> str:
             runs = [s for seed in args.seeds if (s := cell_summary(run_dir(args.output_dir, env_id, algo, seed)))]
             if runs:
                 cells[algo] = runs
-        ppo_return = _mean([r["Final/EpRetLast10"] for r in cells.get("ppo", [])])
         env_name = paper_env_name(env_id)
-        paper_ppo = paper.get((env_name, "PPO"), (float("nan"), 0.0))[0]
         for algo, runs in cells.items():
+            ppo_return = _mean([r["Final/EpRetLast10"] for r in cells.get(baseline(algo), [])])
+            paper_ppo = paper.get((env_name, PAPER_NAMES[baseline(algo)]), (float("nan"), 0.0))[0]
             reward = _mean([r["Final/EpRetLast10"] for r in runs])
             cost = _mean([r["Final/EpCostLast10"] for r in runs])
             update = _mean([r["update_s"] for r in runs])

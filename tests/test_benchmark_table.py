@@ -1,0 +1,69 @@
+"""``benchmarks/algorithms.py``: the paper-format table from finished runs (no training here)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "algorithms.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("benchmark_algorithms", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _finished_run(bench, root: Path, env_id: str, algo: str, seed: int, ret: float, cost: float) -> None:
+    directory = bench.run_dir(str(root), env_id, algo, seed)
+    directory.mkdir(parents=True)
+    (directory / "summary.json").write_text(json.dumps({"Final/EpRetLast10": ret, "Final/EpCostLast10": cost}))
+    (directory / "progress.csv").write_text("Time/Update,Metrics/EpRet\n2.0,1\n4.0,2\n")
+
+
+@pytest.mark.parametrize(
+    "env_id, paper_name",
+    [
+        ("SafetyPointGoal1-v0", "PointGoal1"),
+        ("SafetyHalfCheetahVelocity-v1", "HalfCheetahVel"),
+        ("Safety2x3HalfCheetahVelocity-v0", "2x3HalfCheetahVel"),
+        ("Safety9|8HumanoidVelocity-v0", "9|8HumanoidVel"),
+    ],
+)
+def test_paper_env_names(bench, env_id, paper_name):
+    assert bench.paper_env_name(env_id) == paper_name
+
+
+def test_table_normalises_by_ppo_or_mappo_and_shows_the_paper(bench, tmp_path, monkeypatch):
+    single, multi = "SafetyHalfCheetahVelocity-v1", "Safety2x3HalfCheetahVelocity-v0"
+    for seed, (ret, cost) in enumerate([(100.0, 10.0), (300.0, 30.0)]):
+        _finished_run(bench, tmp_path, single, "ppo", seed, 2 * ret, 2 * cost)
+        _finished_run(bench, tmp_path, single, "ppo_lag", seed, ret, cost)
+        _finished_run(bench, tmp_path, multi, "mappo", seed, 4 * ret, 4 * cost)
+        _finished_run(bench, tmp_path, multi, "mappo_lag", seed, ret, cost)
+    paper = {("HalfCheetahVel", "PPO"): (3000.0, 900.0), ("HalfCheetahVel", "PPO-Lag"): (1500.0, 5.0),
+             ("2x3HalfCheetahVel", "MAPPO"): (5000.0, 975.0), ("2x3HalfCheetahVel", "MAPPO-Lag"): (1750.0, 0.5)}
+    monkeypatch.setattr(bench, "load_paper_results", lambda: paper)
+    args = argparse.Namespace(envs=[single, multi], algos=["ppo", "ppo_lag", "mappo", "mappo_lag"], seeds=[0, 1],
+                              total_steps=1_000_000, cost_limit=25.0, output_dir=str(tmp_path))
+    rows = {tuple(cell.strip() for cell in line.split("|")[1:3]): [c.strip() for c in line.split("|")[1:-1]]
+            for line in bench.table(args).splitlines() if line.startswith("| Safety")}
+    # columns: env, algorithm, seeds, J^R, J^C, J^R/base, J^C/limit, update s, paper J^R, paper J^C, paper norm R, C
+    assert rows[(single, "PPO-Lag")] == [single, "PPO-Lag", "2", "200.00", "20.00", "0.50", "0.80", "3.0",
+                                         "1500.00", "5.00", "0.50", "0.20"]
+    assert rows[(multi, "MAPPO-Lag")] == [multi, "MAPPO-Lag", "2", "200.00", "20.00", "0.25", "0.80", "3.0",
+                                          "1750.00", "0.50", "0.35", "0.02"]
+    assert rows[(multi, "MAPPO")][5] == "1.00"
+
+
+def test_published_multi_agent_rows_are_read(bench):
+    if not bench.PAPER_RESULTS.exists():
+        pytest.skip(f"no published results at {bench.PAPER_RESULTS} (shared/ is not beside this checkout)")
+    paper = bench.load_paper_results()
+    assert ("2x3HalfCheetahVel", "MAPPO-Lag") in paper and ("PointGoal1", "PPO-Lag") in paper
