@@ -8,6 +8,7 @@ from torchrl.envs.utils import check_env_specs
 
 import sg_torchrl
 from sg_torchrl.envs import UnknownEnvError, registry_entry
+from sg_torchrl.envs.registry import env_options
 
 torch.set_num_threads(1)
 
@@ -199,6 +200,23 @@ class TestMakeOptions:
         env = make_env("SafetyHalfCheetahVelocity-v1", num_envs=1, max_episode_steps=17)
         assert env.max_episode_steps == 17
         assert make_env("SafetyHalfCheetahVelocity-v1", num_envs=1).max_episode_steps == 1000
+
+    def test_unknown_option_names_it_and_lists_the_accepted_ones(self):
+        with pytest.raises(TypeError, match=r"unknown option\(s\) 'lidar'.*velocity_threshold"):
+            make_env("Safety2x3HalfCheetahVelocity-v0", lidar="natural")
+
+    @pytest.mark.parametrize(
+        "env_id, expected",
+        [
+            ("SafetyHalfCheetahVelocity-v1", {"cost_mode", "max_episode_steps", "velocity_threshold"}),
+            ("SafetyPointGoal1-v0", {"cost_mode", "max_episode_steps", "lidar", "compass"}),
+            ("Safety2x3HalfCheetahVelocity-v0", {"cost_mode", "max_episode_steps", "velocity_threshold"}),
+        ],
+    )
+    def test_env_options_lists_the_constructor_keywords_the_entry_leaves_open(self, env_id, expected):
+        options = set(env_options(env_id))
+        assert expected <= options
+        assert not options & {"self", "num_envs", "device", "seed", "robot", "task", "level", "version"}
 
 
 @pytest.mark.parametrize("env_id", ALL_IDS)

@@ -100,6 +100,34 @@ class TestConfig:
         assert main(["--num-envs", "3", "--steps-per-epoch", "1000"]) == 2
         assert "multiple of num_envs" in capsys.readouterr().err
 
+    def test_env_options_from_the_command_line(self):
+        cfg = parse_args(["--preset", "smoke", "--env-options", "velocity_threshold=0.5", "cost_mode=raw",
+                          "max_episode_steps=200"])
+        assert cfg.env_options == {"velocity_threshold": 0.5, "cost_mode": "raw", "max_episode_steps": 200}
+
+    @pytest.mark.parametrize(
+        "options, message",
+        [({"lidar": "natural"}, "'lidar' unknown to SafetyHalfCheetahVelocity-v1"), ({"seed": 3}, "use --seed")],
+    )
+    def test_bad_env_options_are_clear_errors(self, options, message):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig(env_options=options)
+
+    def test_cli_rejects_an_option_without_a_value(self, capsys):
+        with pytest.raises(SystemExit):
+            parse_args(["--env-options", "velocity_threshold"])
+        assert "not KEY=VALUE" in capsys.readouterr().err
+
+    def test_env_options_reach_the_training_and_evaluation_envs(self, tmp_path):
+        # A threshold of -1 m/s makes most steps cost 1 (84 of 100 here; the default, 3.2 m/s, almost none).
+        trainer = Trainer(tiny_config(tmp_path, env_options={"velocity_threshold": -1.0, "max_episode_steps": 100},
+                                      eval_episodes=2))
+        assert trainer.base_env.velocity_threshold == -1.0 and trainer.base_env.max_episode_steps == 100
+        row = trainer.train_epoch()
+        assert row["Metrics/EpLen"] == 100.0 and row["Metrics/EpCost"] > 70
+        evaluation = trainer._evaluate()
+        assert evaluation["Metrics/EvalEpLen"] == 100.0 and evaluation["Metrics/EvalEpCost"] > 70
+
     def test_unknown_env_id_is_a_clear_error(self, tmp_path):
         with pytest.raises(KeyError, match="Did you mean"):
             Trainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))

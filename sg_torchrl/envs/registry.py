@@ -8,6 +8,7 @@ it and lets an unknown id get a helpful error listing the closest valid ids.
 from __future__ import annotations
 
 import difflib
+import inspect
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,7 +17,7 @@ import torch
 
 from sg_torchrl.envs.base import SafeEnv
 
-__all__ = ["EnvEntry", "MULTI_AGENT_FAMILIES", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+__all__ = ["EnvEntry", "env_options", "MULTI_AGENT_FAMILIES", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
 
 #: Families whose envs use TorchRL's multi-agent layout (group ``"agents"``, no root ``observation``).
 MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigation"})
@@ -114,8 +115,31 @@ def make(
         torch.Size([8, 10, 1])
     """
     entry = registry_entry(env_id)
+    accepted = env_options(env_id)
+    unknown = sorted(set(options) - set(accepted)) if accepted is not None else []
+    if unknown:
+        raise TypeError(
+            f"{env_id}: unknown option(s) {', '.join(map(repr, unknown))}; it takes {', '.join(accepted)}"
+        )
     kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **options}
     return entry.constructor(num_envs=num_envs, device=device, seed=seed, **kwargs)
+
+
+def env_options(env_id: str) -> list[str] | None:
+    """The keyword options :func:`make` accepts for ``env_id`` (besides ``num_envs``, ``device``, ``seed``).
+
+    They are the constructor's keyword parameters less the ones the registry entry fixes (robot,
+    task, level, ...): e.g. ``cost_mode``, ``max_episode_steps``, ``velocity_threshold``. ``None``
+    when the constructor takes arbitrary keywords (``**kwargs``): then it checks them itself.
+    """
+    entry = registry_entry(env_id)
+    fixed = {"self", "num_envs", "device", "seed", *entry.kwargs}
+    # A class's own __init__: EnvBase's metaclass hides it behind ``__call__(*args, **kwargs)``.
+    constructor = entry.constructor.__init__ if isinstance(entry.constructor, type) else entry.constructor
+    parameters = inspect.signature(constructor).parameters.values()
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return None
+    return [p.name for p in parameters if p.name not in fixed and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
 
 
 def _register_velocity() -> None:

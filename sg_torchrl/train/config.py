@@ -86,6 +86,8 @@ ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
 
 
 def _opt(default: Any, help: str, **kwargs: Any) -> Any:
+    if isinstance(default, dict):
+        return field(default_factory=lambda: dict(default), metadata={"help": help, **kwargs})
     if isinstance(default, (list, tuple)):
         return field(default_factory=lambda: list(default), metadata={"help": help, **kwargs})
     return field(default=default, metadata={"help": help, **kwargs})
@@ -99,6 +101,9 @@ class TrainConfig:
     env_id: str | None = _opt(
         None, "Safety-Gymnasium env id (sg_torchrl.list_envs()); default SafetyHalfCheetahVelocity-v1, for "
         "multi-agent algorithms Safety2x3HalfCheetahVelocity-v0")
+    env_options: dict[str, Any] = _opt(
+        {}, "task options for sg_torchrl.make as KEY=VALUE (e.g. velocity_threshold=1.5 cost_mode=raw "
+        "lidar=natural); values are read as JSON where they parse, else as strings")
     seed: int = _opt(0, "seed of the simulators, the networks and the minibatch order")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
@@ -206,6 +211,27 @@ class TrainConfig:
             raise ValueError("config: cg_damping and multiplier_upper_bound must be >= 0")
         if self.hidden_sizes and min(self.hidden_sizes) < 1:
             raise ValueError(f"config: hidden_sizes must be positive, got {self.hidden_sizes}")
+        self._validate_env_options()
+
+    def _validate_env_options(self) -> None:
+        """``env_options`` must be options the env id takes (``sg_torchrl.envs.registry.env_options``)."""
+        from sg_torchrl.envs.registry import env_options
+
+        reserved = sorted(set(self.env_options) & {"num_envs", "device", "seed"})
+        if reserved:
+            raise ValueError(
+                f"config: env_options cannot set {', '.join(reserved)}; use --{reserved[0].replace('_', '-')}"
+            )
+        try:
+            accepted = env_options(self.env_id)
+        except KeyError:
+            return  # an unknown id fails with its own message (the closest ids) when the env is built
+        unknown = sorted(set(self.env_options) - set(accepted)) if accepted is not None else []
+        if unknown:
+            raise ValueError(
+                f"config: env_options {', '.join(map(repr, unknown))} unknown to {self.env_id}; it takes "
+                f"{', '.join(accepted)}"
+            )
 
     def _validate_env_kind(self) -> None:
         """A multi-agent algorithm needs a multi-agent env id and a single-agent one a single-agent id.
@@ -296,6 +322,8 @@ def _flag_type(hint: Any):
         return str
     if origin is list:
         return int
+    if origin is dict:
+        return parse_env_option
     args = [a for a in get_args(hint) if a is not type(None)]
     return args[0] if args else hint
 
@@ -315,8 +343,10 @@ def build_parser() -> argparse.ArgumentParser:
         kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": help_text, "default": None}
         if get_origin(hint) is Literal:
             kwargs["choices"] = list(get_args(hint))
-        if get_origin(hint) is list:
+        if get_origin(hint) in (list, dict):
             kwargs["nargs"] = "+"
+        if get_origin(hint) is dict:
+            kwargs["metavar"] = "KEY=VALUE"
         parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
     return parser
 
@@ -326,4 +356,19 @@ def parse_args(argv: list[str] | None = None) -> TrainConfig:
     namespace = build_parser().parse_args(argv)
     values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
     values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
+    if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag
+        values["env_options"] = dict(values["env_options"])
     return TrainConfig(**values)
+
+
+def parse_env_option(text: str) -> tuple[str, Any]:
+    """``"velocity_threshold=1.5"`` -> ``("velocity_threshold", 1.5)``: the value as JSON where it
+    parses (numbers, ``true`` / ``false``, ``null``), else the string itself (``lidar=natural``)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip().isidentifier():
+        raise argparse.ArgumentTypeError(f"env option {text!r} is not KEY=VALUE (e.g. velocity_threshold=1.5)")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return key.strip(), value

@@ -12,7 +12,8 @@ reward) and the cost at the root ``"cost"`` (the team's cost in every sg_torchrl
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
@@ -39,12 +40,14 @@ def evaluate_policy(
     *,
     seed: int,
     obs_norm: RunningObservationNorm | Sequence[RunningObservationNorm] | None = None,
+    env_options: Mapping[str, Any] | None = None,
 ) -> dict[str, float]:
     """Mean and std of return, cost and length over ``episodes`` deterministic episodes.
 
-    ``obs_norm``: the training normaliser(s), applied frozen in the given order.
+    ``obs_norm``: the training normaliser(s), applied frozen in the given order. ``env_options``:
+    the task options the policy was trained with (``sg_torchrl.make``'s keywords).
     """
-    base = sg_torchrl.make(env_id, num_envs=episodes, seed=seed)
+    base = sg_torchrl.make(env_id, num_envs=episodes, seed=seed, **(env_options or {}))
     env: EnvBase = base
     norms = [obs_norm] if isinstance(obs_norm, RunningObservationNorm) else list(obs_norm or ())
     if norms:

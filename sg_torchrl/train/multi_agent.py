@@ -142,7 +142,7 @@ class MultiAgentTrainer(EpochTrainer):
         super().__init__(cfg)
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed)
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed, **cfg.env_options)
         self.obs_norms = observation_norms(self.base_env) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
 
@@ -175,7 +175,7 @@ class MultiAgentTrainer(EpochTrainer):
     def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
         return evaluate_policy(cfg.env_id, self.networks.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
-                               obs_norm=self.obs_norms)
+                               obs_norm=self.obs_norms, env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints
     def _algorithm_state(self) -> dict[str, Any]:

@@ -275,7 +275,7 @@ class Trainer(EpochTrainer):
         super().__init__(cfg)
         self.algorithm = ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed)
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed, **cfg.env_options)
         obs_dim = self.base_env.observation_dim
         self.obs_norm = RunningObservationNorm((obs_dim,)) if cfg.normalize_obs else None
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
@@ -338,7 +338,7 @@ class Trainer(EpochTrainer):
     def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
         return evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
-                               obs_norm=self.obs_norm)
+                               obs_norm=self.obs_norm, env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints
     def _algorithm_state(self) -> dict[str, Any]:
