@@ -24,7 +24,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sg_torchrl.train import TrainConfig, Trainer
+from sg_torchrl.train import MultiAgentTrainer, TrainConfig, Trainer
 
 torch.set_num_threads(1)
 
@@ -58,3 +58,30 @@ def test_safe_algorithm_brings_episode_cost_under_the_limit(tmp_path, algo, opti
     curve = ", ".join(f"{cost:.0f}" for cost in history[::5])
     assert min(history) <= cfg.cost_limit, f"{algo}: the cost never came under the limit (every 5th epoch: {curve})"
     assert final["cost"] <= 2 * cfg.cost_limit, f"{algo}: final mean episode cost {final['cost']:.1f} ({curve})"
+
+
+@pytest.mark.slow
+def test_mappo_lag_brings_team_cost_under_the_limit(tmp_path):
+    """MAPPO-Lag (paper defaults: per-agent multipliers, init 1e-5, SGD step 0.78) on Safety2x3HalfCheetahVelocity-v0.
+
+    At the reference threshold (3.227 m/s) the initial policy never pays (its speed stays under
+    1.5 m/s) and MAPPO-Lag at 1M steps stays under the limit without its multipliers acting, which
+    would make this check unable to fail. With ``velocity_threshold=0.5`` the initial team pays on
+    about a quarter of its steps (episode cost ~260), so the cost only comes under the limit if the
+    multipliers and the Lagrangian advantage work. Measured with seed 0: 264 -> 24 by 320k steps
+    (multipliers ~74) and 11 at 400k, the 20-episode window ending at 11.
+    """
+    cfg = TrainConfig(
+        algo="mappo_lag", env_id="Safety2x3HalfCheetahVelocity-v0", env_options={"velocity_threshold": 0.5},
+        seed=0, total_steps=400_000, eval_episodes=0, wandb="disabled", progress=False, output_dir=str(tmp_path),
+    )
+    trainer = MultiAgentTrainer(cfg)
+    first = trainer.train_epoch()
+    assert first["Metrics/EpCost"] > 4 * cfg.cost_limit, "the initial team must violate the constraint"
+    history = [first["Metrics/EpCost"]]
+    while trainer.epoch < cfg.epochs:
+        history.append(trainer.train_epoch()["Metrics/EpCost"])
+    final = trainer.stats.window(20)
+    curve = ", ".join(f"{cost:.0f}" for cost in history[::5])
+    assert min(history) <= cfg.cost_limit, f"the team cost never came under the limit (every 5th epoch: {curve})"
+    assert final["cost"] <= 2 * cfg.cost_limit, f"final mean episode cost {final['cost']:.1f} ({curve})"
