@@ -71,6 +71,8 @@ def command(args: argparse.Namespace, env_id: str, algo: str, seed: int) -> list
 def run_all(args: argparse.Namespace) -> None:
     """Run every missing cell, ``--jobs`` processes at a time; resume cells that have a checkpoint."""
     pending = [(env, algo, seed) for env in args.envs for algo in args.algos for seed in args.seeds]
+    if args.seed_major:  # every cell's first seed before any second seed: a cut-short benchmark covers every cell
+        pending.sort(key=lambda cell: args.seeds.index(cell[2]))
     running: list[tuple[str, subprocess.Popen, object]] = []
     while pending or running:
         while pending and len(running) < args.jobs:
@@ -162,6 +164,7 @@ def main() -> None:
     parser.add_argument("--output-dir", default="runs/benchmark")
     parser.add_argument("--wandb", default="disabled", choices=["offline", "online", "disabled"])
     parser.add_argument("--force", action="store_true", help="re-run cells that already have results")
+    parser.add_argument("--seed-major", action="store_true", help="run seed 0 of every cell, then seed 1, ...")
     parser.add_argument("--report-only", action="store_true", help="only print the table of existing runs")
     parser.add_argument("extra", nargs="*", help="extra sg-train flags after --, e.g. -- --num-envs 20")
     args = parser.parse_args()
