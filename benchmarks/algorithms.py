@@ -2,7 +2,10 @@
 
 Each cell is one ``sg-train`` run with the paper's hyper-parameters for its algorithm (override with
 extra flags after ``--``); runs go ``--jobs`` at a time as separate processes (one torch thread
-each) and a cell whose ``summary.json`` exists is reused, so an interrupted benchmark continues.
+each) and a cell whose ``summary.json`` exists is reused, so an interrupted benchmark continues (from
+the cell's last checkpoint). The cells measured so far are kept in ``benchmarks/runs`` (config,
+progress and summary of each; ``--report-only`` prints their table), so a later benchmark only
+runs the missing cells.
 
 Per (env, algorithm) the table gives, as the Safety-Gymnasium paper's tables do, J^R and J^C (mean
 over seeds of the last 10 training episodes' return and cost), the normalised J^R / J^R(PPO) (our
@@ -161,7 +164,8 @@ def main() -> None:
     parser.add_argument("--cost-limit", type=float, default=25.0, help="for J^C / limit (pass --cost-limit to "
                         "sg-train after -- as well to train with another limit)")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
-    parser.add_argument("--output-dir", default="runs/benchmark")
+    parser.add_argument("--output-dir", default="benchmarks/runs", help="one folder per cell; benchmarks/runs keeps "
+                        "the finished cells' config, progress and summary in git (checkpoints stay local)")
     parser.add_argument("--wandb", default="disabled", choices=["offline", "online", "disabled"])
     parser.add_argument("--force", action="store_true", help="re-run cells that already have results")
     parser.add_argument("--seed-major", action="store_true", help="run seed 0 of every cell, then seed 1, ...")
