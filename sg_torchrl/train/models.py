@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from tensordict.nn import AddStateIndependentNormalScale
 from torch import nn
 from torchrl.data import TensorSpec
-from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, ValueOperator
+from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
+
+from sg_torchrl.modules import DirectTensorDictModule, DirectValueOperator
 
 __all__ = ["make_actor", "make_value", "make_actor_critics"]
 
@@ -28,7 +30,7 @@ def make_actor(observation_dim: int, action_spec: TensorSpec, hidden_sizes: Sequ
         AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=0.0),
     )
     return ProbabilisticActor(
-        TensorDictModule(body, in_keys=["observation"], out_keys=["loc", "scale"]),
+        DirectTensorDictModule(body, in_keys=["observation"], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"],
         spec=action_spec,
         distribution_class=IndependentNormal,
@@ -37,15 +39,15 @@ def make_actor(observation_dim: int, action_spec: TensorSpec, hidden_sizes: Sequ
     )
 
 
-def make_value(observation_dim: int, hidden_sizes: Sequence[int], out_key: str) -> ValueOperator:
+def make_value(observation_dim: int, hidden_sizes: Sequence[int], out_key: str) -> DirectValueOperator:
     """A tanh-MLP state-value network writing ``out_key``."""
     mlp = MLP(in_features=observation_dim, out_features=1, num_cells=list(hidden_sizes), activation_class=nn.Tanh)
-    return ValueOperator(mlp, in_keys=["observation"], out_keys=[out_key])
+    return DirectValueOperator(mlp, in_keys=["observation"], out_keys=[out_key])
 
 
 def make_actor_critics(
     observation_dim: int, action_spec: TensorSpec, hidden_sizes: Sequence[int]
-) -> tuple[ProbabilisticActor, ValueOperator, ValueOperator]:
+) -> tuple[ProbabilisticActor, DirectValueOperator, DirectValueOperator]:
     """Actor, reward critic (``state_value``) and cost critic (``cost_value``)."""
     return (
         make_actor(observation_dim, action_spec, hidden_sizes),

@@ -43,6 +43,8 @@ from tensordict.utils import NestedKey
 from torch import nn, Tensor
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 
+from sg_torchrl.modules import DirectTensorDictModule
+
 __all__ = [
     "AgentGaussianHead",
     "MultiAgentGaussianPolicy",
@@ -306,14 +308,14 @@ class MultiAgentNetworks(nn.Module):
         # parameter once.
         self._group_modules = (
             _probabilistic_actor(policy, (g, "observation"), (g, "loc"), (g, "scale"), (g, "action")),
-            TensorDictModule(reward_value, in_keys=["state"], out_keys=[(g, "state_value")]),
-            TensorDictModule(cost_value, in_keys=["state"], out_keys=[(g, "cost_value")]),
+            DirectTensorDictModule(reward_value, in_keys=["state"], out_keys=[(g, "state_value")]),
+            DirectTensorDictModule(cost_value, in_keys=["state"], out_keys=[(g, "cost_value")]),
         )
         self._agent_modules = tuple(
             (
                 _probabilistic_actor(policy.agent(i), "observation", "loc", "scale", "action"),
-                TensorDictModule(reward_value.agent(i), in_keys=["state"], out_keys=["state_value"]),
-                TensorDictModule(cost_value.agent(i), in_keys=["state"], out_keys=["cost_value"]),
+                DirectTensorDictModule(reward_value.agent(i), in_keys=["state"], out_keys=["state_value"]),
+                DirectTensorDictModule(cost_value.agent(i), in_keys=["state"], out_keys=["cost_value"]),
             )
             for i in range(policy.n_agents)
         )
@@ -357,7 +359,7 @@ def _probabilistic_actor(
     module: nn.Module, observation: NestedKey, loc: NestedKey, scale: NestedKey, action: NestedKey
 ) -> ProbabilisticActor:
     return ProbabilisticActor(
-        TensorDictModule(module, in_keys=[observation], out_keys=[loc, scale]),
+        DirectTensorDictModule(module, in_keys=[observation], out_keys=[loc, scale]),
         in_keys=[loc, scale],
         out_keys=[action],
         distribution_class=IndependentNormal,
