@@ -148,6 +148,20 @@ class TestNetworks:
         # each parameter appears once in the state dict (the wrappers are not registered twice)
         assert len(nets.state_dict()) == len(list(nets.parameters()))
 
+    @pytest.mark.parametrize("batch", [(5,), (4, 3)])
+    def test_group_forward_equals_torchrls_vmapped_forward(self, batch):
+        # PerAgentMLP loops over its agents; MultiAgentMLP's own forward vmaps them: the same function.
+        from torchrl.modules import MultiAgentMLP
+
+        mlp = make_nets([3, 2, 1]).policy.mlp
+        x = torch.randn(*batch, 3, OBS)
+        out = mlp(x)
+        torch.testing.assert_close(out, MultiAgentMLP.forward(mlp, x), rtol=1e-5, atol=1e-6)
+        out[..., 1, :].sum().backward()  # agent 1's output depends on agent 1's parameters only
+        grads = [any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+                 for net in mlp.agent_networks]
+        assert grads == [False, True, False]
+
     def test_padding_slots_do_not_change_the_ratio(self):
         nets = make_nets([3, 1])
         td = make_rollout(nets, gae=False)
