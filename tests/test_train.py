@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -201,6 +202,22 @@ class TestTraining:
         rows_b = (tmp_path / "b" / "run" / "progress.csv").read_text().splitlines()
         assert len(rows_a) == len(rows_b) == 4  # header + 3 epochs, the resumed run appended
         assert [r.split(",")[:3] for r in rows_a] == [r.split(",")[:3] for r in rows_b]
+
+    def test_resume_after_a_crash_past_the_checkpoint_logs_each_epoch_once(self, tmp_path):
+        # Checkpoint after epoch 1, the run logs epochs 2 and 3 and dies: resuming from epoch 1 logs
+        # epochs 2 and 3 again, and progress.csv must not hold them twice.
+        crashed = Trainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1))
+        crashed.run(max_epochs=1)
+        checkpoint = Trainer.load_checkpoint(crashed.checkpoint_path.parent)
+        crashed.cfg.checkpoint_every = 100
+        crashed.run(max_epochs=2)
+        progress = tmp_path / "run" / "progress.csv"
+        assert len(progress.read_text().splitlines()) == 4  # header + epochs 1-3
+        resumed = Trainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1), checkpoint)
+        resumed.run()
+        with progress.open() as handle:
+            epochs = [int(float(row["Train/Epoch"])) for row in csv.DictReader(handle)]
+        assert epochs == [1, 2, 3, 4]
 
     def test_missing_checkpoint_is_a_clear_error(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no checkpoint"):

@@ -27,7 +27,9 @@ class RunLogger:
         exp_name: experiment name for the loggers.
         wandb_mode: ``"offline"`` (default: no account, no network), ``"online"`` or ``"disabled"``.
         config: stored with the wandb run.
-        resume: append to an existing ``progress.csv`` instead of starting a new one.
+        resume_epoch: the epoch a resumed run continues from (its checkpoint's). ``progress.csv``
+            keeps its rows up to that epoch and drops later ones, which an interrupted run logged
+            after its last checkpoint and is about to log again; ``None`` starts a new file.
     """
 
     def __init__(
@@ -37,7 +39,7 @@ class RunLogger:
         *,
         wandb_mode: str = "offline",
         config: dict[str, Any] | None = None,
-        resume: bool = False,
+        resume_epoch: int | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -50,11 +52,22 @@ class RunLogger:
         if wandb_mode != "disabled":
             self.backends.append(self._wandb(exp_name, wandb_mode, config))
         self._columns: list[str] | None = None
-        if resume and self.progress_path.exists():
-            with self.progress_path.open() as handle:
-                self._columns = next(csv.reader(handle), None)
+        if resume_epoch is not None and self.progress_path.exists():
+            self._truncate_progress(resume_epoch)
         elif self.progress_path.exists():
             self.progress_path.unlink()
+
+    def _truncate_progress(self, last_epoch: int) -> None:
+        """Keep the header and the rows of epochs ``<= last_epoch`` of ``progress.csv``."""
+        with self.progress_path.open(newline="") as handle:
+            rows = list(csv.reader(handle))
+        if not rows:
+            return
+        self._columns = rows[0]
+        epoch = self._columns.index("Train/Epoch") if "Train/Epoch" in self._columns else None
+        kept = [row for row in rows[1:] if epoch is None or float(row[epoch]) <= last_epoch]
+        with self.progress_path.open("w", newline="") as handle:
+            csv.writer(handle).writerows([self._columns, *kept])
 
     def _wandb(self, exp_name: str, mode: str, config: dict[str, Any] | None) -> Logger:
         from torchrl.record.loggers import WandbLogger

@@ -107,7 +107,7 @@ class EpochTrainer(abc.ABC):
             self._restore(checkpoint)
         self.logger = RunLogger(
             cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
-            config=cfg.to_dict(), resume=checkpoint is not None,
+            config=cfg.to_dict(), resume_epoch=self.epoch if checkpoint is not None else None,
         )
 
     @property
