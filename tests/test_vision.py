@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from torchrl.envs import ToTensorImage, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 import sg_torchrl
@@ -165,6 +166,16 @@ def test_check_env_specs(backend):
     rgbd = make_env(VISION_ID, num_envs=2, obs_mode="vector+rgbd", image_size=16)
     check_env_specs(rgbd, seed=0)
     rgbd.close()
+
+
+def test_torchrl_image_transforms(backend):
+    base = make_env(VISION_ID, num_envs=2, image_size=16)
+    env = TransformedEnv(base, ToTensorImage(in_keys=["pixels"], shape_tolerant=True))  # channels first already
+    check_env_specs(env, seed=0)
+    pixels = env.rollout(3)["next", "pixels"]
+    assert pixels.shape == (2, 3, 3, 16, 16) and pixels.dtype == torch.float32
+    assert 0 <= pixels.min() and pixels.max() <= 1 and pixels.std() > 0.01
+    env.close()
 
 
 # ---------------------------------------------------------------------------- the camera sees the geometry

@@ -3,8 +3,9 @@
 A navigation env built with ``obs_mode`` other than ``"vector"`` (every ``...Vision-v0`` id is)
 emits, besides or instead of the flat ``observation`` vector:
 
-* ``"pixels"``: ``(*B, 3, H, W)`` ``uint8`` RGB, channels first (TorchRL's pixel convention, what
-  ``ToTensorImage``, ``Resize`` and ConvNets expect);
+* ``"pixels"``: ``(*B, 3, H, W)`` ``uint8`` RGB, already channels first, as ConvNets take it (for
+  floats in ``[0, 1]`` use ``ToTensorImage(in_keys=["pixels"], shape_tolerant=True)``, which then
+  only scales, or divide by 255);
 * ``"depth"`` (RGB-D modes): ``(*B, 1, H, W)`` ``float32`` metres along the camera's optical axis
   (planar depth, as OpenGL's depth buffer measures it), in ``[near, far]`` of the model's clipping
   planes; pixels that see nothing read ``far``.
