@@ -96,6 +96,16 @@ def test_vision_ids_in_the_registry():
     assert not set(VISION_IDS) & set(sg_torchrl.list_envs(family="navigation"))
 
 
+def test_sg_train_refuses_pixel_only_envs_clearly():
+    from sg_torchrl.train.config import TrainConfig
+
+    with pytest.raises(ValueError, match="observes pixels only.*SafetyPointGoal1-v0"):
+        TrainConfig(env_id=VISION_ID)
+    with pytest.raises(ValueError, match="obs_mode='rgbd' observes pixels only"):
+        TrainConfig(env_id="SafetyPointGoal1-v0", env_options={"obs_mode": "rgbd"})
+    assert TrainConfig(env_id=VISION_ID, env_options={"obs_mode": "vector"}).env_id == VISION_ID
+
+
 def test_without_opengl_a_pixel_env_says_why(monkeypatch):
     monkeypatch.setattr(rendering, "_backend", None)
     monkeypatch.setattr(rendering, "_backend_error", None)
