@@ -283,6 +283,31 @@ def test_partial_reset_draws_only_the_reset_simulators(backend, monkeypatch):
     env.close()
 
 
+def test_auto_resets_in_a_rollout_start_from_the_new_layout(backend):
+    # Episodes of 3 steps: TorchRL's step_and_maybe_reset resets the finished simulators between steps.
+    env = make_env(VISION_ID, num_envs=2, image_size=16, max_episode_steps=3)
+    rollout = env.rollout(7, break_when_any_done=False)
+    done = rollout["next", "done"][..., 0]
+    assert done[:, 2].all() and done[:, 5].all()
+    for t in range(6):
+        for i in range(2):
+            carried = torch.equal(rollout["pixels"][i, t + 1], rollout["next", "pixels"][i, t])
+            assert carried != bool(done[i, t]), (i, t)  # a new episode shows its new layout
+    env.close()
+
+
+def test_snapshots_restore_the_frames(backend):
+    env = make_env(VISION_ID, num_envs=2, image_size=16)
+    frames = env.reset()["pixels"]
+    state = env.sim_state()
+    for action in random_actions(env, 3, seed=4):
+        moved = env.step(action_td(env, action))["next", "pixels"]
+    assert not torch.equal(moved, frames)
+    env.load_sim_state(state)
+    assert torch.equal(env.vision.observation()["pixels"], frames)
+    env.close()
+
+
 # ---------------------------------------------------------------------------- renderer lifetime, copies
 def test_close_frees_the_renderer(backend):
     env = make_env(VISION_ID, image_size=16)
