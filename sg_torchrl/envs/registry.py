@@ -169,51 +169,36 @@ def _register_velocity() -> None:
 
 
 def _register_navigation() -> None:
-    from sg_torchrl.envs.navigation import ROBOTS, TASKS, NavigationEnv
+    """``Safety{Robot}{Task}{Level}-v0`` and its ``...Vision-v0`` twin for every navigation task and level.
 
-    for task, levels in TASKS.items():
-        for level, factory in sorted(levels.items()):
-            for robot in ROBOTS:
-                register(
-                    EnvEntry(
-                        env_id=f"Safety{robot}{task}{level}-v0",
-                        constructor=NavigationEnv,
-                        family="navigation",
-                        robot=robot,
-                        task=task,
-                        level=level,
-                        max_episode_steps=factory().max_episode_steps,
-                        kwargs={"robot": robot, "task": task, "level": level},
-                    )
-                )
-
-
-def _register_vision() -> None:
-    """``Safety{Robot}{Task}{Level}Vision-v0``: every navigation task and level, pixels only.
-
-    The same env as the plain id (same task, level, episode length, costs) observed through the robot's
-    ``vision`` camera: ``obs_mode="rgb"`` at 64 x 64 by default (Safety-Gymnasium's Vision envs render
-    256 x 256 and add the vector; pass ``obs_mode="vector+rgb"``, ``image_size=256`` for that).
+    A Vision id is the same env as the plain id (task, level, episode length, costs) observed through
+    the robot's ``vision`` camera: ``obs_mode="rgb"`` at 64 x 64 by default (Safety-Gymnasium's
+    Vision envs render 256 x 256 next to the vector: ``obs_mode="vector+rgb"``, ``image_size=256``).
     """
     from sg_torchrl.envs.navigation import ROBOTS, TASKS, NavigationEnv
     from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE
 
     for task, levels in TASKS.items():
         for level, factory in sorted(levels.items()):
+            steps = factory().max_episode_steps
             for robot in ROBOTS:
-                register(
-                    EnvEntry(
-                        env_id=f"Safety{robot}{task}{level}Vision-v0",
-                        constructor=NavigationEnv,
-                        family=VISION_FAMILY,
-                        robot=robot,
-                        task=task,
-                        level=level,
-                        max_episode_steps=factory().max_episode_steps,
-                        kwargs={"robot": robot, "task": task, "level": level},
-                        options={"obs_mode": "rgb", "image_size": DEFAULT_IMAGE_SIZE},
+                for suffix, family, options in (
+                    ("", "navigation", {}),
+                    ("Vision", VISION_FAMILY, {"obs_mode": "rgb", "image_size": DEFAULT_IMAGE_SIZE}),
+                ):
+                    register(
+                        EnvEntry(
+                            env_id=f"Safety{robot}{task}{level}{suffix}-v0",
+                            constructor=NavigationEnv,
+                            family=family,
+                            robot=robot,
+                            task=task,
+                            level=level,
+                            max_episode_steps=steps,
+                            kwargs={"robot": robot, "task": task, "level": level},
+                            options=options,
+                        )
                     )
-                )
 
 
 def _register_multi_agent_velocity() -> None:
@@ -257,6 +242,5 @@ def _register_multi_agent_navigation() -> None:
 
 _register_velocity()
 _register_navigation()
-_register_vision()
 _register_multi_agent_velocity()
 _register_multi_agent_navigation()
