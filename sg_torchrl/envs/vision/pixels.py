@@ -27,9 +27,12 @@ own: GL contexts belong to one process) and freed by :meth:`PixelObserver.close`
 Without a working OpenGL backend, building a pixel env raises
 :class:`~sg_torchrl.envs.rendering.RenderingUnavailable`, which says what is missing.
 
-Unlike Safety-Gymnasium's Vision envs, whose ``vision`` image goes through ``render()`` and so shows
-the lidar indicator spheres above the agent, these images show only the world: the markers are a
-debugging aid, not part of what a camera on the robot would see.
+Differences from Safety-Gymnasium's Vision envs, whose ``vision`` image goes through ``render()``:
+theirs shows the lidar indicator spheres above the agent, these show only the world (the markers
+are a debugging aid, not part of what a camera on the robot would see); theirs has the skybox and
+shadows, here the sky is black and nothing casts shadows (the fast flags); theirs is ``(256, 256,
+3)`` channels last next to the vector keys, here the size is ``image_size`` and the layout
+TorchRL's (the gymnasium façade gives the channels-last ``"vision"`` key back).
 """
 
 from __future__ import annotations
