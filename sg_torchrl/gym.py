@@ -38,6 +38,10 @@ API
   ``(height, width, 3)`` ``uint8`` array seen by a camera that follows the robot (headless, EGL or
   OSMesa; see :mod:`sg_torchrl.envs.rendering`). Options ``width``, ``height`` (default 256) and
   ``camera`` (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
+* Pixel observations (the ``...Vision-v0`` ids, or ``obs_mode="rgb"`` etc.): ``obs`` is a dict,
+  ``"vision"`` ``(H, W, 3)`` ``uint8`` (Safety-Gymnasium's key and channels-last layout), ``"depth"``
+  ``(H, W, 1)`` ``float32`` metres (RGB-D modes) and ``"observation"`` (``vector+`` modes), under a
+  ``gymnasium.spaces.Dict`` observation space. These envs step through the TorchRL ``step``.
 * The values are exactly the TorchRL env's: the observation is its ``float32`` observation
   converted to ``float64``, reward and cost are its ``float32`` values as python floats, and the
   action is converted to ``float32`` (the action spec's dtype) before use. A policy evaluated
@@ -201,9 +205,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         if render_mode is not None:
             self.metadata = {**self.metadata, "render_fps": round(1.0 / (env.frame_skip * env.physics.timestep))}
         observation_spec = env.observation_spec
-        self.observation_space = spaces.Box(
-            -np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]), dtype=np.float64
-        )
+        self._pixels = "pixels" in observation_spec.keys()
+        self.observation_space = _observation_space(observation_spec)
         action_spec = env.action_spec
         box = getattr(action_spec, "space", None)
         if box is not None and hasattr(box, "low"):
@@ -217,7 +220,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         self._info_keys = tuple(f"cost_{name}" for name in self._constraints)
         # Numpy fast path: only where the step is SafeEnv's own, so every hook it calls is the one
         # SafeEnv._step would call. Anything else goes through the public TorchRL step.
-        self._fast = isinstance(env, SafeEnv) and type(env)._step is SafeEnv._step
+        # Pixel observations are emitted by the TorchRL step only.
+        self._fast = isinstance(env, SafeEnv) and type(env)._step is SafeEnv._step and not self._pixels
         self._needs_reset = True
         self._closed = False
 
@@ -251,7 +255,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
             self._env.set_seed(int(seed), static_seed=True)
         td = self._env.reset()
         self._needs_reset = False
-        return td.get("observation")[0].cpu().numpy().astype(np.float64), {}
+        return self._observation(td), {}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """Advance one step: ``(obs, reward, cost, terminated, truncated, info)``."""
@@ -316,6 +320,18 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         obs = np.asarray(observation[0], dtype=np.float32).astype(np.float64)
         return obs, float(np.float32(reward[0])), cost, bool(terminated[0]), bool(truncated[0]), info
 
+    def _observation(self, td: TensorDict) -> np.ndarray | dict[str, np.ndarray]:
+        """Simulator 0's observation in :attr:`observation_space`'s layout (see :func:`_observation_space`)."""
+        if not self._pixels:
+            return td.get("observation")[0].cpu().numpy().astype(np.float64)
+        obs = {}
+        if "observation" in td.keys():
+            obs["observation"] = td.get("observation")[0].cpu().numpy().astype(np.float64)
+        obs["vision"] = np.ascontiguousarray(td.get("pixels")[0].permute(1, 2, 0).cpu().numpy())
+        if "depth" in td.keys():
+            obs["depth"] = np.ascontiguousarray(td.get("depth")[0].permute(1, 2, 0).cpu().numpy())
+        return obs
+
     def _torchrl_step(self, action32: np.ndarray):
         """The same transition through the public TorchRL ``step``."""
         env = self._env
@@ -325,7 +341,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         cost_info = nxt.get("cost_info")
         info = {key: float(cost_info.get(name)[0, 0]) for key, name in zip(self._info_keys, self._constraints)}
         info["cost_sum"] = cost
-        obs = nxt.get("observation")[0].numpy().astype(np.float64)
+        obs = self._observation(nxt)
         terminated, truncated = bool(nxt.get("terminated")[0, 0]), bool(nxt.get("truncated")[0, 0])
         return obs, float(nxt.get("reward")[0, 0]), cost, terminated, truncated, info
 
@@ -334,6 +350,30 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
 
 _RENDER_OPTIONS = ("width", "height", "camera", "camera_name", "camera_id")
+
+
+def _observation_space(observation_spec) -> spaces.Space:
+    """The gymnasium space of a TorchRL env's observations.
+
+    The flat vector alone: a ``float64`` ``Box``. With pixel observations (``obs_mode`` other than
+    ``"vector"``, the Vision ids): a ``Dict`` in Safety-Gymnasium's channels-last layout, ``"vision"``
+    ``(H, W, 3)`` ``uint8`` (Safety-Gymnasium's key), ``"depth"`` ``(H, W, 1)`` ``float32`` metres in
+    RGB-D modes, and ``"observation"`` (the flat ``float64`` vector) in ``vector+`` modes.
+    """
+    keys = observation_spec.keys()
+    if "pixels" not in keys:
+        return spaces.Box(-np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]), dtype=np.float64)
+    entries: dict[str, spaces.Space] = {}
+    if "observation" in keys:
+        entries["observation"] = spaces.Box(-np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]),
+                                            dtype=np.float64)
+    channels, height, width = observation_spec["pixels"].shape[1:]
+    entries["vision"] = spaces.Box(0, 255, shape=(height, width, channels), dtype=np.uint8)
+    if "depth" in keys:
+        box = observation_spec["depth"].space
+        entries["depth"] = spaces.Box(float(box.low.min()), float(box.high.max()), shape=(height, width, 1),
+                                      dtype=np.float32)
+    return spaces.Dict(entries)
 
 
 def _render_options(env, render_mode: str | None, options: dict[str, Any]) -> dict[str, Any]:

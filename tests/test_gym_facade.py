@@ -23,8 +23,10 @@ from sg_torchrl.envs import registry as sg_registry
 
 torch.set_num_threads(1)
 
-# Multi-agent ids have their own façade (sg_torchrl.pettingzoo, tests/test_multi_agent_envs.py).
-ENV_IDS = [env_id for env_id in sg_torchrl.list_envs() if not sg_registry.registry_entry(env_id).multi_agent]
+# Multi-agent ids have their own façade (sg_torchrl.pettingzoo, tests/test_multi_agent_envs.py); the Vision ids'
+# Dict observations (images) are tested in tests/test_vision.py.
+ENV_IDS = [env_id for env_id in sg_torchrl.list_envs()
+           if not sg_registry.registry_entry(env_id).multi_agent and sg_registry.registry_entry(env_id).family != "vision"]
 STEPS = 6
 
 

@@ -87,8 +87,9 @@ class TestAntSpecs:
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         multi_agent = ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]  # MaMuJoCo partitions of the velocity Ant
         multi_goal = [f"SafetyAntMultiGoal{level}-v0" for level in range(3)]  # two Ants in one navigation world
+        vision = [i.replace("-v0", "Vision-v0") for i in ant_ids]  # the same tasks seen through the robot's camera
         assert sg_torchrl.list_envs(robot="Ant") == sorted(
-            [*ant_ids, "SafetyAntVelocity-v0", "SafetyAntVelocity-v1", *multi_agent, *multi_goal])
+            [*ant_ids, *vision, "SafetyAntVelocity-v0", "SafetyAntVelocity-v1", *multi_agent, *multi_goal])
 
     @pytest.mark.parametrize("env_id", sorted(ANT_SIZES))
     def test_sizes_and_physics_options(self, env_id):

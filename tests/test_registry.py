@@ -12,7 +12,10 @@ from sg_torchrl.envs.registry import env_options
 
 torch.set_num_threads(1)
 
-ALL_IDS = sg_torchrl.list_envs()
+# The 65 Vision ids render images (an OpenGL backend, slower steps): tests/test_vision.py covers them
+# (specs, rollouts, sizes per robot); here every other id.
+VISION_IDS = sg_torchrl.list_envs(family="vision")
+ALL_IDS = [env_id for env_id in sg_torchrl.list_envs() if env_id not in VISION_IDS]
 
 # reference/safety_gymnasium_semantics.md, section 10: (observation size, action size) per robot.
 REFERENCE_SIZES = {
@@ -157,7 +160,9 @@ class TestListEnvs:
         assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
         multi_goal = sg_torchrl.list_envs(family="multi_agent_navigation", robot="Ant")
         assert multi_goal == [f"SafetyAntMultiGoal{level}-v0" for level in range(3)]
-        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation + multi_agent + multi_goal)
+        vision = sg_torchrl.list_envs(family="vision", robot="Ant")
+        assert vision == sorted(i.replace("-v0", "Vision-v0") for i in navigation)  # one Vision id per navigation id
+        assert sg_torchrl.list_envs(robot="Ant") == sorted(velocity + navigation + vision + multi_agent + multi_goal)
 
     def test_unknown_family_is_empty(self):
         assert sg_torchrl.list_envs(family="no-such-family") == []
@@ -209,7 +214,9 @@ class TestMakeOptions:
         "env_id, expected",
         [
             ("SafetyHalfCheetahVelocity-v1", {"cost_mode", "max_episode_steps", "velocity_threshold"}),
-            ("SafetyPointGoal1-v0", {"cost_mode", "max_episode_steps", "lidar", "compass"}),
+            ("SafetyPointGoal1-v0", {"cost_mode", "max_episode_steps", "lidar", "compass", "obs_mode", "image_size"}),
+            ("SafetyPointGoal1Vision-v0", {"cost_mode", "max_episode_steps", "lidar", "compass", "obs_mode",
+                                           "image_size"}),
             ("Safety2x3HalfCheetahVelocity-v0", {"cost_mode", "max_episode_steps", "velocity_threshold"}),
         ],
     )

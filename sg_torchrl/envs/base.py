@@ -142,6 +142,10 @@ class SafeEnv(EnvBase, abc.ABC):
 
     @property
     def observation_dim(self) -> int:
+        """Length of the flat ``observation`` vector (an env that emits none, pixels only, raises)."""
+        if "observation" not in self.observation_spec.keys():
+            raise ValueError(f"{type(self).__name__} emits no flat 'observation' vector (its observations are "
+                             f"{sorted(k for k in self.observation_spec.keys() if k not in ('cost', 'cost_info'))})")
         return int(self.observation_spec["observation"].shape[-1])
 
     @property
@@ -325,6 +329,15 @@ class SafeEnv(EnvBase, abc.ABC):
         costs = {name: zeroed(value) for name, value in costs.items()}
         return observation, reward, costs, terminated & ~diverged, truncated | diverged
 
+    def _observation_entries(self, observation: np.ndarray) -> dict[str, torch.Tensor]:
+        """The observation entries of an output TensorDict, fresh tensors with the declared shapes.
+
+        Default: the flat ``observation`` vector, float32. Envs with other observations (pixels,
+        :mod:`sg_torchrl.envs.vision`) override it; the vector is still computed every step (it
+        also tells diverged simulators apart).
+        """
+        return {"observation": torch.from_numpy(np.array(observation, dtype=np.float32).reshape(self.num_envs, -1))}
+
     def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The total cost and the ``cost_info`` entries for raw per-constraint ``costs``, each ``(N,)``
         (or ``(N, A)``, one value per agent: then per agent), under :attr:`cost_mode`."""
@@ -344,7 +357,7 @@ class SafeEnv(EnvBase, abc.ABC):
             return torch.from_numpy(np.array(array, dtype=dtype).reshape(n, -1))  # np.array copies
 
         source = {
-            "observation": fresh(observation, np.float32),
+            **self._observation_entries(observation),
             "cost": fresh(cost, np.float32),
             "cost_info": {name: fresh(value, np.float32) for name, value in cost_info.items()},
             "terminated": fresh(terminated, np.bool_),

@@ -17,7 +17,10 @@ import torch
 
 from sg_torchrl.envs.base import SafeEnv
 
-__all__ = ["EnvEntry", "env_options", "MULTI_AGENT_FAMILIES", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+__all__ = ["EnvEntry", "env_options", "MULTI_AGENT_FAMILIES", "VISION_FAMILY", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+
+#: The family of the ``...Vision-v0`` ids: navigation tasks observed through the robot's camera.
+VISION_FAMILY = "vision"
 
 #: Families whose envs use TorchRL's multi-agent layout (group ``"agents"``, no root ``observation``).
 MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigation"})
@@ -40,11 +43,14 @@ class EnvEntry:
     Args:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
         constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
-        family: ``"velocity"``, ``"navigation"``, ``"multi_agent_velocity"``, ``"multi_agent_navigation"``.
+        family: ``"velocity"``, ``"navigation"``, ``"vision"`` (navigation seen through the robot's
+            camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``.
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
-        kwargs: fixed constructor arguments for this id (user options override them).
+        kwargs: fixed constructor arguments for this id (robot, task, level, ...).
+        options: default values of options this id sets differently from the constructor
+            (e.g. ``obs_mode="rgb"`` for the Vision ids); users may override them.
     """
 
     env_id: str
@@ -55,6 +61,7 @@ class EnvEntry:
     max_episode_steps: int
     level: int | None = None
     kwargs: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
 
     @property
     def multi_agent(self) -> bool:
@@ -106,7 +113,8 @@ def make(
         num_envs: simulators stepped by the returned env (its ``batch_size`` is ``[num_envs]``).
         device: device of the emitted TensorDicts.
         seed: seed of the per-simulator generators (``None``: fresh OS entropy).
-        **options: task options, e.g. ``cost_mode="raw"`` or ``max_episode_steps=500``.
+        **options: task options, e.g. ``cost_mode="raw"``, ``max_episode_steps=500``, or for the
+            navigation ids ``obs_mode="vector+rgbd"``, ``image_size=256`` (pixel observations).
 
     Example:
         >>> env = make("SafetyHalfCheetahVelocity-v1", num_envs=8, seed=0)
@@ -121,7 +129,7 @@ def make(
         raise TypeError(
             f"{env_id}: unknown option(s) {', '.join(map(repr, unknown))}; it takes {', '.join(accepted)}"
         )
-    kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **options}
+    kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **entry.options, **options}
     return entry.constructor(num_envs=num_envs, device=device, seed=seed, **kwargs)
 
 
@@ -161,23 +169,36 @@ def _register_velocity() -> None:
 
 
 def _register_navigation() -> None:
+    """``Safety{Robot}{Task}{Level}-v0`` and its ``...Vision-v0`` twin for every navigation task and level.
+
+    A Vision id is the same env as the plain id (task, level, episode length, costs) observed through
+    the robot's ``vision`` camera: ``obs_mode="rgb"`` at 64 x 64 by default (Safety-Gymnasium's
+    Vision envs render 256 x 256 next to the vector: ``obs_mode="vector+rgb"``, ``image_size=256``).
+    """
     from sg_torchrl.envs.navigation import ROBOTS, TASKS, NavigationEnv
+    from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE
 
     for task, levels in TASKS.items():
         for level, factory in sorted(levels.items()):
+            steps = factory().max_episode_steps
             for robot in ROBOTS:
-                register(
-                    EnvEntry(
-                        env_id=f"Safety{robot}{task}{level}-v0",
-                        constructor=NavigationEnv,
-                        family="navigation",
-                        robot=robot,
-                        task=task,
-                        level=level,
-                        max_episode_steps=factory().max_episode_steps,
-                        kwargs={"robot": robot, "task": task, "level": level},
+                for suffix, family, options in (
+                    ("", "navigation", {}),
+                    ("Vision", VISION_FAMILY, {"obs_mode": "rgb", "image_size": DEFAULT_IMAGE_SIZE}),
+                ):
+                    register(
+                        EnvEntry(
+                            env_id=f"Safety{robot}{task}{level}{suffix}-v0",
+                            constructor=NavigationEnv,
+                            family=family,
+                            robot=robot,
+                            task=task,
+                            level=level,
+                            max_episode_steps=steps,
+                            kwargs={"robot": robot, "task": task, "level": level},
+                            options=options,
+                        )
                     )
-                )
 
 
 def _register_multi_agent_velocity() -> None:

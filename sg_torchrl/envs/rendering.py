@@ -232,6 +232,7 @@ class Renderer:
             self._gl = context_class(self.max_width, self.max_height)
             self._gl.make_current()
             self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
+            self._context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR  # see render_into
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._context)
         except Exception as error:
             self.close()
@@ -242,6 +243,7 @@ class Renderer:
             buffer.offwidth, buffer.offheight, quality.offsamples = saved
         self._scene = mujoco.MjvScene(model, maxgeom=max_geom)
         self._option = mujoco.MjvOption()
+        self._buffers: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         _live_renderers.add(self)
         if not _exit_hook_registered:
             # Registered after the first GL context exists, so that it runs before the backend's own
@@ -259,8 +261,32 @@ class Renderer:
 
     def render(self, data: mujoco.MjData, camera: mujoco.MjvCamera, width: int, height: int) -> np.ndarray:
         """``data`` seen from ``camera`` as a new ``(height, width, 3)`` ``uint8`` array."""
+        pixels = np.empty((height, width, 3), dtype=np.uint8)
+        self.render_into(data, camera, pixels)
+        return pixels
+
+    def render_into(self, data: mujoco.MjData, camera: mujoco.MjvCamera, rgb: np.ndarray,
+                    depth: np.ndarray | None = None) -> None:
+        """Render ``data`` seen from ``camera`` into ``rgb`` and, if given, ``depth`` (rows top to bottom).
+
+        Args:
+            rgb: ``(height, width, 3)`` ``uint8`` array written in place (a view into a batch
+                buffer is fine); its shape sets the frame size.
+            depth: ``(height, width)`` ``float32`` array or ``None``: the depth of every pixel in
+                metres, measured along the camera's optical axis (OpenGL's planar depth, not the
+                length of the pixel's ray), in ``[near, far]`` (:meth:`depth_range`); pixels that
+                see nothing read ``far``.
+
+        No array is allocated per call beyond the first at a given size (OpenGL's rows run bottom
+        to top: frames are read into reused scratch buffers, then flipped into the outputs).
+        """
         if self.closed:
             raise RuntimeError("the renderer is closed")
+        height, width = rgb.shape[:2]
+        if rgb.shape != (height, width, 3) or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be a (height, width, 3) uint8 array, got {rgb.shape} {rgb.dtype}")
+        if depth is not None and (depth.shape != (height, width) or depth.dtype != np.float32):
+            raise ValueError(f"depth must be a ({height}, {width}) float32 array, got {depth.shape} {depth.dtype}")
         if not self.fits(width, height):
             raise ValueError(f"frame {width}x{height} exceeds this renderer's {self.max_width}x{self.max_height}")
         self._gl.make_current()
@@ -273,9 +299,33 @@ class Renderer:
             flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
         viewport = mujoco.MjrRect(0, 0, width, height)
         mujoco.mjr_render(viewport, self._scene, self._context)
-        pixels = np.empty((height, width, 3), dtype=np.uint8)
-        mujoco.mjr_readPixels(pixels, None, viewport, self._context)
-        return np.ascontiguousarray(pixels[::-1])  # OpenGL's rows run bottom to top
+        raw_rgb, raw_depth = self._scratch(width, height)
+        mujoco.mjr_readPixels(raw_rgb, raw_depth if depth is not None else None, viewport, self._context)
+        np.copyto(rgb, raw_rgb[::-1])
+        if depth is not None:
+            # The render context reads the depth buffer as MuJoCo's "zero far" map (reversed Z, the
+            # precise end of a float buffer): f = near (far - z) / (z (far - near)) for a point at
+            # planar depth z, 0 at the far plane and 1 at the near plane. Inverted:
+            # z = near far / (near + f (far - near)).
+            near, far = self.depth_range()
+            np.multiply(raw_depth[::-1], far - near, out=depth)
+            depth += near
+            np.divide(near * far, depth, out=depth)
+            np.clip(depth, near, far, out=depth)  # float32 rounding at the planes
+
+    def depth_range(self) -> tuple[float, float]:
+        """``(near, far)``: the clipping planes of the model's cameras in metres, the range of depth
+        values (``model.vis.map.znear`` and ``zfar`` times ``model.stat.extent``)."""
+        extent = float(self.model.stat.extent)
+        return float(self.model.vis.map.znear) * extent, float(self.model.vis.map.zfar) * extent
+
+    def _scratch(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Reused ``(height, width, 3)`` uint8 and ``(height, width)`` float32 read-back buffers."""
+        buffers = self._buffers.get((width, height))
+        if buffers is None:
+            buffers = self._buffers[width, height] = (np.empty((height, width, 3), dtype=np.uint8),
+                                                      np.empty((height, width), dtype=np.float32))
+        return buffers
 
     def close(self) -> None:
         """Free the GL resources; calling it again does nothing."""

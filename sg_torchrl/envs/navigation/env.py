@@ -13,6 +13,11 @@ observation: robot sensors, then one 16-bin pseudo-lidar per lidar-observed obje
 raw costs by default (``cost_mode="raw"``: the sum itself); ``cost_info`` holds one entry per
 constraint, e.g. ``hazards``, ``vases_contact``, ``vases_velocity``.
 
+Pixel observations (``obs_mode="rgb"``, ``"rgbd"``, ``"vector+rgb"``, ``"vector+rgbd"``; the
+``...Vision-v0`` ids): the robot's ``vision`` camera is rendered after every step and after resets
+into ``pixels`` (and ``depth``) entries, next to or instead of ``observation``
+(:mod:`sg_torchrl.envs.vision`).
+
 Several robots (a multi-agent task, ``Task.num_agents > 1``: MultiGoal): the world holds one robot per
 agent (:attr:`NavigationEnv.robots`, named ``agent_<i>/...`` in the model), the layout places them
 first, and reward and costs are computed per agent (``(N, A)`` buffers). The observation is each
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torchrl.data import Composite
 
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
@@ -36,6 +42,7 @@ from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
 from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model
 from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, RenderMixin
+from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE, ObservationContent, ObsMode, PixelObserver
 
 __all__ = ["NavigationEnv"]
 
@@ -55,6 +62,10 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             of objects, flat ones included; same size); see :mod:`~sg_torchrl.envs.navigation.lidar`.
         compass: add a 2-value ``<name>_comp`` unit vector to each goal-like object after its lidar
             entry (off by default, as in every reference task; +2 values for the goal).
+        obs_mode: ``"vector"`` (default: the flat ``observation``), ``"rgb"`` / ``"rgbd"`` (images
+            of the robot's ``vision`` camera only: ``pixels`` and ``depth``), ``"vector+rgb"`` /
+            ``"vector+rgbd"`` (both); see :mod:`sg_torchrl.envs.vision`. Single-robot tasks only.
+        image_size: side of the square images in pixels (default 64; the reference's is 256).
 
     Attributes:
         observation_slices: ``{name: slice}`` of every observation part (``"accelerometer"``, ...,
@@ -79,7 +90,10 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         max_episode_steps: int | None = None,
         lidar: LidarMode = "pseudo",
         compass: bool = False,
+        obs_mode: ObsMode = "vector",
+        image_size: int = DEFAULT_IMAGE_SIZE,
     ) -> None:
+        content = ObservationContent.parse(obs_mode)  # before building anything, for this message
         if not isinstance(num_envs, int) or num_envs < 1:  # before building the scene, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if robot not in ROBOTS:
@@ -167,7 +181,36 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             device=device,
             seed=seed,
         )
+        #: what the observations hold (``obs_mode``); :attr:`vision` renders the images, ``None`` without
+        self.obs_content = content
+        self.vision: PixelObserver | None = None
+        if content.pixels:
+            if count > 1:
+                raise ValueError(f"obs_mode={obs_mode!r}: pixel observations are for single-robot tasks; "
+                                 f"{type(self.task).__name__} has {count} robots")
+            self.vision = PixelObserver(self.physics, self.robot.qualified("vision"), image_size, depth=content.depth)
+            self._declare_pixels()
         self.task.bind(self)
+
+    def _declare_pixels(self) -> None:
+        """Put the image entries in the observation spec (and drop the flat vector in pixels-only modes)."""
+        spec = self.observation_spec
+        entries = {key: value for key, value in spec.items() if key != "observation" or self.obs_content.vector}
+        self.observation_spec = Composite(**entries, **self.vision.specs(self.num_envs, self.device),
+                                          shape=spec.shape, device=spec.device)
+
+    def _observation_entries(self, observation: np.ndarray) -> dict[str, torch.Tensor]:
+        """The flat vector (``obs_mode`` with ``vector``) and the frames :attr:`vision` last rendered."""
+        if self.vision is None:
+            return super()._observation_entries(observation)
+        entries = super()._observation_entries(observation) if self.obs_content.vector else {}
+        entries.update(self.vision.observation())
+        return entries
+
+    def close(self, *args, **kwargs):
+        if self.vision is not None:
+            self.vision.close()
+        return super().close(*args, **kwargs)
 
     default_camera = NAVIGATION_CAMERA  # render(): follows the robot (sg_torchrl.envs.rendering)
 
@@ -198,7 +241,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
                 exactly at rest.
 
         The physics is reset to this layout at rest and the task's episode state restarts (e.g. the
-        distance to the goal); step counters are left alone (``reset`` handles those). Used by
+        distance to the goal), and pixel observations (:attr:`vision`) are re-rendered for these
+        simulators; step counters are left alone (``reset`` handles those). Used by
         ``reset`` after sampling, and by tests and scripted scenarios.
         """
         scene, sampler = self.scene, self.layout_sampler
@@ -216,6 +260,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self.physics.reset(indices, rows.qpos, rows.qvel, rows.mocap_pos, rows.mocap_quat)
         self.layout[indices] = xy
         self.task.reset(self, indices)
+        if self.vision is not None:  # the reset simulators' first frames; the others keep theirs
+            self.vision.render(indices)
 
     def resample(self, obj: NavObject, index: int) -> bool:
         """Move every instance of ``obj`` in simulator ``index`` to a new position (layout keep-out rule).
@@ -264,6 +310,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self._terminated[:] = self.task.after_step(self)
         for robot, view in zip(self.robots, views):  # one robot dead ends the episode (the reference's rule)
             self._terminated |= ~robot.is_alive(view)
+        if self.vision is not None:  # the state the observation describes (a reached goal already moved)
+            self.vision.render(range(self.num_envs))
 
     def _observe(self) -> np.ndarray:
         scene, obs = self.scene, self._observation
@@ -322,3 +370,5 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             obj.load_state_dict(state["objects"][obj.name])
         self.layout[:] = state["layout"]
         self.task.load_state_dict(state["task"])
+        if self.vision is not None:
+            self.vision.render(range(self.num_envs))
