@@ -13,6 +13,7 @@ from collections.abc import Callable
 from sg_torchrl.envs.navigation.tasks.base import Task
 from sg_torchrl.envs.navigation.tasks.button import BUTTON_LEVELS, ButtonTask
 from sg_torchrl.envs.navigation.tasks.circle import CIRCLE_LEVELS, CircleTask
+from sg_torchrl.envs.navigation.tasks.fading import FADING_EASY_LEVELS, FADING_HARD_LEVELS, FadingEasyTask, FadingHardTask, FadingTask
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
 from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
 from sg_torchrl.envs.navigation.tasks.push import PUSH_LEVELS, PushTask
@@ -24,6 +25,8 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "Push": PUSH_LEVELS,
     "Circle": CIRCLE_LEVELS,
     "Run": RUN_LEVELS,
+    "FadingEasy": FADING_EASY_LEVELS,
+    "FadingHard": FADING_HARD_LEVELS,
 }
 
 MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {
@@ -41,5 +44,5 @@ def make_task(name: str, level: int) -> Task:
     return levels[level]()
 
 
-__all__ = ["ButtonTask", "CircleTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RunTask",
+__all__ = ["ButtonTask", "CircleTask", "FadingEasyTask", "FadingHardTask", "FadingTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RunTask",
            "TASKS", "Task", "make_task"]

@@ -17,6 +17,7 @@ import numpy as np
 
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.world import world_order
+from sg_torchrl.envs.rendering import GeomAlpha
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
@@ -107,6 +108,11 @@ class Task(abc.ABC):
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
         """Adjust the assembled observation in place (e.g. Button blanks ``buttons_lidar`` while its timer runs)."""
+
+    def geom_alpha(self, index: int) -> GeomAlpha | None:
+        """Geoms simulator ``index`` draws with another alpha than the model's, and their alphas
+        (``(geom_ids, alphas)``; the Fading tasks), or ``None`` (default: the model's colours). Rendering only."""
+        return None
 
     def state_dict(self) -> dict:
         """Per-simulator task state (for checkpoints)."""
