@@ -239,3 +239,126 @@ def test_vision_twin_draws_the_fading_goal(backend):
     env.vision.render([0])
     assert torch.equal(env.vision.observation()["pixels"][0], faded[0])
     env.close()
+
+
+# ---------------------------------------------------------------------------- Race
+RACE_GOAL = (3.15, 1.05)  # 0.9 x 3.5, 0.3 x 3.5 (reference Race levels)
+RACE_START = {0: (-2.3625, 0.875, -2.1875, 1.225), 1: (-2.3625, 0.875, -2.1875, 1.225),
+              2: (-2.3625, -2.8875, -2.1875, -2.7125)}
+
+
+def test_race_ids_are_registered_with_their_vision_twins():
+    for robot in ROBOTS:
+        for level in range(3):
+            plain, vision = registry_entry(f"Safety{robot}Race{level}-v0"), registry_entry(f"Safety{robot}Race{level}Vision-v0")
+            assert (plain.family, vision.family) == ("navigation", "vision")
+            for entry in (plain, vision):
+                assert (entry.robot, entry.task, entry.level, entry.max_episode_steps) == (robot, "Race", level, 500)
+
+
+@pytest.mark.parametrize("env_id", [f"Safety{robot}Race1-v0" for robot in sorted(ROBOTS)]
+                         + ["SafetyPointRace0-v0", "SafetyPointRace2-v0"])
+def test_race_ids_build_and_step(env_id):
+    build_and_step(env_id)
+
+
+@pytest.mark.parametrize(("level", "size", "constraints"), [
+    (0, 28, ()), (1, 44, ("hazards", "static_geoms_contact")), (2, 44, ("hazards", "static_geoms_contact"))])
+def test_race_observation_and_constraints(level, size, constraints):
+    env = make_env(f"SafetyPointRace{level}-v0")
+    assert env.observation_dim == size and env.constraint_names == constraints
+    assert list(env.observation_slices)[-(1 if level == 0 else 2):] == ["goal_lidar", "hazards_lidar"][: 1 + (level > 0)]
+    assert env.physics.model.geom("floor").size[0] == 17.5 and env.max_episode_steps == 500
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_race_start_and_goal_are_fixed(level):
+    layouts = []
+    for seed in (0, 1, 2):
+        env = make_env(f"SafetyPointRace{level}-v0", num_envs=3, seed=seed)
+        for _ in range(2):  # two resets per seed
+            env.reset()
+            layouts.append(env.layout.copy())
+            xmin, ymin, xmax, ymax = RACE_START[level]
+            robot = env.scene.agent_xy()
+            assert ((robot[:, 0] >= xmin - 0.01) & (robot[:, 0] <= xmax + 0.01)).all()
+            assert ((robot[:, 1] >= ymin - 0.01) & (robot[:, 1] <= ymax + 0.01)).all()
+            np.testing.assert_allclose(env.task.goal.positions(env.scene)[:, 0], [RACE_GOAL] * 3)
+    starts = np.concatenate([layout[:, 0] for layout in layouts])
+    assert len(np.unique(starts.round(6), axis=0)) > 1  # a region, not a point: the start still varies within it
+
+
+def test_reaching_the_race_goal_ends_the_episode_with_the_bonus():
+    env = make_env("SafetyPointRace0-v0", num_envs=2)
+    env.reset()
+    xy, yaw = env.layout.copy(), np.zeros(env.layout.shape[:2])
+    xy[0, 0] = (RACE_GOAL[0] - 0.2, RACE_GOAL[1])  # inside the goal's 0.3 m radius already, 0.2 m from its centre
+    env.set_layout([0, 1], xy, yaw)
+    nxt = idle(env)
+    assert nxt["terminated"].tolist() == [[True], [False]] and nxt["done"][0].item()
+    assert nxt["reward"][0].item() == pytest.approx(10.0, abs=0.05)  # the bonus (and almost no progress)
+    np.testing.assert_allclose(env.task.goal.positions(env.scene)[0, 0], RACE_GOAL)  # the goal did not move
+    # The reward is clipped to +-11: a robot moved onto the goal from 5 m away within one step earns 11, not 5 + 10.
+    far = env.layout.copy()
+    far[1, 0] = (RACE_GOAL[0] - 5.0, RACE_GOAL[1])
+    env.set_layout([1], far[1:2], yaw[1:2])  # the shaping starts from 5 m
+    data = env.physics.datas[1]
+    qpos = data.qpos.copy()[None]
+    env.robot.set_pose(env.physics.model, qpos, np.array([RACE_GOAL]), np.zeros(1))
+    data.qpos[:] = qpos[0]
+    mujoco.mj_forward(env.physics.model, data)
+    nxt = idle(env)
+    assert nxt["terminated"][1].item() and nxt["reward"][1].item() == pytest.approx(11.0)
+
+
+def race_against_a_house(level: int):
+    """Race ``level`` with simulator 0's robot just south of a house, facing it, and the house's prop."""
+    env = make_env(f"SafetyPointRace{level}-v0", num_envs=1)
+    env.reset()
+    house = next(p for p in env.task.scenery.props if p.kind == "house" and abs(p.x - 0.6) < 1e-9)
+    xy, yaw = env.layout.copy(), np.zeros(env.layout.shape[:2])
+    xy[0, 0] = (house.x, house.y - house.footprint[1] - 0.15)
+    yaw[0, 0] = np.pi / 2  # facing +y, the house
+    env.set_layout([0], xy, yaw)
+    return env
+
+
+@pytest.mark.parametrize("level", [1, 2])
+def test_touching_the_scenery_costs_at_levels_1_and_2(level):
+    env = race_against_a_house(level)
+    contacts = []
+    for _ in range(40):  # full throttle into the wall
+        nxt = env.step(action_td(env, [[1.0, 0.0]]))["next"]
+        contacts.append(nxt["cost_info", "static_geoms_contact"].item())
+        assert nxt["cost_info", "hazards"].item() == 0
+        if contacts[-1] > 0:
+            assert nxt["cost"].item() == 1.0
+    assert max(contacts) >= 1 and contacts[0] == 0  # not touching at the start, touching once it got there
+    assert contacts == [float(int(c)) for c in contacts]  # a count of contacts
+
+
+def test_scenery_is_solid_but_free_at_level_0():
+    env = race_against_a_house(0)
+    start = env.scene.agent_xy()[0].copy()
+    for _ in range(40):
+        nxt = env.step(action_td(env, [[1.0, 0.0]]))["next"]
+        assert nxt["cost"].item() == 0 and "static_geoms_contact" not in nxt["cost_info"].keys()
+    house_south_face = 2.9 - 0.42  # the roof overhangs the walls' 0.35
+    assert start[1] < env.scene.agent_xy()[0, 1] < house_south_face  # it drove up to the house and stopped there
+    assert env.scene.robot_contacts()[0, env.task.scenery.geom_mask].sum() >= 1
+
+
+def test_race_vision_twin_emits_pixels(backend):
+    env = make_env("SafetyPointRace2Vision-v0", num_envs=2, image_size=20)
+    out = env.rollout(2)
+    assert out["next", "pixels"].shape == (2, 2, 3, 20, 20) and out["next", "pixels"].dtype == torch.uint8
+    assert out["next", "pixels"].float().std() > 5
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointFadingEasy2Vision-v0", "SafetyCarFadingHard1Vision-v0"])
+def test_fading_vision_twins_emit_pixels(backend, env_id):
+    env = make_env(env_id, num_envs=2, image_size=20)
+    out = env.rollout(2)
+    assert out["next", "pixels"].shape == (2, 2, 3, 20, 20) and out["next", "pixels"].dtype == torch.uint8
+    env.close()

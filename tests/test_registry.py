@@ -103,6 +103,12 @@ REFERENCE_SIZES_BY_ID.update({
     env_id.replace("Goal", fading): size
     for env_id, size in list(REFERENCE_SIZES_BY_ID.items()) if "Goal" in env_id for fading in ("FadingEasy", "FadingHard")
 })
+# Race: the robot's sensors (Run0's size), then goal_lidar, then hazards_lidar at levels 1-2 (the scenery is not observed).
+REFERENCE_SIZES_BY_ID.update({
+    f"Safety{robot}Race{level}-v0": (REFERENCE_SIZES_BY_ID[f"Safety{robot}Run0-v0"][0] + (16 if level == 0 else 32),
+                                     REFERENCE_SIZES_BY_ID[f"Safety{robot}Run0-v0"][1])
+    for robot in ("Point", "Car", "Racecar", "Doggo", "Ant") for level in range(3)
+})
 
 
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
@@ -160,7 +166,7 @@ class TestListEnvs:
         velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == velocity
         navigation = sg_torchrl.list_envs(family="navigation", robot="Ant")
-        assert len(navigation) == 19 and "SafetyAntGoal1-v0" in navigation  # Goal, Button, Push, Circle 0-2, Run0, Fading*
+        assert len(navigation) == 22 and "SafetyAntGoal1-v0" in navigation  # Goal, Button, Push, Circle, Fading*, Race 0-2; Run0
         multi_agent = sg_torchrl.list_envs(family="multi_agent_velocity", robot="Ant")
         assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
         multi_goal = sg_torchrl.list_envs(family="multi_agent_navigation", robot="Ant")

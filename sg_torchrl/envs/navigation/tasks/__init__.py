@@ -17,6 +17,7 @@ from sg_torchrl.envs.navigation.tasks.fading import FADING_EASY_LEVELS, FADING_H
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
 from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
 from sg_torchrl.envs.navigation.tasks.push import PUSH_LEVELS, PushTask
+from sg_torchrl.envs.navigation.tasks.race import RACE_LEVELS, RaceTask
 from sg_torchrl.envs.navigation.tasks.run import RUN_LEVELS, RunTask
 
 TASKS: dict[str, dict[int, Callable[[], Task]]] = {
@@ -27,6 +28,7 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "Run": RUN_LEVELS,
     "FadingEasy": FADING_EASY_LEVELS,
     "FadingHard": FADING_HARD_LEVELS,
+    "Race": RACE_LEVELS,
 }
 
 MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {
@@ -44,5 +46,5 @@ def make_task(name: str, level: int) -> Task:
     return levels[level]()
 
 
-__all__ = ["ButtonTask", "CircleTask", "FadingEasyTask", "FadingHardTask", "FadingTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RunTask",
+__all__ = ["ButtonTask", "CircleTask", "FadingEasyTask", "FadingHardTask", "FadingTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RaceTask", "RunTask",
            "TASKS", "Task", "make_task"]

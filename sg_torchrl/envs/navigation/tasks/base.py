@@ -21,6 +21,7 @@ from sg_torchrl.envs.rendering import GeomAlpha
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
+    from sg_torchrl.envs.navigation.scenery import Scenery
 
 __all__ = ["Task"]
 
@@ -49,6 +50,8 @@ class Task(abc.ABC):
     lidar_bins: ClassVar[int] = 16
     #: rewards are clipped to [-clip, clip] (reference section 4; ``None``: no clip)
     reward_clip: ClassVar[float | None] = 10.0
+    #: fixed world geometry beside the objects (Race's road and props), or ``None``; set by a task's constructor
+    scenery: Scenery | None = None
 
     def __init__(
         self,
@@ -73,7 +76,8 @@ class Task(abc.ABC):
     @property
     def key(self) -> tuple:
         """Identifies the world this task builds (with the robot: the compiled-model cache key)."""
-        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects))
+        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects),
+                None if self.scenery is None else self.scenery.spec_key())
 
     def find(self, kind: type[ObjectT]) -> ObjectT:
         """The object of class ``kind`` in this level."""
