@@ -21,6 +21,7 @@ choice, not the reference's). Observation: the robot's sensors, then ``goal_lida
 
 from __future__ import annotations
 
+from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -113,4 +114,4 @@ def race_level(level: int) -> RaceTask:
                     scenery=village(level), scenery_cost=level >= 1)
 
 
-RACE_LEVELS = {level: (lambda level=level: race_level(level)) for level in range(3)}
+RACE_LEVELS = {level: partial(race_level, level) for level in range(3)}
