@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 import torch
 
-import sg_torchrl
 from sg_torchrl.envs import registry_entry
 from sg_torchrl.envs import rendering
 from sg_torchrl.envs.navigation import ROBOTS
@@ -112,16 +111,17 @@ def test_goal_alpha_falls_linearly_then_stays_at_zero(task, steps):
 def test_goal_alpha_restored_on_a_new_goal_and_on_reset():
     env = make_env("SafetyPointFadingEasy0-v0", num_envs=2)
     arrange(env, index=0, agent=(0.0, 0.0), goal=[(1.0, 0.0)])
-    arrange_other = env.layout[0].copy()
-    env.set_layout([1], arrange_other[None])
+    env.set_layout([1], env.layout[0].copy()[None])  # simulator 1: the same start
     for _ in range(10):
         idle(env)
     faded = GOAL_ALPHA * (1 - 10 / 150)
     assert alpha_of(env, "goal", 0) == alpha_of(env, "goal", 1) == pytest.approx([faded])
     # Simulator 0's goal is reached: a new goal is drawn, fully visible; simulator 1 keeps fading.
-    env.task.goal.move(env.scene, 0, 0, env.scene.agent_xy()[0].copy())
+    reached = env.scene.agent_xy()[0].copy()
+    env.task.goal.move(env.scene, 0, 0, reached)
     nxt = idle(env)
     assert bool(env.task.goal_met[0]) and not bool(env.task.goal_met[1])
+    assert np.linalg.norm(env.task.goal.positions(env.scene)[0, 0] - reached) > 0.3  # a new goal elsewhere
     assert nxt["reward"][0].item() > 0.9  # the goal bonus
     assert alpha_of(env, "goal", 0) == pytest.approx([GOAL_ALPHA])
     assert alpha_of(env, "goal", 1) == pytest.approx([GOAL_ALPHA * (1 - 11 / 150)])
@@ -186,12 +186,10 @@ def test_fading_state_is_in_the_snapshot():
 
 
 # ---------------------------------------------------------------------------- Fading: what is drawn
-def twin_simulators(env, goal) -> np.ndarray:
+def twin_simulators(env, goal) -> None:
     """Both simulators start from the same layout: robot at the origin facing +x, the goal at ``goal``."""
     arrange(env, index=0, agent=(0.0, 0.0), goal=[goal])
-    layout = env.layout[0].copy()
-    env.set_layout([1], layout[None])
-    return layout
+    env.set_layout([1], env.layout[0].copy()[None])
 
 
 def move_out_of_view(env, obj) -> None:
