@@ -54,7 +54,9 @@ colours: it copies them into the scene) and restores the model's values right af
 MuJoCo itself then handles the rest as for any model colour: geoms below alpha 1 are drawn as
 transparent, geoms at alpha 0 are left out of the scene (no colour, no depth). Nothing outlives the
 call, so frames of one simulator never carry another's alphas, and envs sharing the model (or
-building their own renderer) see the model's colours.
+building their own renderer) see the model's colours. (This assumes that envs sharing a model do not
+render from several threads at once, as nothing in sg_torchrl does: each process compiles its own
+models.)
 """
 
 from __future__ import annotations
