@@ -112,7 +112,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         model = compiled_model(  # natural lidar re-assigns geom groups: its own model
             (*self.robot.spec_key(), *self.task.key, *((("agents", count),) if count > 1 else ()),
              *(("natural_lidar",) if lidar == "natural" else ())),
-            lambda: build_spec(self.robots, objects, self.task.floor_half_size),
+            lambda: self.task.decorate(build_spec(self.robots, objects, self.task.floor_half_size)),
         )
         for each in self.robots:
             each.bind(model)

@@ -11,7 +11,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from sg_torchrl.envs.navigation.tasks.base import Task
+from sg_torchrl.envs.navigation.tasks.building import (BUILDING_BUTTON_LEVELS, BUILDING_GOAL_LEVELS,
+                                                       BUILDING_PUSH_LEVELS)
 from sg_torchrl.envs.navigation.tasks.button import BUTTON_LEVELS, ButtonTask
+from sg_torchrl.envs.navigation.tasks.formula_one import FORMULA_ONE_LEVELS
 from sg_torchrl.envs.navigation.tasks.circle import CIRCLE_LEVELS, CircleTask
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
 from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
@@ -24,6 +27,12 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "Push": PUSH_LEVELS,
     "Circle": CIRCLE_LEVELS,
     "Run": RUN_LEVELS,
+    # the paper's construction-site scenes (sg_torchrl.envs.navigation.tasks.building)
+    "BuildingGoal": BUILDING_GOAL_LEVELS,
+    "BuildingButton": BUILDING_BUTTON_LEVELS,
+    "BuildingPush": BUILDING_PUSH_LEVELS,
+    # the paper's race-track scene (sg_torchrl.envs.navigation.tasks.formula_one)
+    "FormulaOne": FORMULA_ONE_LEVELS,
 }
 
 MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {

@@ -13,9 +13,11 @@ import abc
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
+import mujoco
 import numpy as np
 
 from sg_torchrl.envs.navigation.objects.base import NavObject
+from sg_torchrl.envs.navigation.scenery import Scenery
 from sg_torchrl.envs.navigation.world import world_order
 
 if TYPE_CHECKING:
@@ -35,6 +37,8 @@ class Task(abc.ABC):
         objects: the objects of this level (any order within a kind; see ``world_order``).
         agent_placements: rectangles for the agent's start (default: the extents).
         agent_keepout: overrides the robot's keep-out (Circle and Run use 0).
+        scenery: static set dressing built into the world (floor look, fixed obstacles; see
+            :mod:`~sg_torchrl.envs.navigation.scenery`); ``None``: the plain grey floor.
     """
 
     name: ClassVar[str]
@@ -57,8 +61,10 @@ class Task(abc.ABC):
         objects: Sequence[NavObject],
         agent_placements: Sequence[Sequence[float]] | None = None,
         agent_keepout: float | None = None,
+        scenery: Scenery | None = None,
     ) -> None:
         self.level = level
+        self.scenery = scenery
         if np.ndim(extents) == 0:
             extents = (-float(extents), -float(extents), float(extents), float(extents))
         self.extents = tuple(float(e) for e in extents)
@@ -72,7 +78,14 @@ class Task(abc.ABC):
     @property
     def key(self) -> tuple:
         """Identifies the world this task builds (with the robot: the compiled-model cache key)."""
-        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects))
+        key = (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects))
+        return key if self.scenery is None else (*key, self.scenery.key)
+
+    def decorate(self, spec: mujoco.MjSpec) -> mujoco.MjSpec:
+        """Add this level's :attr:`scenery` (if any) to a freshly built world ``spec``; returns ``spec``."""
+        if self.scenery is not None:
+            self.scenery.build(spec)
+        return spec
 
     def find(self, kind: type[ObjectT]) -> ObjectT:
         """The object of class ``kind`` in this level."""
