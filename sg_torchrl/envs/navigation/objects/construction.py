@@ -100,14 +100,14 @@ class SiteRobots(Gremlins):
 class Machines(Buttons):
     """Machines to operate: Buttons (sphere 0.1, keep-out 0.2) whose button is a machine's control knob.
 
-    The knob (the first geom of each body, the one that is pressed) is yellow; a thin grey mast with
+    The knob (the first geom of each body, the one that is pressed) is a green start button; a thin grey mast with
     an amber lamp rises from it (never collides). Pressing a machine other than the goal one costs
     ``machines`` when constrained.
     """
 
     name: ClassVar[str] = "machines"
     prefix: ClassVar[str] = "machine"
-    rgba: ClassVar[tuple[float, float, float, float]] = (1.0, 0.85, 0.0, 1.0)
+    rgba: ClassVar[tuple[float, float, float, float]] = (0.1, 0.75, 0.2, 1.0)
     mast_height: ClassVar[float] = 0.45
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
