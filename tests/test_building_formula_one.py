@@ -279,6 +279,27 @@ def test_reaching_the_goal_moves_it_to_the_next_checkpoint():
     np.testing.assert_allclose(task.goal.positions(env.scene)[0, 0], task.checkpoints[task.goal_checkpoint[0]])
 
 
+def distance_to_centre_line(track, xy: np.ndarray) -> np.ndarray:
+    """Distance of points ``(K, 2)`` to a stadium track's centre line: ``| distance to the core segment - radius |``."""
+    core_x = np.clip(xy[:, 0], -track.half_straight, track.half_straight)
+    return np.abs(np.hypot(xy[:, 0] - core_x, xy[:, 1]) - track.radius)
+
+
+@pytest.mark.parametrize("level", [1, 2])
+def test_track_side_obstacles_stand_off_the_asphalt(level):
+    env = make_env(f"SafetyPointFormulaOne{level}-v0")
+    track = env.task.track
+    assert track.width == (2.2 if level == 2 else 3.0)  # level 2 is narrower
+    np.testing.assert_allclose(distance_to_centre_line(track, env.task.checkpoints), 0.0, atol=1e-9)
+    counts = {}
+    for obj in env.task.objects:
+        if obj.name in ("barriers", "fences"):
+            counts[obj.name] = obj.num
+            gap = distance_to_centre_line(track, obj.locations) - obj.half_size[1]  # inner face of each box
+            assert (gap > track.width / 2 + 0.1).all(), obj.name
+    assert counts == ({"barriers": 10, "fences": 20} if level == 1 else {"barriers": 20, "fences": 40})
+
+
 # ---------------------------------------------------------------------------- layouts and seeding
 @pytest.mark.parametrize("task", ["BuildingGoal", "BuildingButton", "BuildingPush"])
 def test_building_layouts_respect_keepouts(task):

@@ -7,6 +7,8 @@ Layout of this package:
 * ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
 * ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
 * ``layout.py``  vectorised layout sampling with keep-outs
+* ``scenery.py`` static set dressing of a level (textured floor, fixed obstacles: construction site, race track)
+* ``track.py``   FormulaOne's race-track geometry (centre line, checkpoints, track-side positions)
 * ``lidar.py``   vectorised pseudo-lidar
 * ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above (its multi-agent
                  interface: :class:`sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv`)
