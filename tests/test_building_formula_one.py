@@ -247,6 +247,8 @@ def test_formula_one_starts_on_a_checkpoint_and_aims_at_the_next():
         goal = env.task.goal.positions(env.scene)[:, 0]
         np.testing.assert_allclose(goal, checkpoints[(start + 1) % NUM_CHECKPOINTS])
         starts.append(start.copy())
+        goal_lidar = env._observe()[:, env.observation_slices["goal_lidar"]]
+        assert (goal_lidar.max(axis=1) > 0.1).all()  # the next checkpoint is within lidar range from the start
     starts = np.concatenate(starts)
     assert len(set(starts.tolist())) >= 5  # 32 draws over 7 checkpoints reach most of them
     # Checkpoints are evenly spaced along the track's centre line.

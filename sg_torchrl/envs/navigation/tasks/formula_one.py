@@ -20,7 +20,9 @@ give no numbers, so everything below is our choice (documented here and in the t
   5 barriers outside each curve, fences outside both straights (20 panels). Level 2: a narrower
   track, 7 barriers outside and 3 inside each curve, fences on both sides of both straights (40).
 * **Observation**: robot sensors, ``goal_lidar`` (Point: 28), then ``barriers_lidar``,
-  ``fences_lidar`` at levels 1-2 (Point: 60). The asphalt is not observed.
+  ``fences_lidar`` at levels 1-2 (Point: 60). The asphalt is not observed. Lidar range 8 m
+  (the reference's is 3 m, 6 m for Circle): checkpoints are 6.9 m apart, so with 3 m the goal
+  would be invisible from the start.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ class FormulaOneTask(GoalTask):
     name: ClassVar[str] = "FormulaOne"
     max_episode_steps: ClassVar[int] = 500
     floor_half_size: ClassVar[float] = 17.5
+    lidar_max_dist: ClassVar[float | None] = 8.0
 
     def __init__(self, level: int, *, track: Track, objects: Sequence[NavObject]) -> None:
         self.track = track
