@@ -320,8 +320,8 @@ def test_building_layouts_respect_keepouts(task):
     assert layouts.shape == (200, env.layout_sampler.size, 2)
 
 
-@pytest.mark.parametrize("env_id", ["SafetyPointBuildingButton2-v0", "SafetyPointBuildingPush2-v0",
-                                    "SafetyPointFormulaOne2-v0"])
+@pytest.mark.parametrize("env_id", ["SafetyPointBuildingGoal2-v0", "SafetyPointBuildingButton2-v0",
+                                    "SafetyPointBuildingPush2-v0", "SafetyPointFormulaOne2-v0"])
 def test_sim0_same_for_n1_and_n4(env_id):
     steps = 15
     small = make_env(env_id, num_envs=1, seed=7, max_episode_steps=8)

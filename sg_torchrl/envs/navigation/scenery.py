@@ -160,7 +160,8 @@ class RaceTrackScenery(Scenery):
             colour = [0.85, 0.1, 0.1, 1.0] if i % 2 else [0.95, 0.95, 0.95, 1.0]
             for side in (-1.0, 1.0):
                 kx, ky = track.offset(xy[i], yaw, side * (half_width + 0.08))
-                world.add_geom(name=f"kerb{i}_{'left' if side > 0 else 'right'}", type=box, pos=[kx, ky, 0.004 + 0.001 * (i % 2)],
+                z = 0.004 + 0.001 * (i % 2)  # neighbours overlap in the curves: alternate heights, no z-fighting
+                world.add_geom(name=f"kerb{i}_{'left' if side > 0 else 'right'}", type=box, pos=[kx, ky, z],
                                size=[half_length, 0.08, 0.004], quat=_yaw_quat(yaw), rgba=colour, **ghost)
         checkpoints, checkpoint_heading = track.pose(track.checkpoint_arcs(self.num_checkpoints))
         for k, ((x, y), yaw) in enumerate(zip(checkpoints, checkpoint_heading)):
