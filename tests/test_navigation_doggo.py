@@ -51,7 +51,7 @@ class TestDoggoSpecs:
         doggo_ids = sg_torchrl.list_envs(family="navigation", robot="Doggo")
         point_ids = sg_torchrl.list_envs(family="navigation", robot="Point")
         assert doggo_ids == [i.replace("Point", "Doggo") for i in point_ids]  # one Doggo id per Point id
-        assert len(doggo_ids) == 13 and set(DOGGO_SIZES) <= set(doggo_ids)
+        assert len(doggo_ids) == 34 and set(DOGGO_SIZES) <= set(doggo_ids)  # 22 reference/Fading/Race + 12 Building/FormulaOne
         entry = registry_entry("SafetyDoggoGoal1-v0")
         assert (entry.robot, entry.task, entry.level, entry.max_episode_steps) == ("Doggo", "Goal", 1, 1000)
         assert sg_torchrl.envs.navigation.ROBOTS["Doggo"] is Doggo

@@ -110,6 +110,16 @@ REFERENCE_SIZES_BY_ID.update({
     for robot in ("Point", "Car", "Racecar", "Doggo", "Ant") for level in range(3)
 })
 
+# Building and FormulaOne (the paper's scenes, not in the reference; composition in tasks/building.py,
+# tasks/formula_one.py): robot sensors, then 16 lidar bins per observed group (levels 0, 1, 2).
+_SENSORS_AND_ACTIONS = {"Point": (12, 2), "Car": (24, 2), "Racecar": (12, 2), "Doggo": (56, 12), "Ant": (40, 8)}
+_LIDAR_GROUPS = {"BuildingGoal": (1, 3, 3), "BuildingButton": (2, 4, 4), "BuildingPush": (2, 4, 4), "FormulaOne": (1, 3, 3)}
+REFERENCE_SIZES_BY_ID.update({
+    f"Safety{robot}{task}{level}-v0": (sensors + 16 * groups, actions)
+    for robot, (sensors, actions) in _SENSORS_AND_ACTIONS.items()
+    for task, per_level in _LIDAR_GROUPS.items()
+    for level, groups in enumerate(per_level)
+})
 
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
 MULTI_AGENT_SIZES = {
@@ -166,7 +176,7 @@ class TestListEnvs:
         velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == velocity
         navigation = sg_torchrl.list_envs(family="navigation", robot="Ant")
-        assert len(navigation) == 22 and "SafetyAntGoal1-v0" in navigation  # Goal, Button, Push, Circle, Fading*, Race 0-2; Run0
+        assert len(navigation) == 34 and "SafetyAntGoal1-v0" in navigation  # Goal, Button, Push, Circle, Fading*, Race, Building*, FormulaOne 0-2; Run0
         multi_agent = sg_torchrl.list_envs(family="multi_agent_velocity", robot="Ant")
         assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
         multi_goal = sg_torchrl.list_envs(family="multi_agent_navigation", robot="Ant")

@@ -6,9 +6,11 @@ Layout of this package:
 * ``robots/``    :class:`Robot` interface and the robots (``ROBOTS``)
 * ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
 * ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
-* ``scenery.py`` fixed world geometry (Race's road, houses, trees, rocks; builtin grass texture)
 * ``fading.py``  per-simulator render alphas of fading objects (the Fading tasks)
 * ``layout.py``  vectorised layout sampling with keep-outs
+* ``scenery.py`` static set dressing of a level (textured floor, fixed geoms: Race's village, Building's
+                 construction site, FormulaOne's race track)
+* ``track.py``   FormulaOne's race-track geometry (centre line, checkpoints, track-side positions)
 * ``lidar.py``   vectorised pseudo-lidar
 * ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above (its multi-agent
                  interface: :class:`sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv`)
@@ -22,7 +24,7 @@ from sg_torchrl.envs.navigation.tasks import MULTI_AGENT_TASKS, TASKS, GoalTask,
 from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
 from sg_torchrl.envs.navigation.tasks import FadingEasyTask, FadingHardTask, FadingTask, RaceTask
 from sg_torchrl.envs.navigation.fading import Fader
-from sg_torchrl.envs.navigation.scenery import Prop, RoadSegment, Scenery
+from sg_torchrl.envs.navigation.scenery import ConstructionSite, Prop, RaceTrackScenery, RoadSegment, Scenery, Village
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Pillars, PushBox
 from sg_torchrl.envs.navigation.objects import AgentGoal, GoalBlue, GoalRed
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
@@ -47,6 +49,9 @@ __all__ = [
     "RaceTask",
     "RoadSegment",
     "Scenery",
+    "Village",
+    "ConstructionSite",
+    "RaceTrackScenery",
     "CircleTask",
     "CircleZone",
     "FreeObject",

@@ -57,7 +57,8 @@ def build_spec(
     scenery: Scenery | None = None,
 ) -> mujoco.MjSpec:
     """The world as an ``MjSpec``: robot options and defaults, the robot(s), the floor, the fixed
-    ``scenery`` (:mod:`.scenery`: Race's road and props), then the objects.
+    ``scenery`` (:mod:`.scenery`: Race's village, Building's construction site, FormulaOne's track), then
+    the objects.
 
     ``robot`` is one robot or a sequence of them (several robots share one world: their options and
     defaults must agree, as they do for robots of one class); each robot's elements are renamed
@@ -76,7 +77,7 @@ def build_spec(
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6,
                             size=[floor_half_size, floor_half_size, 0.1], rgba=[0.9, 0.9, 0.9, 1.0])
     if scenery is not None:
-        scenery.add_to(spec)
+        scenery.build(spec)
     for obj in world_order(objects):
         obj.add_to(spec)
     return spec

@@ -11,7 +11,12 @@ from sg_torchrl.envs.navigation.objects.pillars import Pillars
 from sg_torchrl.envs.navigation.objects.push_box import PushBox
 from sg_torchrl.envs.navigation.objects.sigwalls import Sigwalls
 from sg_torchrl.envs.navigation.objects.vases import Vases
+from sg_torchrl.envs.navigation.objects.construction import (Columns, Crate, DockingGoal, FuelDrums, Machines,
+                                                             RestrictedAreas, SiteRobots)
+from sg_torchrl.envs.navigation.objects.track import Barriers, Fences, TrackSide
 
 __all__ = ["AgentGoal", "Buttons", "CircleZone", "ContactCost", "FreeObject", "Goal", "GoalBlue", "GoalMarker",
            "GoalRed", "Gremlins", "Hazards", "NavObject", "Pillars", "PushBox", "Sigwalls", "StaticObject", "Vases",
            "yaw_quat"]
+__all__ += ["Barriers", "Columns", "Crate", "DockingGoal", "Fences", "FuelDrums", "Machines", "RestrictedAreas",
+            "SiteRobots", "TrackSide"]

@@ -29,13 +29,14 @@ class Buttons(StaticObject):
     left in the resampling delay (``resampling_delay``, 10 steps) after a new goal button was
     drawn; :meth:`choose_goal` draws one, :meth:`tick` counts down.
 
-    Cost ``"buttons"`` when constrained (reference section 3; levels 1 and 2): the number of
+    Cost named after the object (``"buttons"``) when constrained (reference section 3; levels 1 and 2): the number of
     contacts between the robot and any button other than the goal button, counted only while the
     timer is 0.
     """
 
     name: ClassVar[str] = "buttons"
     prefix: ClassVar[str] = "button"
+    rgba: ClassVar[tuple[float, float, float, float]] = (1.0, 0.5, 0.0, 1.0)
 
     def __init__(self, num: int = 4, *, size: float = 0.1, keepout: float = 0.2, constrained: bool = True,
                  resampling_delay: int = 10, **options) -> None:
@@ -45,7 +46,7 @@ class Buttons(StaticObject):
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[self.size, 0.0, 0.0],
-                      group=0, rgba=[1.0, 0.5, 0.0, 1.0])
+                      group=0, rgba=list(self.rgba))
 
     def bind(self, scene: Scene) -> None:
         super().bind(scene)
@@ -78,14 +79,14 @@ class Buttons(StaticObject):
 
     @property
     def cost_names(self) -> tuple[str, ...]:
-        return ("buttons",) if self.constrained else ()
+        return (self.name,) if self.constrained else ()
 
     def costs(self, scene: Scene) -> dict[str, np.ndarray]:
         if not self.constrained:
             return {}
         touches = self.touches(scene)
         wrong = robot_contacts(scene, self.geom_mask) - touches[self._rows, self.goal_button]
-        return {"buttons": np.where(self.timer == 0, wrong, 0.0)}
+        return {self.name: np.where(self.timer == 0, wrong, 0.0)}
 
     # ------------------------------------------------------------------ snapshots
     def state_dict(self) -> dict:

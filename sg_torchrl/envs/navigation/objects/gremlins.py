@@ -42,6 +42,7 @@ class Gremlins(ContactCost, FreeObject):
     kind: ClassVar[Kind] = "mover"
     in_goal_layout: ClassVar[bool] = False
     weld_solref: ClassVar[tuple[float, float]] = (0.02, 1.5)
+    rgba: ClassVar[tuple[float, float, float, float]] = (0.5, 0.0, 1.0, 1.0)
 
     def __init__(self, num: int = 1, *, size: float = 0.1, keepout: float = 0.4, travel: float = 0.35,
                  density: float = 0.001, constrained: bool = True, **options) -> None:
@@ -67,7 +68,7 @@ class Gremlins(ContactCost, FreeObject):
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_BOX, size=[self.size] * 3,
-                      density=self.density, group=0, rgba=[0.5, 0.0, 1.0, 1.0])
+                      density=self.density, group=0, rgba=list(self.rgba))
 
     def bind(self, scene: Scene) -> None:
         super().bind(scene)

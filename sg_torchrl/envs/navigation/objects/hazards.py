@@ -16,7 +16,7 @@ __all__ = ["Hazards"]
 class Hazards(StaticObject):
     """``num`` hazard discs of radius ``size`` (default 0.2), keep-out 0.4 unless a level says otherwise.
 
-    Cost ``"hazards"`` (reference section 3): the sum over hazards whose centre is within planar
+    Cost named after the object (``"hazards"``; reference section 3): the sum over hazards whose centre is within planar
     distance ``d <= size`` of the robot of ``(size - d)``: deeper inside costs more. Constrained by
     default.
     """
@@ -24,6 +24,7 @@ class Hazards(StaticObject):
     name: ClassVar[str] = "hazards"
     prefix: ClassVar[str] = "hazard"
     height: float = 0.02
+    rgba: ClassVar[tuple[float, float, float, float]] = (0.0, 0.0, 1.0, 0.25)
 
     def __init__(self, num: int = 1, *, size: float = 0.2, keepout: float = 0.4, constrained: bool = True,
                  **options) -> None:
@@ -31,14 +32,14 @@ class Hazards(StaticObject):
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[self.size, 0.01, 0.0],
-                      contype=0, conaffinity=0, group=0, rgba=[0.0, 0.0, 1.0, 0.25])
+                      contype=0, conaffinity=0, group=0, rgba=list(self.rgba))
 
     @property
     def cost_names(self) -> tuple[str, ...]:
-        return ("hazards",) if self.constrained else ()
+        return (self.name,) if self.constrained else ()
 
     def costs(self, scene: Scene) -> dict[str, np.ndarray]:
         if not self.constrained:
             return {}
         depth = self.size - scene.planar_distance(self.positions(scene))
-        return {"hazards": np.where(depth >= 0.0, depth, 0.0).sum(axis=1)}
+        return {self.name: np.where(depth >= 0.0, depth, 0.0).sum(axis=1)}

@@ -22,6 +22,7 @@ class Pillars(ContactCost, StaticObject):
 
     name: ClassVar[str] = "pillars"
     prefix: ClassVar[str] = "pillar"
+    rgba: ClassVar[tuple[float, float, float, float]] = (0.5, 0.5, 1.0, 1.0)
 
     def __init__(self, num: int = 1, *, size: float = 0.2, half_height: float = 0.5, keepout: float = 0.3,
                  constrained: bool = True, **options) -> None:
@@ -34,4 +35,4 @@ class Pillars(ContactCost, StaticObject):
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-                      size=[self.size, self.half_height, 0.0], group=0, rgba=[0.5, 0.5, 1.0, 1.0])
+                      size=[self.size, self.half_height, 0.0], group=0, rgba=list(self.rgba))

@@ -31,6 +31,7 @@ class PushBox(FreeObject):
     name: ClassVar[str] = "push_box"
     #: per-robot size, keep-out and density (robots not listed get the Point's)
     robot_variants: ClassVar[dict[str, dict[str, float]]] = {"Car": {"size": 0.125, "keepout": 0.125, "density": 0.0005}}
+    rgba: ClassVar[tuple[float, float, float, float]] = (1.0, 1.0, 0.0, 1.0)
     sink: ClassVar[float] = 9e-6  # soft contacts let the resting box settle this far into the floor
 
     def __init__(self, *, size: float | None = None, keepout: float | None = None, density: float | None = None,
@@ -53,7 +54,7 @@ class PushBox(FreeObject):
         return (*super().spec_key(), self.density)
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
-        box, post, rgba = mujoco.mjtGeom.mjGEOM_BOX, self.size / 2, [1.0, 1.0, 0.0, 1.0]
+        box, post, rgba = mujoco.mjtGeom.mjGEOM_BOX, self.size / 2, list(self.rgba)
         body.add_geom(name=self.name, type=box, size=[self.size] * 3, density=self.density, group=0, rgba=rgba)
         for k, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1))):
             body.add_geom(name=f"{self.name}_post{k}", type=box, size=[post, post, self.size],

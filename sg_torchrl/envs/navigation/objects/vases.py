@@ -19,8 +19,8 @@ class Vases(FreeObject):
 
     Costs when constrained (reference section 3; Goal level 2), each per step:
 
-    * ``"vases_contact"``: the number of MuJoCo contacts between a vase geom and a robot geom;
-    * ``"vases_velocity"``: the sum of the linear speeds of the vases moving at least
+    * ``"<name>_contact"`` (``"vases_contact"``): the number of MuJoCo contacts between a vase geom and a robot geom;
+    * ``"<name>_velocity"`` (``"vases_velocity"``): the sum of the linear speeds of the vases moving at least
       ``velocity_threshold`` (1e-4 m/s).
 
     Safety-Gymnasium also defines a displacement cost with coefficient 0, so it never appears.
@@ -36,6 +36,7 @@ class Vases(FreeObject):
     prefix: ClassVar[str] = "vase"
     sink: ClassVar[float] = 4e-5  # soft contacts let a resting vase settle this far into the floor
     velocity_threshold: ClassVar[float] = 1e-4
+    rgba: ClassVar[tuple[float, float, float, float]] = (0.0, 1.0, 1.0, 1.0)
 
     def __init__(self, num: int = 1, *, size: float = 0.1, keepout: float = 0.15, density: float = 0.001,
                  constrained: bool = True, **options) -> None:
@@ -48,7 +49,7 @@ class Vases(FreeObject):
 
     def add_geoms(self, body: mujoco.MjsBody, i: int) -> None:
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_BOX, size=[self.size] * 3,
-                      density=self.density, group=0, rgba=[0.0, 1.0, 1.0, 1.0])
+                      density=self.density, group=0, rgba=list(self.rgba))
 
     def bind(self, scene: Scene) -> None:
         super().bind(scene)
@@ -68,15 +69,15 @@ class Vases(FreeObject):
 
     @property
     def cost_names(self) -> tuple[str, ...]:
-        return ("vases_contact", "vases_velocity") if self.constrained else ()
+        return (f"{self.name}_contact", f"{self.name}_velocity") if self.constrained else ()
 
     def costs(self, scene: Scene) -> dict[str, np.ndarray]:
         if not self.constrained:
             return {}
         speeds = self.speeds(scene)
         return {
-            "vases_contact": scene.physics.count_contacts(self.geom_mask, scene.robot_geoms),
-            "vases_velocity": np.where(speeds >= self.velocity_threshold, speeds, 0.0).sum(axis=1),
+            f"{self.name}_contact": scene.physics.count_contacts(self.geom_mask, scene.robot_geoms),
+            f"{self.name}_velocity": np.where(speeds >= self.velocity_threshold, speeds, 0.0).sum(axis=1),
         }
 
     def agent_costs(self, views: Sequence[Scene], out: dict[str, np.ndarray]) -> None:
@@ -87,6 +88,6 @@ class Vases(FreeObject):
         moving = np.where(speeds >= self.velocity_threshold, speeds, 0.0)
         for agent, view in enumerate(views):
             touching = view.robot_contacts()[:, self._geom_ids]  # (N, num) contacts of each vase with this robot
-            out["vases_contact"][:, agent] = touching.sum(axis=1)
+            out[f"{self.name}_contact"][:, agent] = touching.sum(axis=1)
             self.last_toucher[touching > 0] = agent
-            out["vases_velocity"][:, agent] = np.where(self.last_toucher == agent, moving, 0.0).sum(axis=1)
+            out[f"{self.name}_velocity"][:, agent] = np.where(self.last_toucher == agent, moving, 0.0).sum(axis=1)

@@ -11,9 +11,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from sg_torchrl.envs.navigation.tasks.base import Task
+from sg_torchrl.envs.navigation.tasks.building import (BUILDING_BUTTON_LEVELS, BUILDING_GOAL_LEVELS,
+                                                       BUILDING_PUSH_LEVELS)
 from sg_torchrl.envs.navigation.tasks.button import BUTTON_LEVELS, ButtonTask
 from sg_torchrl.envs.navigation.tasks.circle import CIRCLE_LEVELS, CircleTask
 from sg_torchrl.envs.navigation.tasks.fading import FADING_EASY_LEVELS, FADING_HARD_LEVELS, FadingEasyTask, FadingHardTask, FadingTask
+from sg_torchrl.envs.navigation.tasks.formula_one import FORMULA_ONE_LEVELS
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
 from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
 from sg_torchrl.envs.navigation.tasks.push import PUSH_LEVELS, PushTask
@@ -29,6 +32,12 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "FadingEasy": FADING_EASY_LEVELS,
     "FadingHard": FADING_HARD_LEVELS,
     "Race": RACE_LEVELS,
+    # the paper's construction-site scenes (sg_torchrl.envs.navigation.tasks.building)
+    "BuildingGoal": BUILDING_GOAL_LEVELS,
+    "BuildingButton": BUILDING_BUTTON_LEVELS,
+    "BuildingPush": BUILDING_PUSH_LEVELS,
+    # the paper's race-track scene (sg_torchrl.envs.navigation.tasks.formula_one)
+    "FormulaOne": FORMULA_ONE_LEVELS,
 }
 
 MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {

@@ -37,6 +37,8 @@ class Task(abc.ABC):
         objects: the objects of this level (any order within a kind; see ``world_order``).
         agent_placements: rectangles for the agent's start (default: the extents).
         agent_keepout: overrides the robot's keep-out (Circle and Run use 0).
+        scenery: static set dressing built into the world (floor look, fixed obstacles; see
+            :mod:`~sg_torchrl.envs.navigation.scenery`); ``None``: the plain grey floor.
     """
 
     name: ClassVar[str]
@@ -50,9 +52,6 @@ class Task(abc.ABC):
     lidar_bins: ClassVar[int] = 16
     #: rewards are clipped to [-clip, clip] (reference section 4; ``None``: no clip)
     reward_clip: ClassVar[float | None] = 10.0
-    #: fixed world geometry beside the objects (Race's road and props), or ``None``; set by a task's constructor
-    scenery: Scenery | None = None
-
     def __init__(
         self,
         level: int,
@@ -61,8 +60,10 @@ class Task(abc.ABC):
         objects: Sequence[NavObject],
         agent_placements: Sequence[Sequence[float]] | None = None,
         agent_keepout: float | None = None,
+        scenery: Scenery | None = None,
     ) -> None:
         self.level = level
+        self.scenery = scenery
         if np.ndim(extents) == 0:
             extents = (-float(extents), -float(extents), float(extents), float(extents))
         self.extents = tuple(float(e) for e in extents)
@@ -76,8 +77,8 @@ class Task(abc.ABC):
     @property
     def key(self) -> tuple:
         """Identifies the world this task builds (with the robot: the compiled-model cache key)."""
-        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects),
-                None if self.scenery is None else self.scenery.spec_key())
+        key = (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects))
+        return key if self.scenery is None else (*key, self.scenery.key)
 
     def find(self, kind: type[ObjectT]) -> ObjectT:
         """The object of class ``kind`` in this level."""

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 
 from sg_torchrl.envs.navigation.objects import Goal, Hazards
-from sg_torchrl.envs.navigation.scenery import Prop, RoadSegment, Scenery
+from sg_torchrl.envs.navigation.scenery import Prop, RoadSegment, Village
 from sg_torchrl.envs.navigation.tasks.goal import GoalTask
 
 if TYPE_CHECKING:
@@ -50,7 +50,7 @@ def start_rect(level: int) -> tuple[float, float, float, float]:
     return (x - width / 2, y - length / 2, x + width / 2, y + length / 2)
 
 
-def village(level: int) -> Scenery:
+def village(level: int) -> Village:
     """The road and roadside props of a Race level (module docstring)."""
     road = [RoadSegment(-2.9, 0.15, 3.8, 1.95)]  # east-west, through the start and the goal
     props = [Prop("house", -1.6, 2.9), Prop("house", 0.6, 2.9), Prop("house", 2.8, 2.9),
@@ -62,7 +62,7 @@ def village(level: int) -> Scenery:
         road.append(RoadSegment(-2.875, -3.4, -1.675, 0.15))
         props += [Prop("house", -3.6, -2.6), Prop("house", -3.6, -0.6), Prop("tree", -3.3, -1.6),
                   Prop("tree", -1.1, -2.9), Prop("rock", -1.2, -1.8)]
-    return Scenery(props, road)
+    return Village(props, road)
 
 
 class RaceTask(GoalTask):
@@ -79,9 +79,8 @@ class RaceTask(GoalTask):
     floor_half_size: ClassVar[float] = 17.5
     reward_clip: ClassVar[float | None] = 11.0
 
-    def __init__(self, level: int, *, scenery: Scenery, scenery_cost: bool, **options) -> None:
-        super().__init__(level, **options)
-        self.scenery = scenery
+    def __init__(self, level: int, *, scenery: Village, scenery_cost: bool, **options) -> None:
+        super().__init__(level, scenery=scenery, **options)
         self.scenery_cost = scenery_cost
 
     def bind(self, env: NavigationEnv) -> None:
