@@ -8,7 +8,7 @@ Layout of this package:
 * ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
 * ``fading.py``  per-simulator render alphas of fading objects (the Fading tasks)
 * ``layout.py``  vectorised layout sampling with keep-outs
-* ``scenery.py`` static set dressing of a level (textured floor, fixed geoms: Race's village, Building's
+* ``scenery/``   static set dressing of a level (textured floor, fixed geoms: Race's village, Building's
                  construction site, FormulaOne's race track)
 * ``track.py``   FormulaOne's race-track geometry (centre line, checkpoints, track-side positions)
 * ``lidar.py``   vectorised pseudo-lidar
