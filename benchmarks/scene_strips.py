@@ -1,38 +1,57 @@
-"""Image strips of the vision scenes: a few frames side by side in one PNG per scene family.
+"""Image strips of the vision scenes: a few frames side by side, one PNG per scene (or per family).
 
-Each family is a function that builds its env, stages a short scene and returns the frames; the
-script writes ``<out>/scene_<family>.png``. It is a visual check of what a family draws (does the
+Each scene is a function that builds its env, stages a short scene and returns the frames; the
+script writes ``<out>/scene_<name>.png``. It is a visual check of what a scene draws (does the
 goal fade? does the road have its houses?), not a benchmark: there is no timing.
 
 * ``fading``: SafetyPointFadingEasy0-v0, the robot idle in front of its goal; frames at steps 0,
   40, 80, 120 and 150 from the follow camera (the goal's alpha falls from 0.25 to 0 over 150 steps).
 * ``race``: SafetyPointRace2-v0 (the far start), an overview of the village from above, then the
   follow camera and the robot's own ``vision`` camera at the start.
+* ``building`` (``scene_BuildingGoal2.png``, ``scene_BuildingButton2.png``, ``scene_BuildingPush2.png``)
+  and ``formula_one`` (``scene_FormulaOne2.png``): the Point robot at level 2 after a few random steps
+  (moving objects mid-motion): an overview of the level from above, the follow camera behind the
+  robot, and its ``vision`` camera (what the ``...Vision-v0`` ids observe, drawn at the same size).
 
-Add a family by writing a ``(size) -> list[frame]`` function and listing it in :data:`FAMILIES`.
+A family maps PNG names to ``(size) -> list[frame]`` functions; add one to :data:`FAMILIES`.
+Needs an OpenGL backend (EGL or OSMesa; see ``sg_torchrl.envs.rendering``).
 
 Usage::
 
     python benchmarks/scene_strips.py                       # every family, 128 px frames
     python benchmarks/scene_strips.py --families race --size 192 --out /tmp/strips
+    python benchmarks/scene_strips.py --families building formula_one --size 192
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
+from torchrl.envs.utils import step_mdp
 
 import sg_torchrl
 from sg_torchrl.envs.rendering import FollowCamera
 
 Frame = np.ndarray
 CLOSE_CAMERA = FollowCamera(distance=2.5, elevation=-45.0, azimuth=90.0, offset=(0.5, 0.0, 0.0))
+BEHIND_CAMERA = FollowCamera(distance=3.0, elevation=-35.0, heading=True, azimuth=0.0)
+
+
+def _free_camera(lookat: tuple[float, float, float], distance: float, elevation: float,
+                 azimuth: float = 90.0) -> mujoco.MjvCamera:
+    """A free camera looking at ``lookat`` (an overview of a level)."""
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.lookat[:] = lookat
+    camera.distance, camera.elevation, camera.azimuth = distance, elevation, azimuth
+    return camera
 
 
 def _start_at(env, agent_xy: tuple[float, float], **objects: tuple[float, float]) -> None:
@@ -69,18 +88,42 @@ def race(size: int) -> list[Frame]:
     """Race level 2: the village from above, then the robot at its start (follow and vision cameras)."""
     env = sg_torchrl.make("SafetyPointRace2-v0", num_envs=1, seed=0)
     env.reset()
-    overview = mujoco.MjvCamera()
-    overview.type = mujoco.mjtCamera.mjCAMERA_FREE
-    overview.lookat[:] = (0.4, -0.6, 0.0)
-    overview.distance, overview.elevation, overview.azimuth = 11.0, -80.0, 90.0
-    frames = [env.render(0, size, size, camera=overview),
+    frames = [env.render(0, size, size, camera=_free_camera((0.4, -0.6, 0.0), 11.0, -80.0)),
               env.render(0, size, size),
               env.render(0, size, size, camera="vision")]
     env.close()
     return frames
 
 
-FAMILIES: dict[str, Callable[[int], list[Frame]]] = {"fading": fading, "race": race}
+def paper_scene(env_id: str, size: int, steps: int = 5) -> list[Frame]:
+    """A Building or FormulaOne level after ``steps`` random steps: overview, behind the robot, its camera."""
+    env = sg_torchrl.make(env_id, num_envs=1, seed=0)
+    td = env.reset()
+    generator = torch.Generator().manual_seed(0)
+    box = env.action_spec.space
+    for _ in range(steps):
+        action = box.low + (box.high - box.low) * torch.rand(box.low.shape, generator=generator)
+        td = step_mdp(env.step(td.set("action", action)))
+    track = getattr(env.task, "track", None)  # the whole track (FormulaOne) or placement area (Building)
+    span = track.half_straight + track.radius + 1.5 if track is not None else max(map(abs, env.task.extents)) + 1.6
+    frames = [env.render(0, size, size, camera=_free_camera((0.0, -0.3, 0.0), 2.2 * span, -62.0)),
+              env.render(0, size, size, camera=BEHIND_CAMERA),
+              env.render(0, size, size, camera="vision")]
+    env.close()
+    return frames
+
+
+def _paper_scenes(*tasks: str) -> dict[str, Callable[[int], list[Frame]]]:
+    return {f"{task}2": partial(paper_scene, f"SafetyPoint{task}2-v0") for task in tasks}
+
+
+#: family -> {PNG name (``scene_<name>.png``): frames function}
+FAMILIES: dict[str, dict[str, Callable[[int], list[Frame]]]] = {
+    "fading": {"fading": fading},
+    "race": {"race": race},
+    "building": _paper_scenes("BuildingGoal", "BuildingButton", "BuildingPush"),
+    "formula_one": _paper_scenes("FormulaOne"),
+}
 
 
 def strip(frames: list[Frame], gap: int = 2) -> Frame:
@@ -103,9 +146,10 @@ def main() -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     for family in args.families:
-        path = args.out / f"scene_{family}.png"
-        imageio.imwrite(path, strip(FAMILIES[family](args.size)))
-        print(path)
+        for name, frames in FAMILIES[family].items():
+            path = args.out / f"scene_{name}.png"
+            imageio.imwrite(path, strip(frames(args.size)))
+            print(path)
 
 
 if __name__ == "__main__":
