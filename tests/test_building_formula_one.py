@@ -15,13 +15,12 @@ import torch
 
 import sg_torchrl
 from sg_torchrl.envs import registry_entry
-from sg_torchrl.envs import rendering
 from sg_torchrl.envs.navigation import NavigationEnv
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins
 from sg_torchrl.envs.navigation.tasks.formula_one import NUM_CHECKPOINTS
-from sg_torchrl.envs.rendering import RenderingUnavailable
 
 from layout_checks import assert_layouts_respect_keepouts
+from seeding_checks import assert_sim0_same_for_any_batch
 from test_navigation import action_td, arrange, idle, make_env
 
 torch.set_num_threads(1)
@@ -323,34 +322,12 @@ def test_building_layouts_respect_keepouts(task):
 @pytest.mark.parametrize("env_id", ["SafetyPointBuildingGoal2-v0", "SafetyPointBuildingButton2-v0",
                                     "SafetyPointBuildingPush2-v0", "SafetyPointFormulaOne2-v0"])
 def test_sim0_same_for_n1_and_n4(env_id):
-    steps = 15
     small = make_env(env_id, num_envs=1, seed=7, max_episode_steps=8)
     large = make_env(env_id, num_envs=4, seed=7, max_episode_steps=8)
-    actions = 2 * torch.rand((steps, 4, 2), generator=torch.Generator().manual_seed(0)) - 1
-    outs = []
-    for env in (small, large):
-        td, trace = env.reset(), []
-        for t in range(steps):
-            stepped, td = env.step_and_maybe_reset(td.set("action", actions[t, : env.num_envs]))
-            trace.append(stepped[0].clone())
-        outs.append(trace)
-    keys = ["observation", ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done")]
-    keys += [("next", "cost_info", name) for name in small.constraint_names]
-    for t, (a, b) in enumerate(zip(*outs)):
-        for key in keys:
-            torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"{key} at step {t}")
-    assert outs[0][7]["next", "truncated"].item()  # an auto-reset happened in between
+    assert_sim0_same_for_any_batch(small, large, steps=15)
 
 
 # ---------------------------------------------------------------------------- Vision twins
-@pytest.fixture(scope="module")
-def backend() -> str:
-    try:
-        return rendering.gl_backend()
-    except RenderingUnavailable as error:
-        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
-
-
 @pytest.mark.parametrize("task", TASKS)
 def test_vision_twins_emit_pixels(backend, task):
     env = make_env(f"SafetyPoint{task}2Vision-v0", num_envs=2, image_size=24)

@@ -15,9 +15,7 @@ import pytest
 import torch
 
 from sg_torchrl.envs import registry_entry
-from sg_torchrl.envs import rendering
 from sg_torchrl.envs.navigation import ROBOTS
-from sg_torchrl.envs.rendering import RenderingUnavailable
 
 from test_navigation import action_td, arrange, idle, make_env
 
@@ -25,14 +23,6 @@ torch.set_num_threads(1)
 
 GOAL_ALPHA = 0.25  # the goal's model alpha (objects/goal.py)
 FAR = (-3.2, 0.0)  # behind a robot at the origin facing +x: out of its camera's view
-
-
-@pytest.fixture(scope="module")
-def backend() -> str:
-    try:
-        return rendering.gl_backend()
-    except RenderingUnavailable as error:
-        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
 
 
 def random_actions(env, steps: int, seed: int) -> list[torch.Tensor]:

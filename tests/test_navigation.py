@@ -21,6 +21,7 @@ from sg_torchrl.envs.navigation.layout import LayoutSampler
 from sg_torchrl.envs.navigation.lidar import pseudo_lidar
 
 from layout_checks import assert_layouts_respect_keepouts
+from seeding_checks import assert_sim0_same_for_any_batch
 
 torch.set_num_threads(1)
 
@@ -337,22 +338,9 @@ class TestLayout:
 # ---------------------------------------------------------------------------- seeding and compilation
 class TestSeedingAndModel:
     def test_sim0_same_for_n1_and_n16(self):
-        steps = 25
         small = make_env("SafetyPointGoal2-v0", num_envs=1, seed=7, max_episode_steps=10)
         large = make_env("SafetyPointGoal2-v0", num_envs=16, seed=7, max_episode_steps=10)
-        actions = 2 * torch.rand((steps, 16, 2), generator=torch.Generator().manual_seed(0)) - 1
-        outs = []
-        for env in (small, large):
-            td, trace = env.reset(), []
-            for t in range(steps):
-                stepped, td = env.step_and_maybe_reset(td.set("action", actions[t, : env.num_envs]))
-                trace.append(stepped[0].clone())
-            outs.append(trace)
-        for t, (a, b) in enumerate(zip(*outs)):
-            for key in ("observation", ("next", "observation"), ("next", "reward"), ("next", "cost"),
-                        ("next", "done"), ("next", "cost_info", "vases_velocity")):
-                torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"{key} at step {t}")
-        assert outs[0][9]["next", "truncated"].item()  # an auto-reset happened in between
+        assert_sim0_same_for_any_batch(small, large, steps=25)
 
     def test_reset_never_compiles(self, monkeypatch):
         counts = {"compile": 0, "xml": 0}

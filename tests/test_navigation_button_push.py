@@ -23,6 +23,7 @@ from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Ha
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
 
 from layout_checks import assert_layouts_respect_keepouts
+from seeding_checks import assert_sim0_same_for_any_batch
 
 torch.set_num_threads(1)
 
@@ -392,23 +393,9 @@ def test_resting_layouts_cost_nothing():
 
 @pytest.mark.parametrize("env_id", ["SafetyPointButton2-v0", "SafetyPointPush2-v0"])
 def test_sim0_same_for_n1_and_n16(env_id):
-    steps = 25
     small = make_env(env_id, num_envs=1, seed=7, max_episode_steps=10)
     large = make_env(env_id, num_envs=16, seed=7, max_episode_steps=10)
-    actions = 2 * torch.rand((steps, 16, 2), generator=torch.Generator().manual_seed(0)) - 1
-    outs = []
-    for env in (small, large):
-        td, trace = env.reset(), []
-        for t in range(steps):
-            stepped, td = env.step_and_maybe_reset(td.set("action", actions[t, : env.num_envs]))
-            trace.append(stepped[0].clone())
-        outs.append(trace)
-    keys = ["observation", ("next", "observation"), ("next", "reward"), ("next", "cost"), ("next", "done")]
-    keys += [("next", "cost_info", name) for name in small.constraint_names]
-    for t, (a, b) in enumerate(zip(*outs)):
-        for key in keys:
-            torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"{key} at step {t}")
-    assert outs[0][9]["next", "truncated"].item()  # an auto-reset happened in between
+    assert_sim0_same_for_any_batch(small, large, steps=25)
 
 
 @pytest.mark.timeout(60)

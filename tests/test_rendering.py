@@ -35,14 +35,6 @@ NAVIGATION_ID = "SafetyPointGoal1-v0"
 VELOCITY_ID = "SafetyHalfCheetahVelocity-v1"
 
 
-@pytest.fixture(scope="module")
-def backend() -> str:
-    try:
-        return rendering.gl_backend()
-    except RenderingUnavailable as error:
-        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
-
-
 def robot_pixels(frame: np.ndarray) -> np.ndarray:
     """``(k, 2)`` row/column of the pixels showing the Point robot's red body."""
     r, g, b = (frame[..., c].astype(int) for c in range(3))

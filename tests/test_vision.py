@@ -36,14 +36,6 @@ VISION_ID = "SafetyPointGoal1Vision-v0"
 VISION_IDS = sg_torchrl.list_envs(family="vision")
 
 
-@pytest.fixture(scope="module")
-def backend() -> str:
-    try:
-        return rendering.gl_backend()
-    except RenderingUnavailable as error:
-        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
-
-
 def random_actions(env, steps: int, seed: int) -> list[torch.Tensor]:
     generator = torch.Generator().manual_seed(seed)
     box = env.action_spec.space
