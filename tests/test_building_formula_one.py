@@ -17,6 +17,8 @@ import sg_torchrl
 from sg_torchrl.envs import registry_entry
 from sg_torchrl.envs.navigation import NavigationEnv
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins
+from sg_torchrl.envs.navigation.scenery import ConstructionSite, Prop, Village
+from sg_torchrl.envs.navigation.tasks import make_task
 from sg_torchrl.envs.navigation.tasks.formula_one import NUM_CHECKPOINTS
 
 from layout_checks import assert_layouts_respect_keepouts
@@ -138,7 +140,25 @@ def test_site_walls_stop_the_robot_and_cost_nothing():
     costs = [forward(env)["cost"].item() for _ in range(60)]
     assert env.scene.agent_xy()[0, 1] < wall_y  # it did not pass through
     assert env.scene.robot_contacts()[0, env.scene.model.geom("site_wall0").id] >= 1
+    site = env.task.scenery  # any scenery can count robot contacts with its solid geoms (Race charges them)
+    site.bind(env.scene.model)
+    assert {env.scene.model.geom(i).name for i in np.flatnonzero(site.geom_mask)} == {
+        "site_wall0", "site_wall1", "site_container0", "site_container1"}
+    assert site.robot_contacts(env.scene)[0] >= 1
     assert max(costs) == 0.0
+
+
+def test_scenery_is_part_of_the_compiled_model_key():
+    levels = [("Goal", 1), ("Race", 1), ("Race", 2), ("BuildingGoal", 0), ("BuildingGoal", 1), ("FormulaOne", 2)]
+    tasks = [make_task(name, level) for name, level in levels]
+    for task in tasks[1:]:
+        assert task.key[-1] == task.scenery.key
+    assert len({task.key for task in tasks}) == len(tasks)
+    # Same objects, different scenery: different models.
+    plain, site = make_task("BuildingGoal", 1), make_task("BuildingGoal", 1)
+    site.scenery = ConstructionSite(1.5, obstacles=False)
+    assert plain.key != site.key and plain.key[:-1] == site.key[:-1]
+    assert Village([Prop("rock", 0.0, 0.0)]).key != Village([Prop("rock", 0.0, 0.0)], grass=None).key
 
 
 def test_race_track_scenery_does_not_collide():
