@@ -9,6 +9,11 @@ finish some.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -29,7 +34,9 @@ from sg_torchrl.train.models import (  # noqa: E402
     ObservationEncoder,
     ObservationLayout,
     make_actor_critics,
+    make_value,
 )
+from sg_torchrl.train.updates import forward_in_chunks, write_values  # noqa: E402
 
 VISION_ID = "SafetyPointGoal1Vision-v0"
 #: (env id, env options): the Vision id as registered (pixels only, RGB) and the plain id with
@@ -117,6 +124,18 @@ class TestLayoutAndEncoder:
         assert not (ids[0] & ids[1] or ids[0] & ids[2] or ids[1] & ids[2])
         assert isinstance(critic.module, EncodedMLP)
 
+    def test_chunked_values_equal_one_pass_and_fill_both_time_steps(self):
+        torch.manual_seed(0)
+        layout = ObservationLayout(vector_dim=None, image_shape=(36, 36), rgb=True)
+        critic = make_value(layout, [8], "state_value")
+        frames = lambda: torch.randint(0, 256, (2, 5, 3, 36, 36), dtype=torch.uint8)  # noqa: E731
+        batch = TensorDict({"pixels": frames(), "next": {"pixels": frames()}}, [2, 5])
+        whole = forward_in_chunks(critic, batch.reshape(-1), ["pixels"], ["state_value"], None)["state_value"]
+        write_values(batch, [critic], chunk_size=3)  # 10 samples in chunks of 3, 3, 3, 1
+        assert batch["state_value"].shape == batch["next", "state_value"].shape == (2, 5, 1)
+        torch.testing.assert_close(batch["state_value"].reshape(-1, 1), whole)
+        torch.testing.assert_close(batch["next", "state_value"], critic(batch["next"].clone())["state_value"])
+
     def test_vision_preset_is_ppo_lag_on_a_vision_id_in_whole_epochs(self):
         cfg = parse_args(["--preset", "vision"])
         assert (cfg.algo, cfg.env_id) == ("ppo_lag", VISION_ID) and cfg.env_id in sg_torchrl.list_envs()
@@ -182,3 +201,17 @@ def test_two_stage_and_trust_region_updates_train_the_cnns(backend, tmp_path, al
     for name in ("Train/KL", "Loss/Loss_reward_critic", "Loss/Loss_cost_critic"):
         assert torch.isfinite(torch.tensor(metrics[name])), name
     trainer.base_env.close()
+
+
+def test_vision_recipe_runs(backend):
+    root = Path(__file__).resolve().parents[1]
+    example = root / "examples" / "vision.py"
+    args = ["--obs-mode", "vector+rgbd", "--max-episode-steps", "25", "--total-steps", "100", "--steps-per-epoch",
+            "50", "--num-envs", "2", "--update-iters", "2"]
+    # This tree's sg_torchrl, whichever one the interpreter has installed.
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, str(example), *args], capture_output=True, text=True, timeout=110,
+                            env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = [line for line in result.stdout.splitlines() if line.startswith("epoch ")]
+    assert len(lines) == 2 and "EpCost" in lines[-1] and "nan" not in lines[-1].lower()

@@ -46,7 +46,7 @@ from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
-from sg_torchrl.train.updates import UpdateParts, forward_in_chunks
+from sg_torchrl.train.updates import UpdateParts, write_values
 
 __all__ = ["CHECKPOINT_NAME", "EpochTrainer", "Trainer"]
 
@@ -288,7 +288,7 @@ class Trainer(EpochTrainer):
         )
         self.multiplier = self.algorithm.make_multiplier(cfg)
         self.loss = self.algorithm.make_loss(self.actor, self.critic, self.cost_critic, self.multiplier, cfg)
-        # The GAEs read values that :meth:`write_values` computes in chunks (no value network of their
+        # The GAEs read values that :func:`write_values` computes in chunks (no value network of their
         # own: TorchRL's would run the critic on the stacked observations and next observations at once).
         self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
@@ -328,24 +328,10 @@ class Trainer(EpochTrainer):
             **update_info,
         }
 
-    def write_values(self, batch: TensorDictBase) -> None:
-        """Both critics' values of the observations and of the next observations, into ``batch``.
-
-        The ``(N, T)`` batch is viewed flat and the critics run ``layout.chunk_size`` samples at a
-        time (the whole batch at once for flat vectors), writing ``state_value`` / ``cost_value``
-        and their ``("next", ...)`` twins, which the GAEs read.
-        """
-        flat = batch.reshape(-1)
-        for prefix, source in (((), flat), (("next",), flat.get("next"))):
-            for critic in (self.critic, self.cost_critic):
-                key = critic.out_keys[0]
-                values = forward_in_chunks(critic, source, critic.in_keys, [key], self.layout.chunk_size)[key]
-                batch.set((*prefix, key), values.reshape(*batch.shape, *values.shape[1:]))
-
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """Advantages on the whole batch, then the algorithm's :class:`PolicyUpdate`."""
         with torch.no_grad():
-            self.write_values(batch)
+            write_values(batch, (self.critic, self.cost_critic), self.layout.chunk_size)
             self.reward_gae(batch)
             self.cost_gae(batch)
         data = batch.reshape(-1)

@@ -13,8 +13,8 @@ hands the flat batch to the algorithm's :class:`PolicyUpdate`:
   the two critics only.
 
 All three share :func:`minibatch_passes`, the one minibatch loop of the package. Passes over the
-whole batch that need no gradient (the KL early stop, CUP's stage-one policy) go through
-:func:`forward_in_chunks`, so a batch of images is converted to float one slice at a time.
+whole batch that need no gradient (the critics' values for GAE, the KL early stop, CUP's stage-one
+policy) go through :func:`forward_in_chunks`, so a batch of images is converted to float one slice at a time.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from sg_torchrl.objectives import gaussian_kl
 
 __all__ = [
     "FirstOrderUpdate", "PolicyUpdate", "TrustRegionUpdate", "TwoStageUpdate", "UpdateParts", "forward_in_chunks",
-    "minibatch_passes",
+    "minibatch_passes", "write_values",
 ]
 
 LossFn = Callable[[TensorDictBase], dict[str, Tensor]]
@@ -57,6 +57,24 @@ def forward_in_chunks(
     step = size if chunk_size is None else max(int(chunk_size), 1)
     outputs = [module(inputs[start : start + step]) for start in range(0, size, step)]
     return {key: torch.cat([out.get(key) for out in outputs]) for key in out_keys}
+
+
+@torch.no_grad()
+def write_values(batch: TensorDictBase, critics: Sequence[nn.Module], chunk_size: int | None) -> None:
+    """Each critic's value of the observations and of the next observations, written into ``batch``.
+
+    ``batch`` is an epoch's ``(N, T)`` rollout; it is viewed flat and each critic (a value operator
+    with one out-key, e.g. ``state_value``) runs ``chunk_size`` samples at a time
+    (:func:`forward_in_chunks`), writing ``key`` and ``("next", key)``: what TorchRL's ``GAE`` reads
+    when it has no value network of its own (its own would run on the observations and next
+    observations stacked, all at once).
+    """
+    flat = batch.reshape(-1)
+    for prefix, source in (((), flat), (("next",), flat.get("next"))):
+        for critic in critics:
+            key = critic.out_keys[0]
+            values = forward_in_chunks(critic, source, critic.in_keys, [key], chunk_size)[key]
+            batch.set((*prefix, key), values.reshape(*batch.shape, *values.shape[1:]))
 
 
 @dataclass
