@@ -21,6 +21,12 @@ and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built:
   start with a LayerNorm of their input, ours (TorchRL's ``MultiAgentMLP``) have none, and on raw
   Humanoid observations their initial action means reach tens (control cost dominates the reward).
 
+Pixel observations (a ``...Vision-v0`` id, or ``env_options`` ``obs_mode=rgb|rgbd|vector+rgb|
+vector+rgbd``) need no option: the single-agent networks read whatever the env's observation spec
+holds, with a CNN encoder before ``hidden_sizes`` when there are images
+(:mod:`sg_torchrl.train.models`), and ``normalize_obs`` applies to the flat vector only. The
+``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU.
+
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
 match.
@@ -149,8 +155,8 @@ class TrainConfig:
         None, "second order: backtracking steps (15; PCPO 200; MACPO 10; NPG/RCPO none)")
     step_fraction: float | None = _opt(None, "second order: backtracking shrink factor (0.8; MACPO 0.5)")
     normalize_obs: bool | None = _opt(
-        None, "running mean/std observation normalisation (default on; multi-agent: each agent's observation, "
-        "per agent, and the global state)")
+        None, "running mean/std observation normalisation (default on; of the flat vector only, images are scaled "
+        "in the networks; multi-agent: each agent's observation, per agent, and the global state)")
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
     run_name: str | None = _opt(None, "run directory name (default: <env>/<algo>/seed-<seed>)")

@@ -11,6 +11,11 @@ One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
    early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
 5. log SafePO's metrics, checkpoint.
 
+The networks read what the env emits (:class:`~sg_torchrl.train.models.ObservationLayout`): the
+flat vector, or images through CNN encoders; with images, whole-batch passes without gradient (the
+critics' values for GAE, the KL early stop) run in chunks so an epoch of ``uint8`` frames is never
+converted to float at once.
+
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
 observation normaliser, simulator states and generators, the collector's carry, episode
 statistics, torch RNG states), so ``--resume`` continues bit-identically.
