@@ -142,6 +142,11 @@ class TestLayoutAndEncoder:
         assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.steps_per_epoch % cfg.num_envs == 0
         assert cfg.steps_per_epoch // cfg.num_envs >= 1000  # every simulator finishes an episode per epoch
 
+    def test_vision_ids_get_the_papers_network_sizes_per_robot(self):
+        # The MLP after the encoder: [256, 256] for the Ant and Doggo navigation robots, as their vector ids.
+        assert TrainConfig(env_id="SafetyDoggoGoal1Vision-v0").network_sizes == [256, 256]
+        assert TrainConfig(env_id=VISION_ID).network_sizes == [64, 64]
+
     def test_cli_reports_an_image_size_too_small_for_the_cnn(self, capsys):
         assert main(["--preset", "vision", "--env-options", "image_size=24"]) == 2
         assert "image_size=24 is too small for sg-train's CNN encoder" in capsys.readouterr().err

@@ -337,7 +337,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # PPO-Lag from pixels (issue 7): SafetyPointGoal1Vision-v0 sees only its 64 x 64 RGB camera and
     # trains CNN encoders (sg_torchrl.train.models). Sized for 10-15 minutes on a CPU (15.5 min with
     # evaluation on the shared 2-core machine kind), not for the paper's budget: rendering makes
-    # collection about 10x slower than the vector env, and three CNNs (actor, reward and cost
+    # collection about 7x slower than the vector env, and three CNNs (actor, reward and cost
     # critics) cost about 1 ms of update per sample and pass. So
     # 10,000-step epochs (every simulator finishes one 1000-step episode per epoch, so EpRet / EpCost
     # are defined from the first epoch), 4 passes of minibatch 64 instead of 40 (Atari PPO's 4
