@@ -105,10 +105,11 @@ class TestLayoutAndEncoder:
         depth = torch.rand(4, 1, 64, 64) * 10.0  # half of it beyond DEPTH_RANGE: saturates at 1
         vector = torch.randn(4, 3)
         expected_input = torch.cat([pixels.float() / 255.0, depth.clamp(max=DEPTH_RANGE) / DEPTH_RANGE], dim=-3)
+        originals = pixels.clone(), depth.clone()
         features = encoder(pixels, depth, vector)
         assert features.shape == (4, encoder.out_features) == (4, 32 * 4 * 4 + 3)
         torch.testing.assert_close(features, torch.cat([encoder.cnn(expected_input), vector], dim=-1))
-        assert pixels.dtype == torch.uint8  # the batch keeps its compact images
+        assert torch.equal(pixels, originals[0]) and torch.equal(depth, originals[1])  # inputs are not scaled in place
 
     def test_images_too_small_for_the_cnn_are_a_clear_error(self):
         assert DEFAULT_CNN.min_image_size == 36 and DEFAULT_CNN.output_side(36) == 1

@@ -172,7 +172,7 @@ class ObservationEncoder(nn.Module):
         entries = dict(zip(self.in_keys, inputs))
         channels = []
         if "pixels" in entries:
-            channels.append(entries["pixels"].to(torch.float32).div_(255.0))
+            channels.append(entries["pixels"] / 255.0)  # uint8 -> float32 in one new tensor, input untouched
         if "depth" in entries:
             channels.append(entries["depth"].clamp(0.0, self.depth_range).div_(self.depth_range))
         features = self.cnn(channels[0] if len(channels) == 1 else torch.cat(channels, dim=-3))
