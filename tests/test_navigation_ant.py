@@ -80,7 +80,7 @@ class TestAntSpecs:
         ant_ids = sg_torchrl.list_envs(family="navigation", robot="Ant")
         point_ids = sg_torchrl.list_envs(family="navigation", robot="Point")
         assert ant_ids == [i.replace("Point", "Ant") for i in point_ids]  # one Ant id per Point id
-        assert set(ANT_SIZES) <= set(ant_ids) and len(ant_ids) == 13
+        assert set(ANT_SIZES) <= set(ant_ids) and len(ant_ids) == 22
         entry = registry_entry("SafetyAntGoal1-v0")
         assert (entry.robot, entry.task, entry.level, entry.max_episode_steps) == ("Ant", "Goal", 1, 1000)
         # The velocity family's Ant is a different env under the same robot name; the family tells them apart.

@@ -12,7 +12,7 @@ from sg_torchrl.envs.registry import env_options
 
 torch.set_num_threads(1)
 
-# The 65 Vision ids render images (an OpenGL backend, slower steps): tests/test_vision.py covers them
+# The Vision ids (one per navigation id) render images (an OpenGL backend, slower steps): tests/test_vision.py covers them
 # (specs, rollouts, sizes per robot); here every other id.
 VISION_IDS = sg_torchrl.list_envs(family="vision")
 ALL_IDS = [env_id for env_id in sg_torchrl.list_envs() if env_id not in VISION_IDS]
@@ -98,6 +98,17 @@ REFERENCE_SIZES_BY_ID = {
     "SafetyAntCircle2-v0": (56, 8),
     "SafetyAntRun0-v0": (40, 8),
 }
+# Fading ids observe exactly what the Goal id of the same robot and level does (only what is drawn differs).
+REFERENCE_SIZES_BY_ID.update({
+    env_id.replace("Goal", fading): size
+    for env_id, size in list(REFERENCE_SIZES_BY_ID.items()) if "Goal" in env_id for fading in ("FadingEasy", "FadingHard")
+})
+# Race: the robot's sensors (Run0's size), then goal_lidar, then hazards_lidar at levels 1-2 (the scenery is not observed).
+REFERENCE_SIZES_BY_ID.update({
+    f"Safety{robot}Race{level}-v0": (REFERENCE_SIZES_BY_ID[f"Safety{robot}Run0-v0"][0] + (16 if level == 0 else 32),
+                                     REFERENCE_SIZES_BY_ID[f"Safety{robot}Run0-v0"][1])
+    for robot in ("Point", "Car", "Racecar", "Doggo", "Ant") for level in range(3)
+})
 
 
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
@@ -155,7 +166,7 @@ class TestListEnvs:
         velocity = ["SafetyAntVelocity-v0", "SafetyAntVelocity-v1"]
         assert sg_torchrl.list_envs(family="velocity", robot="Ant") == velocity
         navigation = sg_torchrl.list_envs(family="navigation", robot="Ant")
-        assert len(navigation) == 13 and "SafetyAntGoal1-v0" in navigation
+        assert len(navigation) == 22 and "SafetyAntGoal1-v0" in navigation  # Goal, Button, Push, Circle, Fading*, Race 0-2; Run0
         multi_agent = sg_torchrl.list_envs(family="multi_agent_velocity", robot="Ant")
         assert multi_agent == ["Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0"]
         multi_goal = sg_torchrl.list_envs(family="multi_agent_navigation", robot="Ant")

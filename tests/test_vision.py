@@ -80,10 +80,10 @@ def test_pixels_are_for_single_robot_tasks():
 
 def test_vision_ids_in_the_registry():
     navigation = sg_torchrl.list_envs(family="navigation")
-    assert len(VISION_IDS) == 65 == len(navigation)
+    assert len(VISION_IDS) == 110 == len(navigation)
     assert VISION_IDS == sorted(i.replace("-v0", "Vision-v0") for i in navigation)
     for robot in ROBOTS:
-        for task in ("Goal", "Button", "Push", "Circle"):
+        for task in ("Goal", "Button", "Push", "Circle", "FadingEasy", "FadingHard", "Race"):
             for level in range(3):
                 assert f"Safety{robot}{task}{level}Vision-v0" in VISION_IDS
         assert f"Safety{robot}Run0Vision-v0" in VISION_IDS
@@ -142,7 +142,7 @@ def test_every_robot_sees_through_its_camera(backend, robot):
 
 def test_every_vision_id_builds_and_renders(backend):
     # The registry-wide tests (tests/test_registry.py) leave the Vision ids to this file: every scene and
-    # robot camera, small images, one simulator, two steps (about 10 s for the 65 ids).
+    # robot camera, small images, one simulator, two steps (about 20 s for the 110 ids).
     for env_id in VISION_IDS:
         env = sg_torchrl.make(env_id, num_envs=1, seed=0, image_size=8)
         nxt = env.rollout(2, break_when_any_done=False)["next"]

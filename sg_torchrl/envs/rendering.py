@@ -42,6 +42,21 @@ Videos
 :func:`record_video` runs an episode (a policy, or random actions) and writes one frame per step:
 MP4 through ``imageio-ffmpeg`` when it is installed (a dependency of sg_torchrl), else an animated
 GIF next to the requested path.
+
+Per-simulator transparency
+--------------------------
+All simulators of an env share one ``MjModel``, so a colour that differs between simulators (the
+Fading tasks' goal, fading step by step in each simulator's own episode) cannot live in the model.
+:meth:`RenderMixin.geom_alpha` returns, for simulator ``index``, the geoms whose alpha differs from
+the model's and their alphas (a :data:`GeomAlpha`); :meth:`Renderer.render_into` writes them into
+``model.geom_rgba`` only for the duration of ``mjv_updateScene`` (the one call that reads model
+colours: it copies them into the scene) and restores the model's values right after, even on error.
+MuJoCo itself then handles the rest as for any model colour: geoms below alpha 1 are drawn as
+transparent, geoms at alpha 0 are left out of the scene (no colour, no depth). Nothing outlives the
+call, so frames of one simulator never carry another's alphas, and envs sharing the model (or
+building their own renderer) see the model's colours. (This assumes that envs sharing a model do not
+render from several threads at once, as nothing in sg_torchrl does: each process compiles its own
+models.)
 """
 
 from __future__ import annotations
@@ -68,6 +83,7 @@ __all__ = [
     "DEFAULT_HEIGHT",
     "DEFAULT_WIDTH",
     "FollowCamera",
+    "GeomAlpha",
     "LOCOMOTION_CAMERA",
     "NAVIGATION_CAMERA",
     "RenderMixin",
@@ -79,6 +95,9 @@ __all__ = [
 
 DEFAULT_WIDTH = 256
 DEFAULT_HEIGHT = 256
+
+#: Alphas one simulator draws some geoms with: ``(geom_ids (K,) int, alphas (K,) float)`` (see the module docstring)
+GeomAlpha = tuple[np.ndarray, np.ndarray]
 
 # Backend -> (library PyOpenGL loads, Debian/Ubuntu packages providing it and what it needs).
 _LIBRARIES = {
@@ -259,14 +278,16 @@ class Renderer:
         """Whether this (open) renderer can produce a ``width`` x ``height`` frame."""
         return not self.closed and width <= self.max_width and height <= self.max_height
 
-    def render(self, data: mujoco.MjData, camera: mujoco.MjvCamera, width: int, height: int) -> np.ndarray:
-        """``data`` seen from ``camera`` as a new ``(height, width, 3)`` ``uint8`` array."""
+    def render(self, data: mujoco.MjData, camera: mujoco.MjvCamera, width: int, height: int, *,
+               geom_alpha: GeomAlpha | None = None) -> np.ndarray:
+        """``data`` seen from ``camera`` as a new ``(height, width, 3)`` ``uint8`` array (``geom_alpha``:
+        see :meth:`render_into`)."""
         pixels = np.empty((height, width, 3), dtype=np.uint8)
-        self.render_into(data, camera, pixels)
+        self.render_into(data, camera, pixels, geom_alpha=geom_alpha)
         return pixels
 
     def render_into(self, data: mujoco.MjData, camera: mujoco.MjvCamera, rgb: np.ndarray,
-                    depth: np.ndarray | None = None) -> None:
+                    depth: np.ndarray | None = None, *, geom_alpha: GeomAlpha | None = None) -> None:
         """Render ``data`` seen from ``camera`` into ``rgb`` and, if given, ``depth`` (rows top to bottom).
 
         Args:
@@ -290,8 +311,7 @@ class Renderer:
         if not self.fits(width, height):
             raise ValueError(f"frame {width}x{height} exceeds this renderer's {self.max_width}x{self.max_height}")
         self._gl.make_current()
-        mujoco.mjv_updateScene(self.model, data, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL.value,
-                               self._scene)
+        self._update_scene(data, camera, geom_alpha)
         if self.fast:
             flags = self._scene.flags
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
@@ -312,6 +332,22 @@ class Renderer:
             depth += near
             np.divide(near * far, depth, out=depth)
             np.clip(depth, near, far, out=depth)  # float32 rounding at the planes
+
+    def _update_scene(self, data: mujoco.MjData, camera: mujoco.MjvCamera, geom_alpha: GeomAlpha | None) -> None:
+        """``mjv_updateScene`` with ``geom_alpha`` in the model's colours for that call only."""
+        model = self.model
+        if geom_alpha is None:
+            mujoco.mjv_updateScene(model, data, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL.value,
+                                   self._scene)
+            return
+        ids, alphas = geom_alpha
+        saved = model.geom_rgba[ids, 3].copy()
+        try:
+            model.geom_rgba[ids, 3] = alphas
+            mujoco.mjv_updateScene(model, data, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL.value,
+                                   self._scene)
+        finally:
+            model.geom_rgba[ids, 3] = saved
 
     def depth_range(self) -> tuple[float, float]:
         """``(near, far)``: the clipping planes of the model's cameras in metres, the range of depth
@@ -409,6 +445,11 @@ class RenderMixin:
         """Id of the body the follow cameras track (default 1: the first body after the world)."""
         return 1
 
+    def geom_alpha(self, index: int) -> GeomAlpha | None:
+        """Geoms simulator ``index`` draws with other alphas than the model's, or ``None`` (the default:
+        none). Envs whose objects fade per simulator override it (module docstring)."""
+        return None
+
     def render_camera(self, index: int = 0, camera: Any = None) -> mujoco.MjvCamera:
         """The ``MjvCamera`` :meth:`render` uses for simulator ``index`` (``camera`` as in :meth:`render`)."""
         model, data = self.physics.model, self._render_data(index)
@@ -459,7 +500,7 @@ class RenderMixin:
                 renderer.close()
             self._renderer = None
             renderer = self._renderer = Renderer(self.physics.model, width, height, fast=self.render_fast)
-        return renderer.render(data, mjv_camera, width, height)
+        return renderer.render(data, mjv_camera, width, height, geom_alpha=self.geom_alpha(index))
 
     def close_renderer(self) -> None:
         """Free the renderer (the next :meth:`render` creates a new one)."""

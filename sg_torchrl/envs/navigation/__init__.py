@@ -6,6 +6,8 @@ Layout of this package:
 * ``robots/``    :class:`Robot` interface and the robots (``ROBOTS``)
 * ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
 * ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
+* ``scenery.py`` fixed world geometry (Race's road, houses, trees, rocks; builtin grass texture)
+* ``fading.py``  per-simulator render alphas of fading objects (the Fading tasks)
 * ``layout.py``  vectorised layout sampling with keep-outs
 * ``lidar.py``   vectorised pseudo-lidar
 * ``env.py``     :class:`NavigationEnv`, the TorchRL env composing all of the above (its multi-agent
@@ -18,6 +20,9 @@ from sg_torchrl.envs.navigation.objects import CircleZone, Sigwalls
 from sg_torchrl.envs.navigation.robots import ROBOTS, Ant, Car, Doggo, Point, Racecar, Robot
 from sg_torchrl.envs.navigation.tasks import MULTI_AGENT_TASKS, TASKS, GoalTask, MultiGoalTask, Task, make_task
 from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
+from sg_torchrl.envs.navigation.tasks import FadingEasyTask, FadingHardTask, FadingTask, RaceTask
+from sg_torchrl.envs.navigation.fading import Fader
+from sg_torchrl.envs.navigation.scenery import Prop, RoadSegment, Scenery
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Pillars, PushBox
 from sg_torchrl.envs.navigation.objects import AgentGoal, GoalBlue, GoalRed
 from sg_torchrl.envs.navigation.tasks import ButtonTask, PushTask
@@ -34,6 +39,14 @@ __all__ = [
     "PushTask",
     "Car",
     "Doggo",
+    "Fader",
+    "FadingEasyTask",
+    "FadingHardTask",
+    "FadingTask",
+    "Prop",
+    "RaceTask",
+    "RoadSegment",
+    "Scenery",
     "CircleTask",
     "CircleZone",
     "FreeObject",

@@ -41,7 +41,7 @@ from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
 from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model
-from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, RenderMixin
+from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, GeomAlpha, RenderMixin
 from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE, ObservationContent, ObsMode, PixelObserver
 
 __all__ = ["NavigationEnv"]
@@ -112,7 +112,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         model = compiled_model(  # natural lidar re-assigns geom groups: its own model
             (*self.robot.spec_key(), *self.task.key, *((("agents", count),) if count > 1 else ()),
              *(("natural_lidar",) if lidar == "natural" else ())),
-            lambda: build_spec(self.robots, objects, self.task.floor_half_size),
+            lambda: build_spec(self.robots, objects, self.task.floor_half_size, self.task.scenery),
         )
         for each in self.robots:
             each.bind(model)
@@ -188,7 +188,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             if count > 1:
                 raise ValueError(f"obs_mode={obs_mode!r}: pixel observations are for single-robot tasks; "
                                  f"{type(self.task).__name__} has {count} robots")
-            self.vision = PixelObserver(self.physics, self.robot.qualified("vision"), image_size, depth=content.depth)
+            self.vision = PixelObserver(self.physics, self.robot.qualified("vision"), image_size, depth=content.depth,
+                                        geom_alpha=self.geom_alpha)
             self._declare_pixels()
         self.task.bind(self)
 
@@ -216,6 +217,21 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
 
     def _render_body(self) -> int:
         return self.scene.agent_body
+
+    def geom_alpha(self, index: int) -> GeomAlpha | None:
+        """The task's per-simulator render alphas (the Fading tasks' fading objects), or ``None``."""
+        return self.task.geom_alpha(index)
+
+    @property
+    def step_costs(self) -> dict[str, np.ndarray]:
+        """Each constraint's raw cost of the last step per agent, ``{name: (N, A)}`` (read-only views of
+        the env's buffers: tasks read them in :meth:`Task.after_step`, e.g. to show a hazard being paid for)."""
+        views = {}
+        for name, value in self._agent_costs.items():
+            view = value.view()
+            view.flags.writeable = False
+            views[name] = view
+        return views
 
     # ------------------------------------------------------------------ layout
     def _reset_sims(self, indices: np.ndarray) -> None:

@@ -34,6 +34,7 @@ from sg_torchrl.envs.physics import MujocoBatch
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
     from sg_torchrl.envs.navigation.robots.base import Robot
+    from sg_torchrl.envs.navigation.scenery import Scenery
 
 __all__ = ["ResetBuffers", "Scene", "agent_prefix", "build_spec", "compiled_model", "prefix_robot", "world_order"]
 
@@ -52,9 +53,11 @@ def agent_prefix(index: int, count: int) -> str:
 
 
 def build_spec(
-    robot: Robot | Sequence[Robot], objects: Sequence[NavObject], floor_half_size: float
+    robot: Robot | Sequence[Robot], objects: Sequence[NavObject], floor_half_size: float,
+    scenery: Scenery | None = None,
 ) -> mujoco.MjSpec:
-    """The world as an ``MjSpec``: robot options and defaults, the robot(s), the floor, then the objects.
+    """The world as an ``MjSpec``: robot options and defaults, the robot(s), the floor, the fixed
+    ``scenery`` (:mod:`.scenery`: Race's road and props), then the objects.
 
     ``robot`` is one robot or a sequence of them (several robots share one world: their options and
     defaults must agree, as they do for robots of one class); each robot's elements are renamed
@@ -72,6 +75,8 @@ def build_spec(
                              diffuse=[1.0, 1.0, 1.0], specular=[0.0, 0.0, 0.0])
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6,
                             size=[floor_half_size, floor_half_size, 0.1], rgba=[0.9, 0.9, 0.9, 1.0])
+    if scenery is not None:
+        scenery.add_to(spec)
     for obj in world_order(objects):
         obj.add_to(spec)
     return spec

@@ -37,7 +37,7 @@ TorchRL's (the gymnasium façade gives the channels-last ``"vision"`` key back).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -47,7 +47,7 @@ import torch
 from torchrl.data import Bounded, TensorSpec
 
 from sg_torchrl.envs.physics import MujocoBatch
-from sg_torchrl.envs.rendering import Renderer, gl_backend
+from sg_torchrl.envs.rendering import GeomAlpha, Renderer, gl_backend
 
 __all__ = ["OBS_MODES", "ObsMode", "ObservationContent", "PixelObserver", "DEFAULT_IMAGE_SIZE"]
 
@@ -88,6 +88,9 @@ class PixelObserver:
         camera: name of the model camera to render (the robots' egocentric ``"vision"``).
         image_size: side of the square images, pixels (a positive int).
         depth: also render depth.
+        geom_alpha: ``geom_alpha(index)``: the alphas simulator ``index`` draws some geoms with (the
+            env's :meth:`~sg_torchrl.envs.rendering.RenderMixin.geom_alpha`: fading objects), or
+            ``None`` to draw the model's colours.
 
     Attributes:
         rgb: ``(N, H, W, 3)`` uint8, the last frame rendered of each simulator (channels last:
@@ -96,7 +99,8 @@ class PixelObserver:
         near, far: the depth range (the model's clipping planes), metres.
     """
 
-    def __init__(self, physics: MujocoBatch, camera: str, image_size: int, *, depth: bool) -> None:
+    def __init__(self, physics: MujocoBatch, camera: str, image_size: int, *, depth: bool,
+                 geom_alpha: Callable[[int], GeomAlpha | None] | None = None) -> None:
         if isinstance(image_size, bool) or not isinstance(image_size, (int, np.integer)) or image_size < 1:
             raise ValueError(f"image_size must be a positive integer, got {image_size!r}")
         model = physics.model
@@ -106,6 +110,7 @@ class PixelObserver:
             raise ValueError(f"the model has no camera {camera!r} (cameras: {names})")
         gl_backend()  # fail now, with the reason, rather than at the first reset
         self.physics = physics
+        self.geom_alpha = geom_alpha
         self.image_size = int(image_size)
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -142,9 +147,10 @@ class PixelObserver:
         if renderer is None:
             size = self.image_size
             renderer = self._renderer = Renderer(self.physics.model, size, size, fast=True)
-        datas, camera, depth = self.physics.datas, self.camera, self.depth
+        datas, camera, depth, alpha = self.physics.datas, self.camera, self.depth, self.geom_alpha
         for index in indices:
-            renderer.render_into(datas[index], camera, self.rgb[index], None if depth is None else depth[index])
+            renderer.render_into(datas[index], camera, self.rgb[index], None if depth is None else depth[index],
+                                 geom_alpha=None if alpha is None else alpha(index))
 
     def observation(self) -> dict[str, torch.Tensor]:
         """Fresh tensors of the current frames: ``pixels`` ``(N, 3, H, W)`` and ``depth`` ``(N, 1, H, W)``."""

@@ -13,9 +13,11 @@ from collections.abc import Callable
 from sg_torchrl.envs.navigation.tasks.base import Task
 from sg_torchrl.envs.navigation.tasks.button import BUTTON_LEVELS, ButtonTask
 from sg_torchrl.envs.navigation.tasks.circle import CIRCLE_LEVELS, CircleTask
+from sg_torchrl.envs.navigation.tasks.fading import FADING_EASY_LEVELS, FADING_HARD_LEVELS, FadingEasyTask, FadingHardTask, FadingTask
 from sg_torchrl.envs.navigation.tasks.goal import GOAL_LEVELS, GoalTask
 from sg_torchrl.envs.navigation.tasks.multi_goal import MULTI_GOAL_LEVELS, MultiGoalTask
 from sg_torchrl.envs.navigation.tasks.push import PUSH_LEVELS, PushTask
+from sg_torchrl.envs.navigation.tasks.race import RACE_LEVELS, RaceTask
 from sg_torchrl.envs.navigation.tasks.run import RUN_LEVELS, RunTask
 
 TASKS: dict[str, dict[int, Callable[[], Task]]] = {
@@ -24,6 +26,9 @@ TASKS: dict[str, dict[int, Callable[[], Task]]] = {
     "Push": PUSH_LEVELS,
     "Circle": CIRCLE_LEVELS,
     "Run": RUN_LEVELS,
+    "FadingEasy": FADING_EASY_LEVELS,
+    "FadingHard": FADING_HARD_LEVELS,
+    "Race": RACE_LEVELS,
 }
 
 MULTI_AGENT_TASKS: dict[str, dict[int, Callable[[], Task]]] = {
@@ -41,5 +46,5 @@ def make_task(name: str, level: int) -> Task:
     return levels[level]()
 
 
-__all__ = ["ButtonTask", "CircleTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RunTask",
+__all__ = ["ButtonTask", "CircleTask", "FadingEasyTask", "FadingHardTask", "FadingTask", "GoalTask", "MULTI_AGENT_TASKS", "MultiGoalTask", "PushTask", "RaceTask", "RunTask",
            "TASKS", "Task", "make_task"]

@@ -17,9 +17,11 @@ import numpy as np
 
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.world import world_order
+from sg_torchrl.envs.rendering import GeomAlpha
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
+    from sg_torchrl.envs.navigation.scenery import Scenery
 
 __all__ = ["Task"]
 
@@ -48,6 +50,8 @@ class Task(abc.ABC):
     lidar_bins: ClassVar[int] = 16
     #: rewards are clipped to [-clip, clip] (reference section 4; ``None``: no clip)
     reward_clip: ClassVar[float | None] = 10.0
+    #: fixed world geometry beside the objects (Race's road and props), or ``None``; set by a task's constructor
+    scenery: Scenery | None = None
 
     def __init__(
         self,
@@ -72,7 +76,8 @@ class Task(abc.ABC):
     @property
     def key(self) -> tuple:
         """Identifies the world this task builds (with the robot: the compiled-model cache key)."""
-        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects))
+        return (self.name, self.level, self.floor_half_size, tuple(obj.spec_key() for obj in self.objects),
+                None if self.scenery is None else self.scenery.spec_key())
 
     def find(self, kind: type[ObjectT]) -> ObjectT:
         """The object of class ``kind`` in this level."""
@@ -107,6 +112,11 @@ class Task(abc.ABC):
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
         """Adjust the assembled observation in place (e.g. Button blanks ``buttons_lidar`` while its timer runs)."""
+
+    def geom_alpha(self, index: int) -> GeomAlpha | None:
+        """Geoms simulator ``index`` draws with another alpha than the model's, and their alphas
+        (``(geom_ids, alphas)``; the Fading tasks), or ``None`` (default: the model's colours). Rendering only."""
+        return None
 
     def state_dict(self) -> dict:
         """Per-simulator task state (for checkpoints)."""

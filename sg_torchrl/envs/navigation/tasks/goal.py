@@ -12,6 +12,7 @@ Levels: 0 the goal alone in +-1; 1 adds 8 hazards and one unconstrained vase in 
 
 from __future__ import annotations
 
+from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -22,7 +23,7 @@ from sg_torchrl.envs.navigation.tasks.base import Task
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["GoalTask", "GOAL_LEVELS"]
+__all__ = ["GoalTask", "GOAL_LEVELS", "goal_level"]
 
 
 class GoalTask(Task):
@@ -81,10 +82,17 @@ class GoalTask(Task):
         self.goal_met[:] = state["goal_met"]
 
 
-# reference section 6: extents, counts, sizes and keep-outs of each level.
-GOAL_LEVELS = {
-    0: lambda: GoalTask(0, extents=1.0, objects=[Goal(keepout=0.305)]),
-    1: lambda: GoalTask(1, extents=1.5, objects=[
-        Goal(keepout=0.305), Hazards(8, keepout=0.18), Vases(1, constrained=False)]),
-    2: lambda: GoalTask(2, extents=2.0, objects=[Goal(keepout=0.305), Hazards(10, keepout=0.18), Vases(10)]),
-}
+def goal_level(task: type[GoalTask], level: int, **options) -> GoalTask:
+    """A fresh ``task`` (:class:`GoalTask` or a subclass: the Fading tasks) with Goal level ``level``'s
+    extents and objects (reference section 6); ``options`` go to ``task``'s constructor."""
+    if level == 0:
+        return task(0, extents=1.0, objects=[Goal(keepout=0.305)], **options)
+    if level == 1:
+        return task(1, extents=1.5, objects=[Goal(keepout=0.305), Hazards(8, keepout=0.18), Vases(1, constrained=False)],
+                    **options)
+    if level == 2:
+        return task(2, extents=2.0, objects=[Goal(keepout=0.305), Hazards(10, keepout=0.18), Vases(10)], **options)
+    raise ValueError(f"Goal has levels 0, 1, 2, got {level}")
+
+
+GOAL_LEVELS = {level: partial(goal_level, GoalTask, level) for level in range(3)}
