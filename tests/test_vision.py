@@ -89,14 +89,16 @@ def test_vision_ids_in_the_registry():
     assert not set(VISION_IDS) & set(sg_torchrl.list_envs(family="navigation"))
 
 
-def test_sg_train_refuses_pixel_only_envs_clearly():
+def test_sg_train_takes_pixel_envs_and_refuses_images_too_small_for_its_cnn():
     from sg_torchrl.train.config import TrainConfig
 
-    with pytest.raises(ValueError, match="observes pixels only.*SafetyPointGoal1-v0"):
-        TrainConfig(env_id=VISION_ID)
-    with pytest.raises(ValueError, match="obs_mode='rgbd' observes pixels only"):
-        TrainConfig(env_id="SafetyPointGoal1-v0", env_options={"obs_mode": "rgbd"})
-    assert TrainConfig(env_id=VISION_ID, env_options={"obs_mode": "vector"}).env_id == VISION_ID
+    # Pixel-only envs train through CNN encoders (tests/test_train_vision.py runs them).
+    assert TrainConfig(env_id=VISION_ID).env_id == VISION_ID
+    assert TrainConfig(env_id="SafetyPointGoal1-v0", env_options={"obs_mode": "rgbd"}).env_options["obs_mode"] == "rgbd"
+    with pytest.raises(ValueError, match="image_size=16 is too small for sg-train's CNN encoder.*>= 36"):
+        TrainConfig(env_id=VISION_ID, env_options={"image_size": 16})
+    assert TrainConfig(env_id=VISION_ID, env_options={"image_size": 36}).env_options["image_size"] == 36
+    assert TrainConfig(env_id=VISION_ID, env_options={"obs_mode": "vector", "image_size": 16}).env_id == VISION_ID
 
 
 def test_without_opengl_a_pixel_env_says_why(monkeypatch):

@@ -32,7 +32,7 @@ __all__ = ["make_gae", "make_cost_gae", "normalize_advantages"]
 
 
 def make_gae(
-    value_network: TensorDictModuleBase,
+    value_network: TensorDictModuleBase | None,
     *,
     gamma: float = 0.99,
     lmbda: float = 0.95,
@@ -44,7 +44,9 @@ def make_gae(
     critic's ``"state_value"``; writes ``"advantage"`` and ``"value_target"``.
 
     Args:
-        value_network (TensorDictModuleBase): the reward critic, writing ``"state_value"``.
+        value_network (TensorDictModuleBase or None): the reward critic, writing ``"state_value"``;
+            ``None`` when the caller writes ``"state_value"`` and ``("next", "state_value")`` itself
+            (e.g. in chunks, for image observations).
 
     Keyword Args:
         gamma (float): discount factor. Defaults to ``0.99`` (paper value).
@@ -59,7 +61,7 @@ def make_gae(
 
 
 def make_cost_gae(
-    cost_value_network: TensorDictModuleBase,
+    cost_value_network: TensorDictModuleBase | None,
     *,
     gamma: float = 0.99,
     lmbda: float = 0.95,
@@ -77,7 +79,8 @@ def make_cost_gae(
     (``lambda_c = 0.95``), which are the defaults here.
 
     Args:
-        cost_value_network (TensorDictModuleBase): the cost critic, writing ``"cost_value"``.
+        cost_value_network (TensorDictModuleBase or None): the cost critic, writing ``"cost_value"``;
+            ``None`` when the caller writes ``"cost_value"`` and ``("next", "cost_value")`` itself.
 
     Keyword Args:
         gamma (float): cost discount factor. Defaults to ``0.99``.

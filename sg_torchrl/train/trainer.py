@@ -11,6 +11,11 @@ One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
    early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
 5. log SafePO's metrics, checkpoint.
 
+The networks read what the env emits (:class:`~sg_torchrl.train.models.ObservationLayout`): the
+flat vector, or images through CNN encoders; with images, whole-batch passes without gradient (the
+critics' values for GAE, the KL early stop) run in chunks so an epoch of ``uint8`` frames is never
+converted to float at once.
+
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
 observation normaliser, simulator states and generators, the collector's carry, episode
 statistics, torch RNG states), so ``--resume`` continues bit-identically.
@@ -44,9 +49,9 @@ from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.logging import RunLogger
-from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
-from sg_torchrl.train.updates import UpdateParts
+from sg_torchrl.train.updates import UpdateParts, write_values
 
 __all__ = ["CHECKPOINT_NAME", "EpochTrainer", "Trainer"]
 
@@ -276,17 +281,22 @@ class Trainer(EpochTrainer):
         self.algorithm = ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
         self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed, **cfg.env_options)
-        obs_dim = self.base_env.observation_dim
-        self.obs_norm = RunningObservationNorm((obs_dim,)) if cfg.normalize_obs else None
+        # What the networks read (flat vector, pixels, depth) comes from the env's observation spec;
+        # the running normaliser applies to the flat vector only (images are scaled in the networks).
+        self.layout = ObservationLayout.from_spec(self.base_env.observation_spec)
+        normalize = cfg.normalize_obs and self.layout.vector_dim is not None
+        self.obs_norm = RunningObservationNorm((self.layout.vector_dim,)) if normalize else None
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
 
         self.actor, self.critic, self.cost_critic = make_actor_critics(
-            obs_dim, self.base_env.action_spec, cfg.network_sizes
+            self.layout, self.base_env.action_spec, cfg.network_sizes
         )
         self.multiplier = self.algorithm.make_multiplier(cfg)
         self.loss = self.algorithm.make_loss(self.actor, self.critic, self.cost_critic, self.multiplier, cfg)
-        self.reward_gae = make_gae(self.critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
-        self.cost_gae = make_cost_gae(self.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
+        # The GAEs read values that :func:`write_values` computes in chunks (no value network of their
+        # own: TorchRL's would run the critic on the stacked observations and next observations at once).
+        self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
+        self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
 
         critic_params = [*self.critic.parameters(), *self.cost_critic.parameters()]
         # One fused Adam with a parameter group per learning rate: SafePO's separate Adam optimisers
@@ -304,7 +314,7 @@ class Trainer(EpochTrainer):
         parts = UpdateParts(
             actor=self.actor, critics=(self.critic, self.cost_critic), loss=self.loss, optimizer=self.optimizer,
             rng=self.minibatch_rng, passes=cfg.update_iters, minibatch_size=cfg.minibatch_size,
-            target_kl=cfg.target_kl, max_grad_norm=cfg.max_grad_norm,
+            target_kl=cfg.target_kl, max_grad_norm=cfg.max_grad_norm, chunk_size=self.layout.chunk_size,
         )
         self.policy_update = self.algorithm.make_update(parts, self.multiplier, cfg)
         self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
@@ -326,6 +336,7 @@ class Trainer(EpochTrainer):
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """Advantages on the whole batch, then the algorithm's :class:`PolicyUpdate`."""
         with torch.no_grad():
+            write_values(batch, (self.critic, self.cost_critic), self.layout.chunk_size)
             self.reward_gae(batch)
             self.cost_gae(batch)
         data = batch.reshape(-1)

@@ -12,7 +12,9 @@ hands the flat batch to the algorithm's :class:`PolicyUpdate`:
   actor on the whole batch (:mod:`sg_torchrl.objectives.trust_region`), then minibatch passes on
   the two critics only.
 
-All three share :func:`minibatch_passes`, the one minibatch loop of the package.
+All three share :func:`minibatch_passes`, the one minibatch loop of the package. Passes over the
+whole batch that need no gradient (the critics' values for GAE, the KL early stop, CUP's stage-one
+policy) go through :func:`forward_in_chunks`, so a batch of images is converted to float one slice at a time.
 """
 
 from __future__ import annotations
@@ -23,13 +25,56 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from sg_torchrl.objectives import gaussian_kl
 
-__all__ = ["FirstOrderUpdate", "PolicyUpdate", "TrustRegionUpdate", "TwoStageUpdate", "UpdateParts", "minibatch_passes"]
+__all__ = [
+    "FirstOrderUpdate", "PolicyUpdate", "TrustRegionUpdate", "TwoStageUpdate", "UpdateParts", "forward_in_chunks",
+    "minibatch_passes", "write_values",
+]
 
 LossFn = Callable[[TensorDictBase], dict[str, Tensor]]
+
+
+@torch.no_grad()
+def forward_in_chunks(
+    module: Callable[[TensorDictBase], TensorDictBase],
+    data: TensorDictBase,
+    in_keys: Sequence[NestedKey],
+    out_keys: Sequence[NestedKey],
+    chunk_size: int | None,
+) -> dict[NestedKey, Tensor]:
+    """``module``'s ``out_keys`` over the flat ``data``, computed ``chunk_size`` samples at a time.
+
+    Only ``in_keys`` are handed to ``module`` (nothing else of the batch is copied); ``chunk_size``
+    ``None`` runs the whole batch in one call. Networks over images use chunks so that the float
+    copy of a whole epoch of ``uint8`` frames (and its first feature maps) never exists at once.
+    """
+    inputs = data.select(*in_keys)
+    size = inputs.numel()
+    step = size if chunk_size is None else max(int(chunk_size), 1)
+    outputs = [module(inputs[start : start + step]) for start in range(0, size, step)]
+    return {key: torch.cat([out.get(key) for out in outputs]) for key in out_keys}
+
+
+@torch.no_grad()
+def write_values(batch: TensorDictBase, critics: Sequence[nn.Module], chunk_size: int | None) -> None:
+    """Each critic's value of the observations and of the next observations, written into ``batch``.
+
+    ``batch`` is an epoch's ``(N, T)`` rollout; it is viewed flat and each critic (a value operator
+    with one out-key, e.g. ``state_value``) runs ``chunk_size`` samples at a time
+    (:func:`forward_in_chunks`), writing ``key`` and ``("next", key)``: what TorchRL's ``GAE`` reads
+    when it has no value network of its own (its own would run on the observations and next
+    observations stacked, all at once).
+    """
+    flat = batch.reshape(-1)
+    for prefix, source in (((), flat), (("next",), flat.get("next"))):
+        for critic in critics:
+            key = critic.out_keys[0]
+            values = forward_in_chunks(critic, source, critic.in_keys, [key], chunk_size)[key]
+            batch.set((*prefix, key), values.reshape(*batch.shape, *values.shape[1:]))
 
 
 @dataclass
@@ -43,6 +88,8 @@ class UpdateParts:
         optimizer: Adam over the actor (first order only) and the critics.
         rng: generator of the minibatch order (checkpointed by the trainer).
         passes, minibatch_size, target_kl, max_grad_norm: the config's values.
+        chunk_size: samples per no-grad pass of the actor over the whole batch (``None``: all at
+            once; images: :data:`~sg_torchrl.train.models.IMAGE_CHUNK`).
     """
 
     actor: nn.Module
@@ -54,12 +101,18 @@ class UpdateParts:
     minibatch_size: int
     target_kl: float
     max_grad_norm: float
+    chunk_size: int | None = None
+
+    def dist_params(self, data: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """The current policy's ``loc`` and ``scale`` on every sample of the flat ``data`` (no gradient)."""
+        out = forward_in_chunks(self.actor.get_dist_params, data, self.actor.in_keys, ("loc", "scale"),
+                                self.chunk_size)
+        return out["loc"], out["scale"]
 
     def policy_kl(self, data: TensorDictBase, loc: Tensor, scale: Tensor) -> float:
         """Mean KL(reference || current policy) over ``data``; ``loc`` / ``scale`` are the reference's."""
-        with torch.no_grad():
-            current = self.actor.get_dist_params(data.select("observation"))
-            return gaussian_kl(loc, scale, current["loc"], current["scale"]).mean().item()
+        current_loc, current_scale = self.dist_params(data)
+        return gaussian_kl(loc, scale, current_loc, current_scale).mean().item()
 
 
 def minibatch_passes(
@@ -86,9 +139,11 @@ def minibatch_passes(
     sums = dict.fromkeys(terms, 0.0)
     steps, kl, done = 0, 0.0, 0
     for done in range(1, passes + 1):
-        shuffled = data[torch.randperm(size, generator=parts.rng)]
+        # Gather each minibatch from the shuffled order (not the whole shuffled batch at once: with
+        # images and their "next" frames, that copy alone is hundreds of MB per pass).
+        order = torch.randperm(size, generator=parts.rng)
         for start in range(0, size, minibatch_size):
-            out = loss_fn(shuffled[start : start + minibatch_size])
+            out = loss_fn(data[order[start : start + minibatch_size]])
             total = sum(out[name] for name in terms)
             parts.optimizer.zero_grad(set_to_none=True)
             total.backward()
@@ -161,9 +216,7 @@ class TwoStageUpdate(PolicyUpdate):
     def __call__(self, data: TensorDictBase, cost_violation: float) -> dict[str, float]:
         parts = self.parts
         metrics = self._first_order(data, parts.loss.reward_stage)
-        with torch.no_grad():
-            stage1 = parts.actor.get_dist_params(data.select("observation"))
-        loc, scale = stage1["loc"].detach(), stage1["scale"].detach()
+        loc, scale = parts.dist_params(data)
         data.set("stage1_loc", loc)
         data.set("stage1_scale", scale)
         passes, kl, means = minibatch_passes(

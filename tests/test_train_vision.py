@@ -1,0 +1,223 @@
+"""sg-train from pixels: CNN actor and critics, tiny runs on pixel envs, exact resume, evaluation, errors.
+
+Tests that build a pixel env need an OpenGL backend (EGL or OSMesa through Mesa, no GPU needed):
+without one they skip with the reason :func:`~sg_torchrl.envs.rendering.gl_backend` gives (the
+pattern of ``tests/test_vision.py``). The encoder's arithmetic, the layout and the option errors are
+tested on synthetic tensors, without drawing. Episodes are cut to 25 steps so that tiny epochs
+finish some.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.modules import ConvNet
+
+torch.set_num_threads(1)
+
+import sg_torchrl  # noqa: E402
+from sg_torchrl.envs import rendering  # noqa: E402
+from sg_torchrl.envs.rendering import RenderingUnavailable  # noqa: E402
+from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train.models import (  # noqa: E402
+    DEFAULT_CNN,
+    DEPTH_RANGE,
+    EncodedMLP,
+    ObservationEncoder,
+    ObservationLayout,
+    make_actor_critics,
+    make_value,
+)
+from sg_torchrl.train.updates import forward_in_chunks, write_values  # noqa: E402
+
+VISION_ID = "SafetyPointGoal1Vision-v0"
+#: (env id, env options): the Vision id as registered (pixels only, RGB) and the plain id with
+#: the flat vector, RGB and depth.
+PIXEL_ENVS = {
+    "rgb": (VISION_ID, {}),
+    "vector+rgbd": ("SafetyPointGoal1-v0", {"obs_mode": "vector+rgbd"}),
+}
+
+
+@pytest.fixture(scope="module")
+def backend() -> str:
+    try:
+        return rendering.gl_backend()
+    except RenderingUnavailable as error:
+        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
+
+
+def tiny_config(tmp_path, mode: str, **overrides) -> TrainConfig:
+    env_id, options = PIXEL_ENVS[mode]
+    values = dict(
+        env_id=env_id, env_options={**options, "max_episode_steps": 25}, num_envs=2, steps_per_epoch=40,
+        total_steps=120, update_iters=2, minibatch_size=32, eval_episodes=0, wandb="disabled", progress=False,
+        output_dir=str(tmp_path), run_name="run", checkpoint_every=100,
+    )
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+def flat_parameters(trainer: Trainer) -> torch.Tensor:
+    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
+    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
+
+
+def encoder_parameters(module: torch.nn.Module) -> torch.Tensor:
+    convs = [m for m in module.modules() if isinstance(m, ConvNet)]
+    assert len(convs) == 1
+    return torch.cat([p.detach().reshape(-1).clone() for p in convs[0].parameters()])
+
+
+# ---------------------------------------------------------------------------- no OpenGL needed
+def pixel_spec(n: int = 2, size: int = 64, vector: int | None = None, depth: bool = False) -> Composite:
+    entries = {"pixels": Bounded(0, 255, shape=(n, 3, size, size), dtype=torch.uint8)}
+    if depth:
+        entries["depth"] = Bounded(0.0, 42.0, shape=(n, 1, size, size), dtype=torch.float32)
+    if vector is not None:
+        entries["observation"] = Unbounded(shape=(n, vector))
+    entries["cost"] = Unbounded(shape=(n, 1))
+    return Composite(**entries, shape=(n,))
+
+
+class TestLayoutAndEncoder:
+    def test_layout_from_the_observation_spec(self):
+        layout = ObservationLayout.from_spec(pixel_spec(vector=12, depth=True))
+        assert layout == ObservationLayout(vector_dim=12, image_shape=(64, 64), rgb=True, depth=True)
+        assert layout.in_keys == ["pixels", "depth", "observation"] and layout.chunk_size is not None
+        vector = ObservationLayout.from_spec(Composite(observation=Unbounded(shape=(2, 5)), shape=(2,)))
+        assert vector.in_keys == ["observation"] and not vector.images and vector.chunk_size is None
+        with pytest.raises(ValueError, match="nothing the networks can read"):
+            ObservationLayout.from_spec(Composite(cost=Unbounded(shape=(2, 1)), shape=(2,)))
+
+    def test_encoder_scales_pixels_and_depth_then_appends_the_vector(self):
+        torch.manual_seed(0)
+        encoder = ObservationEncoder(ObservationLayout(vector_dim=3, image_shape=(64, 64), rgb=True, depth=True))
+        pixels = torch.randint(0, 256, (4, 3, 64, 64), dtype=torch.uint8)
+        depth = torch.rand(4, 1, 64, 64) * 10.0  # half of it beyond DEPTH_RANGE: saturates at 1
+        vector = torch.randn(4, 3)
+        expected_input = torch.cat([pixels.float() / 255.0, depth.clamp(max=DEPTH_RANGE) / DEPTH_RANGE], dim=-3)
+        originals = pixels.clone(), depth.clone()
+        features = encoder(pixels, depth, vector)
+        assert features.shape == (4, encoder.out_features) == (4, 32 * 4 * 4 + 3)
+        torch.testing.assert_close(features, torch.cat([encoder.cnn(expected_input), vector], dim=-1))
+        assert torch.equal(pixels, originals[0]) and torch.equal(depth, originals[1])  # inputs are not scaled in place
+
+    def test_images_too_small_for_the_cnn_are_a_clear_error(self):
+        assert DEFAULT_CNN.min_image_size == 36 and DEFAULT_CNN.output_side(36) == 1
+        assert DEFAULT_CNN.output_side(35) == 0
+        with pytest.raises(ValueError, match="at least 36 pixels a side"):
+            ObservationEncoder(ObservationLayout(vector_dim=None, image_shape=(32, 32), rgb=True))
+
+    def test_actor_and_critics_have_their_own_encoders(self):
+        spec = pixel_spec(vector=7)
+        actor, critic, cost_critic = make_actor_critics(spec, Bounded(-1.0, 1.0, shape=(2, 2)), [16])
+        assert actor.in_keys == critic.in_keys == cost_critic.in_keys == ["pixels", "observation"]
+        ids = [{id(p) for p in m.parameters()} for m in (actor, critic, cost_critic)]
+        assert not (ids[0] & ids[1] or ids[0] & ids[2] or ids[1] & ids[2])
+        assert isinstance(critic.module, EncodedMLP)
+
+    def test_chunked_values_equal_one_pass_and_fill_both_time_steps(self):
+        torch.manual_seed(0)
+        layout = ObservationLayout(vector_dim=None, image_shape=(36, 36), rgb=True)
+        critic = make_value(layout, [8], "state_value")
+        frames = lambda: torch.randint(0, 256, (2, 5, 3, 36, 36), dtype=torch.uint8)  # noqa: E731
+        batch = TensorDict({"pixels": frames(), "next": {"pixels": frames()}}, [2, 5])
+        whole = forward_in_chunks(critic, batch.reshape(-1), ["pixels"], ["state_value"], None)["state_value"]
+        write_values(batch, [critic], chunk_size=3)  # 10 samples in chunks of 3, 3, 3, 1
+        assert batch["state_value"].shape == batch["next", "state_value"].shape == (2, 5, 1)
+        torch.testing.assert_close(batch["state_value"].reshape(-1, 1), whole)
+        torch.testing.assert_close(batch["next", "state_value"], critic(batch["next"].clone())["state_value"])
+
+    def test_vision_preset_is_ppo_lag_on_a_vision_id_in_whole_epochs(self):
+        cfg = parse_args(["--preset", "vision"])
+        assert (cfg.algo, cfg.env_id) == ("ppo_lag", VISION_ID) and cfg.env_id in sg_torchrl.list_envs()
+        assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.steps_per_epoch % cfg.num_envs == 0
+        assert cfg.steps_per_epoch // cfg.num_envs >= 1000  # every simulator finishes an episode per epoch
+
+    def test_vision_ids_get_the_papers_network_sizes_per_robot(self):
+        # The MLP after the encoder: [256, 256] for the Ant and Doggo navigation robots, as their vector ids.
+        assert TrainConfig(env_id="SafetyDoggoGoal1Vision-v0").network_sizes == [256, 256]
+        assert TrainConfig(env_id=VISION_ID).network_sizes == [64, 64]
+
+    def test_cli_reports_an_image_size_too_small_for_the_cnn(self, capsys):
+        assert main(["--preset", "vision", "--env-options", "image_size=24"]) == 2
+        assert "image_size=24 is too small for sg-train's CNN encoder" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- pixel envs (OpenGL)
+def test_cnn_actor_and_critics_on_a_vision_rollout(backend):
+    env = sg_torchrl.make(VISION_ID, num_envs=2, seed=0)
+    actor, critic, cost_critic = make_actor_critics(env.observation_spec, env.action_spec, [64, 64])
+    rollout = env.rollout(3, actor)
+    env.close()
+    assert rollout.batch_size == (2, 3) and rollout["pixels"].dtype == torch.uint8
+    assert "observation" not in rollout.keys()
+    assert rollout["action"].shape == rollout["loc"].shape == rollout["scale"].shape == (2, 3, 2)
+    assert rollout["action_log_prob"].shape == (2, 3)
+    critic(rollout)
+    cost_critic(rollout)
+    assert rollout["state_value"].shape == rollout["cost_value"].shape == (2, 3, 1)
+    assert torch.isfinite(rollout["state_value"]).all() and torch.isfinite(rollout["cost_value"]).all()
+
+
+@pytest.mark.parametrize("mode", list(PIXEL_ENVS))
+def test_tiny_run_checkpoints_resumes_exactly_and_evaluates(backend, tmp_path, mode):
+    uninterrupted = Trainer(tiny_config(tmp_path / "a", mode))
+    assert (uninterrupted.obs_norm is None) == (mode == "rgb")  # the normaliser is for the flat vector only
+    encoder_before = encoder_parameters(uninterrupted.actor)
+    uninterrupted.run()
+    assert not torch.equal(encoder_before, encoder_parameters(uninterrupted.actor))  # the CNN learns
+
+    first_half = Trainer(tiny_config(tmp_path / "b", mode))
+    first_half.run(max_epochs=2)
+    resumed = Trainer(tiny_config(tmp_path / "b", mode), Trainer.load_checkpoint(first_half.checkpoint_path.parent))
+    assert resumed.epoch == 2
+    resumed.run()
+    assert torch.equal(flat_parameters(uninterrupted), flat_parameters(resumed))
+    assert torch.equal(uninterrupted.multiplier.value, resumed.multiplier.value)
+    rows_a = (tmp_path / "a" / "run" / "progress.csv").read_text().splitlines()
+    rows_b = (tmp_path / "b" / "run" / "progress.csv").read_text().splitlines()
+    assert len(rows_a) == len(rows_b) == 4  # header + 3 epochs
+    assert [r.split(",")[:3] for r in rows_a] == [r.split(",")[:3] for r in rows_b]
+
+    resumed.cfg.eval_episodes = 2
+    evaluation = resumed._evaluate()
+    assert evaluation["Metrics/EvalEpLen"] == 25.0
+    assert evaluation["Metrics/EvalEpRet"] == evaluation["Metrics/EvalEpRet"]  # not NaN
+    uninterrupted.base_env.close()
+    resumed.base_env.close()
+
+
+@pytest.mark.parametrize("algo", ["cup", "cpo"])
+def test_two_stage_and_trust_region_updates_train_the_cnns(backend, tmp_path, algo):
+    # CUP's stage-one policy and CPO's whole-batch trust-region step read the images too.
+    trainer = Trainer(tiny_config(tmp_path, "rgb", algo=algo, cost_limit=0.0, total_steps=40))
+    critic_before = encoder_parameters(trainer.critic)
+    metrics = trainer.train_epoch()
+    assert not torch.equal(critic_before, encoder_parameters(trainer.critic))
+    for name in ("Train/KL", "Loss/Loss_reward_critic", "Loss/Loss_cost_critic"):
+        assert torch.isfinite(torch.tensor(metrics[name])), name
+    trainer.base_env.close()
+
+
+def test_vision_recipe_runs(backend):
+    root = Path(__file__).resolve().parents[1]
+    example = root / "examples" / "vision.py"
+    args = ["--obs-mode", "vector+rgbd", "--max-episode-steps", "25", "--total-steps", "100", "--steps-per-epoch",
+            "50", "--num-envs", "2", "--update-iters", "2"]
+    # This tree's sg_torchrl, whichever one the interpreter has installed.
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, str(example), *args], capture_output=True, text=True, timeout=110,
+                            env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = [line for line in result.stdout.splitlines() if line.startswith("epoch ")]
+    assert len(lines) == 2 and "EpCost" in lines[-1] and "nan" not in lines[-1].lower()
