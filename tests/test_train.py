@@ -13,6 +13,7 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
+from trainer_checks import flat_parameters  # noqa: E402
 
 
 def tiny_config(tmp_path, **overrides) -> TrainConfig:
@@ -23,11 +24,6 @@ def tiny_config(tmp_path, **overrides) -> TrainConfig:
     )
     values.update(overrides)
     return TrainConfig(**values)
-
-
-def flat_parameters(trainer: Trainer) -> torch.Tensor:
-    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
-    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
 
 
 class TestConfig:

@@ -23,8 +23,6 @@ from torchrl.modules import ConvNet
 torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
-from sg_torchrl.envs import rendering  # noqa: E402
-from sg_torchrl.envs.rendering import RenderingUnavailable  # noqa: E402
 from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
 from sg_torchrl.train.models import (  # noqa: E402
@@ -37,6 +35,7 @@ from sg_torchrl.train.models import (  # noqa: E402
     make_value,
 )
 from sg_torchrl.train.updates import forward_in_chunks, write_values  # noqa: E402
+from trainer_checks import flat_parameters  # noqa: E402
 
 VISION_ID = "SafetyPointGoal1Vision-v0"
 #: (env id, env options): the Vision id as registered (pixels only, RGB) and the plain id with
@@ -45,14 +44,6 @@ PIXEL_ENVS = {
     "rgb": (VISION_ID, {}),
     "vector+rgbd": ("SafetyPointGoal1-v0", {"obs_mode": "vector+rgbd"}),
 }
-
-
-@pytest.fixture(scope="module")
-def backend() -> str:
-    try:
-        return rendering.gl_backend()
-    except RenderingUnavailable as error:
-        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
 
 
 def tiny_config(tmp_path, mode: str, **overrides) -> TrainConfig:
@@ -64,11 +55,6 @@ def tiny_config(tmp_path, mode: str, **overrides) -> TrainConfig:
     )
     values.update(overrides)
     return TrainConfig(**values)
-
-
-def flat_parameters(trainer: Trainer) -> torch.Tensor:
-    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
-    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
 
 
 def encoder_parameters(module: torch.nn.Module) -> torch.Tensor:
