@@ -121,6 +121,9 @@ REFERENCE_SIZES_BY_ID.update({
     for level, groups in enumerate(per_level)
 })
 
+# Dexterous hands (the paper's section 4.4, Isaac Gym's ShadowHandOver): observation 398, action 40 (sg_torchrl.dexhands).
+REFERENCE_SIZES_BY_ID.update({f"ShadowHandOver{safety}-v0": (398, 40) for safety in ("SafeJoint", "SafeFinger")})
+
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
 MULTI_AGENT_SIZES = {
     "Safety2x4AntVelocity-v0": ([(21, 4), (21, 4)], 27, 2.522),

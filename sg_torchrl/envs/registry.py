@@ -44,7 +44,8 @@ class EnvEntry:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
         constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
         family: ``"velocity"``, ``"navigation"``, ``"vision"`` (navigation seen through the robot's
-            camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``.
+            camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``, ``"dexhands"`` (two
+            Shadow Hands, :mod:`sg_torchrl.dexhands`).
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
@@ -240,7 +241,30 @@ def _register_multi_agent_navigation() -> None:
                 )
 
 
+def _register_dexhands() -> None:
+    """``ShadowHandOver{SafeJoint,SafeFinger}-v0``: the paper's safe dexterous-hand ids (section 4.4).
+
+    Ids are the paper's task names with Safety-Gymnasium's ``-v0`` suffix; 75 steps per episode
+    (Isaac Gym's ``episodeLength`` for ShadowHandOver). See :mod:`sg_torchrl.dexhands`.
+    """
+    from sg_torchrl.dexhands import SAFETY_VARIANTS, ShadowHandOverEnv
+
+    for safety in SAFETY_VARIANTS:
+        register(
+            EnvEntry(
+                env_id=f"ShadowHandOver{safety}-v0",
+                constructor=ShadowHandOverEnv,
+                family="dexhands",
+                robot="ShadowHand",
+                task="HandOver",
+                max_episode_steps=75,
+                kwargs={"safety": safety},
+            )
+        )
+
+
 _register_velocity()
 _register_navigation()
 _register_multi_agent_velocity()
 _register_multi_agent_navigation()
+_register_dexhands()
