@@ -13,8 +13,7 @@ import torch
 from tensordict import TensorDict
 
 import sg_torchrl
-from sg_torchrl.dexhands import PAPER_JOINTS, SAFETY_VARIANTS, ShadowHandOverEnv, build_scene
-from sg_torchrl.dexhands.env import BALL_START
+from sg_torchrl.dexhands import PAPER_JOINTS, SAFETY_VARIANTS, ShadowHandEnv, build_scene
 from sg_torchrl.dexhands.rotations import quat_multiply, rotation_distance
 from sg_torchrl.dexhands.scene import hand_assets_dir
 from seeding_checks import assert_sim0_same_for_any_batch
@@ -22,13 +21,18 @@ from seeding_checks import assert_sim0_same_for_any_batch
 torch.set_num_threads(1)
 
 IDS = {safety: f"ShadowHandOver{safety}-v0" for safety in ("SafeJoint", "SafeFinger")}
+CATCH_IDS = {safety: f"ShadowHandCatchOver2Underarm{safety}-v0" for safety in ("SafeJoint", "SafeFinger")}
+TASK_IDS = {"HandOver": IDS, "CatchOver2Underarm": CATCH_IDS}
+#: (observation, action) sizes of the paper (section 4.4)
+PAPER_SIZES = {"HandOver": (398, 40), "CatchOver2Underarm": (422, 52)}
 DEG = np.pi / 180
 #: A forefinger pose inside every safe range (abduction 0, knuckle and middle flexion 45 degrees).
 SAFE_POSE = {PAPER_JOINTS[4]: 0.0, PAPER_JOINTS[3]: 45 * DEG, PAPER_JOINTS[2]: 45 * DEG}
 
 
-def make_env(safety: str = "SafeFinger", num_envs: int = 1, seed: int = 0, **options) -> ShadowHandOverEnv:
-    return sg_torchrl.make(IDS[safety], num_envs=num_envs, seed=seed, **options)
+def make_env(safety: str = "SafeFinger", num_envs: int = 1, seed: int = 0, task: str = "HandOver",
+             **options) -> ShadowHandEnv:
+    return sg_torchrl.make(TASK_IDS[task][safety], num_envs=num_envs, seed=seed, **options)
 
 
 def axis_angle(axis, angle: float) -> np.ndarray:
@@ -36,7 +40,7 @@ def axis_angle(axis, angle: float) -> np.ndarray:
     return np.concatenate(([np.cos(angle / 2)], np.sin(angle / 2) * axis))
 
 
-def place(env: ShadowHandOverEnv, index: int, joints: dict[str, float] | None = None, hand: int = 0,
+def place(env: ShadowHandEnv, index: int, joints: dict[str, float] | None = None, hand: int = 0,
           ball_pos=None, ball_quat=None) -> None:
     """Put simulator ``index`` in a constructed state: every hand's forefinger in :data:`SAFE_POSE`, then
     ``joints`` (unprefixed names) of hand ``hand``, and the ball pose."""
@@ -79,12 +83,14 @@ class TestScene:
         assert left.xpos[1] < right.xpos[1]
         assert model.body("goal").mocapid[0] == env.layout.goal_mocap
 
-    def test_ball_stays_on_the_palm_when_the_hands_hold_still(self):
-        env = make_env(num_envs=2)
-        rollout = env.rollout(75, policy=lambda td: td.set("action", torch.zeros(2, 40)), break_when_any_done=False)
+    @pytest.mark.parametrize("task", list(TASK_IDS))
+    def test_ball_stays_on_the_palm_when_the_hands_hold_still(self, task):
+        env = make_env(num_envs=2, task=task)
+        actions = torch.zeros(2, env.action_dim)
+        rollout = env.rollout(75, policy=lambda td: td.set("action", actions), break_when_any_done=False)
         assert not rollout["next", "terminated"].any()
         ball = env.ball_pose()[0]
-        assert np.all(np.linalg.norm(ball[:, :2] - BALL_START[:2], axis=1) < 0.05)
+        assert np.all(np.linalg.norm(ball[:, :2] - env.task.ball_start[:2], axis=1) < 0.05)
 
     def test_license_notice_travels_with_the_package(self):
         package = os.path.dirname(sg_torchrl.dexhands.__file__)
@@ -101,11 +107,13 @@ class TestScene:
 
 # ---------------------------------------------------------------------------- sizes and specs
 class TestSpecs:
+    @pytest.mark.parametrize("task", list(TASK_IDS))
     @pytest.mark.parametrize("safety", list(IDS))
-    def test_sizes_are_the_papers(self, safety):
-        env = make_env(safety, num_envs=2)
-        assert env.observation_spec["observation"].shape == (2, 398)
-        assert env.action_spec.shape == (2, 40)
+    def test_sizes_are_the_papers(self, safety, task):
+        env = make_env(safety, num_envs=2, task=task)
+        observation, action = PAPER_SIZES[task]
+        assert env.observation_spec["observation"].shape == (2, observation)
+        assert env.action_spec.shape == (2, action)
         assert (env.action_spec.space.low == -1).all() and (env.action_spec.space.high == 1).all()
         assert env.max_episode_steps == 75
 
@@ -126,11 +134,29 @@ class TestSpecs:
         # Joint positions of each hand, scaled to [-1, 1] over their ranges.
         assert np.all(np.abs(obs[:24]) <= 1 + 1e-6) and np.all(np.abs(obs[187:211]) <= 1 + 1e-6)
 
+    def test_catch_over_moves_the_hand_bases(self):
+        env = make_env(task="CatchOver2Underarm", seed=4)
+        for hand in env.layout.hands:
+            assert len(hand.base_qpos) == 6 and len(hand.actuators) == 26 and len(hand.qpos) == 24
+            assert hand.actuator_names[20:] == tuple(f"A_{name}" for name in ("ARTx", "ARTy", "ARTz", "ARRx", "ARRy", "ARRz"))
+        # Push the right hand's base up (z translation of its mount is the forearm's axis): the base pose observed follows.
+        action = torch.zeros(1, 52)
+        action[0, 20:26] = torch.tensor([0.5, 0.0, 0.0, 0.0, 0.0, 0.3])
+        for _ in range(30):
+            obs = env.step(TensorDict({"action": action}, batch_size=[1]))["next", "observation"][0].numpy()
+        base = env.physics.qpos()[0, env.layout.hands[0].base_qpos]
+        np.testing.assert_allclose(obs[167:173], base, atol=1e-6)  # after the fingertip forces, before the actions
+        np.testing.assert_allclose(obs[173:199], action[0, :26].numpy(), atol=1e-6)
+        assert base[0] == pytest.approx(0.05, abs=0.01) and base[5] == pytest.approx(0.15, abs=0.02)
+        np.testing.assert_allclose(env.physics.qpos()[0, env.layout.hands[1].base_qpos], 0, atol=0.02)
+
     def test_bad_options_fail_clearly(self):
         with pytest.raises(ValueError, match="cost_source"):
             make_env(cost_source="torques")
         with pytest.raises(ValueError, match="SafeFinger"):
-            ShadowHandOverEnv("SafePalm")
+            ShadowHandEnv(safety="SafePalm")
+        with pytest.raises(ValueError, match="CatchOver2Underarm"):
+            ShadowHandEnv(task="HandUnder")
 
 
 # ---------------------------------------------------------------------------- costs
@@ -190,20 +216,22 @@ class TestJointCost:
 class TestActionCost:
     """cost_source="actions" (the original code): the normalised actions of the joints' actuators, range +-0.5."""
 
-    def step_with(self, env: ShadowHandOverEnv, entries: dict[int, float]) -> TensorDict:
+    def step_with(self, env: ShadowHandEnv, entries: dict[int, float], action_dim: int = 40) -> TensorDict:
         env.reset()
-        action = torch.zeros(1, 40)
+        action = torch.zeros(1, action_dim)
         for index, value in entries.items():
             action[0, index] = value
         return env.step(TensorDict({"action": action}, batch_size=[1]))["next"]
 
+    @pytest.mark.parametrize("task", list(TASK_IDS))
     @pytest.mark.parametrize("safety", list(IDS))
     @pytest.mark.parametrize("value,expected", [(0.0, 0), (0.49, 0), (-0.49, 0), (0.51, 1), (-0.51, 1), (1.0, 1)])
-    def test_abduction_action(self, safety, value, expected):
-        env = make_env(safety, cost_source="actions")
+    def test_abduction_action(self, safety, value, expected, task):
+        env = make_env(safety, cost_source="actions", task=task)
+        per_hand = env.action_dim // 2
         for hand in env.layout.hands:
-            index = 20 * env.layout.hands.index(hand) + hand.actuator_index(PAPER_JOINTS[4])
-            out = self.step_with(env, {index: value})
+            index = per_hand * env.layout.hands.index(hand) + hand.actuator_index(PAPER_JOINTS[4])
+            out = self.step_with(env, {index: value}, env.action_dim)
             assert out["cost_info", "forefinger_abduction"].item() == expected
             assert out["cost"].item() == expected
 
@@ -261,10 +289,12 @@ class TestReward:
 
 # ---------------------------------------------------------------------------- seeding and long runs
 class TestSeeding:
+    @pytest.mark.parametrize("task", list(TASK_IDS))
     @pytest.mark.parametrize("safety", list(IDS))
-    def test_sim0_same_for_one_and_four_sims(self, safety):
-        small, large = make_env(safety, num_envs=1, seed=7), make_env(safety, num_envs=4, seed=7)
-        assert_sim0_same_for_any_batch(small, large, steps=80)
+    def test_sim0_same_for_one_and_four_sims(self, safety, task):
+        # Short episodes, so that simulator 0 is truncated (and auto-reset) before the ball can fall.
+        small, large = (make_env(safety, num_envs=n, seed=7, task=task, max_episode_steps=15) for n in (1, 4))
+        assert_sim0_same_for_any_batch(small, large, steps=50)
 
     def test_different_seeds_draw_different_goals(self):
         a, b = make_env(seed=0), make_env(seed=1)
@@ -284,13 +314,15 @@ class TestSeeding:
             torch.testing.assert_close(x, y, rtol=0, atol=0)
 
 
-def test_ten_thousand_random_steps_stay_finite():
-    """4 simulators x 2,500 random steps (33 episodes each): finite observations, rewards in (0, 1], costs in {0, 1}."""
-    env = make_env("SafeFinger", num_envs=4, seed=0)
-    rollout = env.rollout(2500, break_when_any_done=False)
+@pytest.mark.parametrize("task,steps", [("HandOver", 2500), ("CatchOver2Underarm", 600)])
+def test_random_steps_stay_finite(task, steps):
+    """4 simulators x ``steps`` random steps (HandOver: 10,000 in all, 33 episodes per simulator; CatchOver2Underarm,
+    slower: 2,400): finite observations, rewards in (0, 1], costs in {0, 1}, no simulator diverged."""
+    env = make_env("SafeFinger", num_envs=4, seed=0, task=task)
+    rollout = env.rollout(steps, break_when_any_done=False)
     nxt = rollout["next"]
     assert torch.isfinite(nxt["observation"]).all()
     assert ((nxt["reward"] > 0) & (nxt["reward"] <= 1)).all()
     assert set(nxt["cost"].unique().tolist()) <= {0.0, 1.0}
-    assert nxt["done"].sum() >= 4 * (2500 // 75)
+    assert nxt["done"].sum() >= 4 * (steps // 75)
     assert env.physics_errors == 0

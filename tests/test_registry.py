@@ -121,8 +121,11 @@ REFERENCE_SIZES_BY_ID.update({
     for level, groups in enumerate(per_level)
 })
 
-# Dexterous hands (the paper's section 4.4, Isaac Gym's ShadowHandOver): observation 398, action 40 (sg_torchrl.dexhands).
-REFERENCE_SIZES_BY_ID.update({f"ShadowHandOver{safety}-v0": (398, 40) for safety in ("SafeJoint", "SafeFinger")})
+# Dexterous hands (the paper's section 4.4; sg_torchrl.dexhands): ShadowHandOver 398 / 40, CatchOver2Underarm 422 / 52.
+REFERENCE_SIZES_BY_ID.update({
+    f"ShadowHand{task}{safety}-v0": size
+    for task, size in (("Over", (398, 40)), ("CatchOver2Underarm", (422, 52))) for safety in ("SafeJoint", "SafeFinger")
+})
 
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
 MULTI_AGENT_SIZES = {

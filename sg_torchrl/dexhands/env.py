@@ -1,26 +1,29 @@
-"""``ShadowHandOver{SafeJoint,SafeFinger}-v0``: pass a ball from one Shadow Hand to the other, safely.
+"""``ShadowHand{Over,CatchOver2Underarm}{SafeJoint,SafeFinger}-v0``: pass a ball between two Shadow Hands, safely.
 
-Safety-Gymnasium paper, section 4.4 ("Safe Isaac Gym"): the Isaac Gym task ShadowHandOver, with a
-constraint on the forefinger (:mod:`sg_torchrl.dexhands.constraints`), rebuilt on MuJoCo with
-``N`` simulators sharing one compiled two-hand model (:mod:`sg_torchrl.dexhands.scene`). Model
+Safety-Gymnasium paper, section 4.4 ("Safe Isaac Gym"): the Isaac Gym tasks ShadowHandOver and
+ShadowHandCatchOver2Underarm (:mod:`sg_torchrl.dexhands.tasks`), with a constraint on the
+forefinger (:mod:`sg_torchrl.dexhands.constraints`), rebuilt on MuJoCo with ``N`` simulators
+sharing one compiled two-hand model per task (:mod:`sg_torchrl.dexhands.scene`). Model
 derived from gymnasium-robotics' Shadow Hand assets (Apache-2.0, (C) Vikash Kumar, CSE, UW; see
 ``NOTICE`` in this package).
 
 The task. The ball starts resting on the ``right/`` hand's palm; the goal, a pose above the
-``left/`` hand's palm (the paper's layout: the hands are fixed, palms up, fingers towards each
-other, wrists 1 m apart), has a random orientation drawn at every reset. Reward, as the paper's:
+``left/`` hand's palm, has a random orientation drawn at every reset. Reward, as the paper's:
 
     r = exp(-0.2 (alpha d_t + d_r)),  d_t = |p_ball - p_goal|,  d_r = 2 asin(min(|vec(q_ball conj(q_goal))|, 1))
 
 with ``alpha = distance_scale`` (Isaac Gym's ``distRewardScale``, 20). An episode terminates when
-the ball falls below ``fall_height`` (0.2 m, 0.3 m under the palms as in Isaac Gym) and is
-truncated after 75 steps (Isaac Gym's ``episodeLength`` for this task); one step is 8 physics steps
-of 2 ms (62.5 Hz, Isaac Gym's is 60 Hz).
+the ball falls below the task's ``fall_height`` (0.2 m, 0.3 m under the palms as in Isaac Gym) and
+is truncated after 75 steps (Isaac Gym's ``episodeLength``); one step is 8 physics steps of 2 ms
+(62.5 Hz, Isaac Gym's is 60 Hz).
 
-Action (40): the 20 position actuators of each hand (``right/`` first), in [-1, 1], mapped
-linearly onto each actuator's control range (its joint's range): the hand bases are fixed.
+Action (40 for HandOver, 52 for CatchOver2Underarm): each hand's (``right/`` first) 20 finger and
+wrist position actuators, then, with an actuated base, its 6 base servos; in [-1, 1], mapped
+linearly onto each actuator's control range (for the fingers, its joint's range).
 
-Observation (398, the paper's size and order; per hand 187):
+Observation (HandOver: 398, the paper's size and order; per hand 187. CatchOver2Underarm: 422, the
+paper's size; per hand 199, the 6 base joint positions (translation m, rotation rad, relative to the
+mount's rest pose) between the fingertip forces and the last action, which then has 26 entries):
 
 ====================================== ==== ==================================================
 entry                                  size notes
@@ -31,8 +34,9 @@ joint forces                           24   actuator force on each joint (``qfrc
                                             the tendon-coupled distal joints read 0
 fingertip pose and velocities          65   5 tips x (position 3, quaternion 4, linear 3, angular 3)
 fingertip force and torque             30   5 tips x (force 3, torque 3) x 10, tip sensors
-last action                            20
-(the same 187 for the ``left/`` hand)  187
+(base pose, CatchOver2Underarm only)   6
+last action                            20 (26)
+(the same for the ``left/`` hand)      187 (199)
 ball pose                              7    position, quaternion (w, x, y, z)
 ball linear velocity                   3
 ball angular velocity                  3    x 0.2
@@ -52,16 +56,14 @@ import torch
 
 from sg_torchrl.dexhands.constraints import SAFETY_VARIANTS, CostSource, JointRangeConstraint
 from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
-from sg_torchrl.dexhands.scene import FINGERTIPS, MOUNT_GAP, MOUNT_HEIGHT, HandLayout, build_scene
+from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
+from sg_torchrl.dexhands.tasks import TASKS
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.physics import MujocoBatch
 
-__all__ = ["ShadowHandOverEnv", "BALL_START", "GOAL_POSITION"]
+__all__ = ["ShadowHandEnv"]
 
-#: Where the ball rests at reset (above the ``right/`` palm) and the goal position (above the ``left/`` palm).
-BALL_START = np.array([0.0, -0.36, MOUNT_HEIGHT + 0.07])
-GOAL_POSITION = np.array([0.0, -MOUNT_GAP + 0.36, MOUNT_HEIGHT + 0.07])
 VELOCITY_SCALE = 0.2  # Isaac Gym's vel_obs_scale
 FORCE_SCALE = 10.0  # Isaac Gym's force_torque_obs_scale
 JOINT_NOISE = 0.2  # Isaac Gym's resetDofPosRandomInterval: fraction of the way to a random point of the range
@@ -69,15 +71,17 @@ BALL_POSITION_NOISE = 0.01  # Isaac Gym's resetPositionNoise (m)
 FRAME_SKIP = 8
 
 
-class ShadowHandOverEnv(MujocoSafeEnv):
-    """Two fixed Shadow Hands throw a ball from one to the other under a forefinger constraint.
+class ShadowHandEnv(MujocoSafeEnv):
+    """Two Shadow Hands pass a ball from one to the other under a forefinger constraint.
 
     Args:
+        task: a key of :data:`~sg_torchrl.dexhands.tasks.TASKS` (``"HandOver"``, ``"CatchOver2Underarm"``).
         safety: ``"SafeJoint"`` or ``"SafeFinger"`` (:data:`~sg_torchrl.dexhands.constraints.SAFETY_VARIANTS`).
         cost_source: ``"joints"`` (default: measured joint angles) or ``"actions"`` (the original
             code's normalised actions); see :mod:`sg_torchrl.dexhands.constraints`.
         distance_scale: ``alpha`` of the reward.
-        fall_height: the episode terminates when the ball's centre is below this height (m).
+        fall_height: the episode terminates when the ball's centre is below this height (m);
+            default: the task's.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -86,6 +90,7 @@ class ShadowHandOverEnv(MujocoSafeEnv):
 
     def __init__(
         self,
+        task: str = "HandOver",
         safety: str = "SafeJoint",
         *,
         num_envs: int = 1,
@@ -95,17 +100,20 @@ class ShadowHandOverEnv(MujocoSafeEnv):
         cost_source: CostSource = "joints",
         max_episode_steps: int = 75,
         distance_scale: float = 20.0,
-        fall_height: float = MOUNT_HEIGHT - 0.3,
+        fall_height: float | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if safety not in SAFETY_VARIANTS:
             raise ValueError(f"unknown safety variant {safety!r}; choose from {sorted(SAFETY_VARIANTS)}")
-        model, layout = build_scene()
+        if task not in TASKS:
+            raise ValueError(f"unknown two-hand task {task!r}; choose from {sorted(TASKS)}")
+        self.task = TASKS[task]
+        model, layout = build_scene(self.task.scene)
         self.safety = safety
         self.layout = layout
         self.distance_scale = float(distance_scale)
-        self.fall_height = float(fall_height)
+        self.fall_height = float(self.task.fall_height if fall_height is None else fall_height)
         self.physics = MujocoBatch(model, num_envs, fields=("sensordata", "qfrc_actuator"), forward_after_step=True)
         hands = layout.hands
         self.constraints = [JointRangeConstraint(name, ranges, hands, cost_source)
@@ -119,10 +127,11 @@ class ShadowHandOverEnv(MujocoSafeEnv):
         self._tip_force = [self._tip_columns(hand, ("force", "torque")) for hand in hands]
         num_actions = len(self._actuators)
         self._last_action = np.zeros((num_envs, num_actions))
-        self._goal_pos = np.tile(GOAL_POSITION, (num_envs, 1))
+        self._goal_pos = np.tile(self.task.goal_position, (num_envs, 1))
         self._goal_quat = np.tile([1.0, 0.0, 0.0, 0.0], (num_envs, 1))
         self._ctrl = np.zeros((num_envs, model.nu))
-        per_hand = 3 * len(hands[0].qpos) + sum(len(c) for c in (self._tip_state[0], self._tip_force[0])) + num_actions // 2
+        per_hand = (3 * len(hands[0].qpos) + sum(len(c) for c in (self._tip_state[0], self._tip_force[0]))
+                    + len(hands[0].base_qpos) + num_actions // 2)
         self._observation = np.zeros((num_envs, len(hands) * per_hand + 7 + 3 + 3 + 7 + 4))
         super().__init__(
             num_envs=num_envs,
@@ -168,11 +177,11 @@ class ShadowHandOverEnv(MujocoSafeEnv):
                 default = np.clip(model.qpos0[hand.qpos], hand.joint_low, hand.joint_high)
                 target = rng.uniform(hand.joint_low, hand.joint_high)
                 qpos[row, hand.qpos] = default + JOINT_NOISE * (target - default)
-            qpos[row, start:start + 3] = BALL_START + rng.uniform(-BALL_POSITION_NOISE, BALL_POSITION_NOISE, 3)
+            qpos[row, start:start + 3] = self.task.ball_start + rng.uniform(-BALL_POSITION_NOISE, BALL_POSITION_NOISE, 3)
             qpos[row, start + 3:start + 7] = (1.0, 0.0, 0.0, 0.0)
             self._goal_quat[index] = random_quaternion(rng)
-            self._goal_pos[index] = GOAL_POSITION
-            mocap_pos[row, self.layout.goal_mocap] = GOAL_POSITION
+            self._goal_pos[index] = self.task.goal_position
+            mocap_pos[row, self.layout.goal_mocap] = self.task.goal_position
             mocap_quat[row, self.layout.goal_mocap] = self._goal_quat[index]
         self._last_action[indices] = 0.0
         self.physics.reset(indices, qpos, qvel, mocap_pos, mocap_quat)
@@ -198,6 +207,7 @@ class ShadowHandOverEnv(MujocoSafeEnv):
             put(FORCE_SCALE * forces[:, hand.qvel])
             put(sensors[:, self._tip_state[h]])
             put(FORCE_SCALE * sensors[:, self._tip_force[h]])
+            put(qpos[:, hand.base_qpos])
             put(self._last_action[:, h * actions_per_hand:(h + 1) * actions_per_hand])
         ball_pos, ball_quat = self.ball_pose()
         put(ball_pos)

@@ -16,7 +16,13 @@ ShadowHandOver: wrists 1 m apart along y). Both copies are right hands: the mode
 (see ``reference/stack_notes.md``), which the docs of the env say. Added to each hand: fingertip
 frame sensors (position, orientation, linear and angular velocity) and force/torque sensors at
 the five tip sites, which the paper's observation reads. Added to the world: a free-joint ball and
-a mocap goal marker (no collision). The model is compiled once and shared by every simulator.
+a mocap goal marker (no collision). The model is compiled once per :class:`SceneConfig` and shared
+by every simulator.
+
+Actuated bases (ShadowHandCatchOver2Underarm, :data:`BASE_JOINTS`): each hand's mount gets three
+slide and three hinge joints, each driven by a position servo (Isaac Gym moves the hand roots with
+forces; here the servos' ranges, gains and damping are this project's choice, see
+:data:`BASE_RANGES`), 6 actuators per hand after its 20 finger actuators.
 """
 
 from __future__ import annotations
@@ -28,7 +34,8 @@ from functools import lru_cache
 import mujoco
 import numpy as np
 
-__all__ = ["HAND_PREFIXES", "FINGERTIPS", "HandLayout", "SceneLayout", "build_scene", "hand_assets_dir"]
+__all__ = ["BASE_JOINTS", "HAND_PREFIXES", "FINGERTIPS", "HandLayout", "SceneConfig", "SceneLayout", "build_scene",
+           "hand_assets_dir"]
 
 #: Prefixes of the two hands: ``right/`` throws (holds the ball at reset), ``left/`` catches.
 HAND_PREFIXES = ("right/", "left/")
@@ -39,6 +46,11 @@ _HAND_MOUNT = "robot0:hand mount"
 #: Wrist mount height and the distance between the two mounts (Isaac Gym's ShadowHandOver: 1 m).
 MOUNT_HEIGHT = 0.5
 MOUNT_GAP = 1.0
+#: Joints added to a hand's mount when its base is actuated: translations along, then rotations about, x, y, z
+#: (the mount's frame). Unprefixed names, as :class:`HandLayout` lists them.
+BASE_JOINTS = ("ARTx", "ARTy", "ARTz", "ARRx", "ARRy", "ARRz")
+#: ``(range, kp, damping)`` of the base servos: slides (m, N/m, N s/m) and hinges (rad, N m/rad, N m s/rad).
+BASE_RANGES = {"slide": (0.1, 4000.0, 400.0), "hinge": (0.5, 1000.0, 100.0)}
 BALL_RADIUS = 0.035
 BALL_MASS = 0.05
 
@@ -58,7 +70,38 @@ def hand_assets_dir() -> str:
     return root
 
 
-def _hand_spec() -> mujoco.MjSpec:
+@dataclass(frozen=True)
+class SceneConfig:
+    """Where the two hands stand and whether their bases move.
+
+    ``mounts``: per hand ``(x, y, z, yaw)`` of its wrist mount (yaw about the vertical, radians; at
+    yaw 0 the palm faces up and the fingers point along -y). ``actuated_base``: add :data:`BASE_JOINTS`.
+    """
+
+    mounts: tuple[tuple[float, float, float, float], tuple[float, float, float, float]]
+    actuated_base: bool = False
+
+
+#: ShadowHandOver: fixed hands, fingers towards each other, wrists :data:`MOUNT_GAP` apart.
+HAND_OVER_SCENE = SceneConfig(mounts=((0.0, 0.0, MOUNT_HEIGHT, 0.0), (0.0, -MOUNT_GAP, MOUNT_HEIGHT, np.pi)))
+
+
+def _add_base_joints(spec: mujoco.MjSpec) -> None:
+    """Make the mount of ``spec``'s hand movable: :data:`BASE_JOINTS`, each with a position servo."""
+    mount = spec.body(_HAND_MOUNT)
+    axes = np.eye(3)
+    for index, name in enumerate(BASE_JOINTS):
+        kind = "slide" if index < 3 else "hinge"
+        limit, kp, damping = BASE_RANGES[kind]
+        joint_type = mujoco.mjtJoint.mjJNT_SLIDE if kind == "slide" else mujoco.mjtJoint.mjJNT_HINGE
+        mount.add_joint(name=f"robot0:{name}", type=joint_type, axis=axes[index % 3], range=[-limit, limit],
+                        damping=damping, armature=0.01)
+        actuator = spec.add_actuator(name=f"robot0:A_{name}", target=f"robot0:{name}",
+                                     trntype=mujoco.mjtTrn.mjTRN_JOINT, ctrlrange=[-limit, limit])
+        actuator.set_to_position(kp=kp)
+
+
+def _hand_spec(actuated_base: bool) -> mujoco.MjSpec:
     """One gymnasium-robotics Shadow Hand (right), its mount at the origin, as an ``MjSpec``."""
     root = hand_assets_dir()
     hand = os.path.join(root, "hand")
@@ -76,6 +119,8 @@ def _hand_spec() -> mujoco.MjSpec:
                              (mujoco.mjtSensor.mjSENS_FRAMELINVEL, "linvel"), (mujoco.mjtSensor.mjSENS_FRAMEANGVEL, "angvel"),
                              (mujoco.mjtSensor.mjSENS_FORCE, "force"), (mujoco.mjtSensor.mjSENS_TORQUE, "torque")):
             spec.add_sensor(name=f"{tip}tip_{suffix}", type=kind, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
+    if actuated_base:
+        _add_base_joints(spec)
     return spec
 
 
@@ -94,6 +139,7 @@ class HandLayout:
     qvel: np.ndarray
     joint_low: np.ndarray
     joint_high: np.ndarray
+    base_qpos: np.ndarray
     actuators: np.ndarray
     actuator_names: tuple[str, ...]
     ctrl_low: np.ndarray
@@ -127,7 +173,10 @@ class SceneLayout:
 
 def _hand_layout(model: mujoco.MjModel, prefix: str) -> HandLayout:
     full = f"{prefix}robot0:"
-    joints = [j for j in range(model.njnt) if model.joint(j).name.startswith(full)]
+    names = {j: model.joint(j).name for j in range(model.njnt)}
+    base = {f"{full}{name}" for name in BASE_JOINTS}
+    joints = [j for j, name in names.items() if name.startswith(full) and name not in base]
+    base_joints = [model.joint(name).id for name in (f"{full}{b}" for b in BASE_JOINTS) if name in names.values()]
     actuators = [a for a in range(model.nu) if model.actuator(a).name.startswith(full)]
     sensors = {}
     for s in range(model.nsensor):
@@ -142,6 +191,7 @@ def _hand_layout(model: mujoco.MjModel, prefix: str) -> HandLayout:
         qvel=model.jnt_dofadr[joints].copy(),
         joint_low=model.jnt_range[joints, 0].copy(),
         joint_high=model.jnt_range[joints, 1].copy(),
+        base_qpos=model.jnt_qposadr[base_joints].astype(np.int64),
         actuators=np.asarray(actuators),
         actuator_names=tuple(model.actuator(a).name[len(full):] for a in actuators),
         ctrl_low=model.actuator_ctrlrange[actuators, 0].copy(),
@@ -150,22 +200,26 @@ def _hand_layout(model: mujoco.MjModel, prefix: str) -> HandLayout:
     )
 
 
-@lru_cache(maxsize=None)
-def build_scene() -> tuple[mujoco.MjModel, SceneLayout]:
-    """Compile the two-hand scene (once per process) and return it with its :class:`SceneLayout`.
+def build_scene(config: SceneConfig = HAND_OVER_SCENE) -> tuple[mujoco.MjModel, SceneLayout]:
+    """Compile the two-hand scene of ``config`` (once per process) and return it with its :class:`SceneLayout`.
 
     The returned model is shared: callers must not modify it.
     """
+    return _compile(config)  # one cache key per config, however the argument was passed
+
+
+@lru_cache(maxsize=None)
+def _compile(config: SceneConfig) -> tuple[mujoco.MjModel, SceneLayout]:
     world = mujoco.MjSpec()
     world.option.timestep = 0.002  # the hand model's own timestep
     world.option.iterations = 20
     world.compiler.degree = False
-    for prefix, (y, yaw) in zip(HAND_PREFIXES, ((0.0, 0.0), (-MOUNT_GAP, np.pi))):
-        hand = _hand_spec()
+    for prefix, (x, y, z, yaw) in zip(HAND_PREFIXES, config.mounts):
+        hand = _hand_spec(config.actuated_base)
         for attr in ("nuser_jnt", "nuser_site", "nuser_tendon", "nuser_actuator", "nuser_sensor"):
             setattr(world, attr, getattr(hand, attr))  # keep the hand's user data without attach warnings
         hand.njmax = hand.nconmax = -1
-        frame = world.worldbody.add_frame(pos=[0.0, y, MOUNT_HEIGHT], quat=[np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        frame = world.worldbody.add_frame(pos=[x, y, z], quat=[np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
         world.attach(hand, frame=frame, prefix=prefix)
     world.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2.0, 2.0, 0.1], pos=[0, -MOUNT_GAP / 2, 0])
     world.worldbody.add_light(pos=[0, -MOUNT_GAP / 2, 3.0], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)

@@ -242,25 +242,27 @@ def _register_multi_agent_navigation() -> None:
 
 
 def _register_dexhands() -> None:
-    """``ShadowHandOver{SafeJoint,SafeFinger}-v0``: the paper's safe dexterous-hand ids (section 4.4).
+    """``ShadowHand{Over,CatchOver2Underarm}{SafeJoint,SafeFinger}-v0``: the paper's safe dexterous-hand ids.
 
-    Ids are the paper's task names with Safety-Gymnasium's ``-v0`` suffix; 75 steps per episode
-    (Isaac Gym's ``episodeLength`` for ShadowHandOver). See :mod:`sg_torchrl.dexhands`.
+    Ids are the paper's task names (section 4.4: ShadowHandOver, ShadowHandCatchOver2Underarm, each
+    SafeJoint or SafeFinger) with Safety-Gymnasium's ``-v0`` suffix; 75 steps per episode (Isaac
+    Gym's ``episodeLength``). See :mod:`sg_torchrl.dexhands`.
     """
-    from sg_torchrl.dexhands import SAFETY_VARIANTS, ShadowHandOverEnv
+    from sg_torchrl.dexhands import SAFETY_VARIANTS, TASKS, ShadowHandEnv
 
-    for safety in SAFETY_VARIANTS:
-        register(
-            EnvEntry(
-                env_id=f"ShadowHandOver{safety}-v0",
-                constructor=ShadowHandOverEnv,
-                family="dexhands",
-                robot="ShadowHand",
-                task="HandOver",
-                max_episode_steps=75,
-                kwargs={"safety": safety},
+    for task in TASKS.values():
+        for safety in SAFETY_VARIANTS:
+            register(
+                EnvEntry(
+                    env_id=f"ShadowHand{task.name.removeprefix('Hand')}{safety}-v0",
+                    constructor=ShadowHandEnv,
+                    family="dexhands",
+                    robot="ShadowHand",
+                    task=task.name,
+                    max_episode_steps=task.max_episode_steps,
+                    kwargs={"task": task.name, "safety": safety},
+                )
             )
-        )
 
 
 _register_velocity()
