@@ -326,3 +326,52 @@ def test_random_steps_stay_finite(task, steps):
     assert set(nxt["cost"].unique().tolist()) <= {0.0, 1.0}
     assert nxt["done"].sum() >= 4 * (steps // 75)
     assert env.physics_errors == 0
+
+
+# ---------------------------------------------------------------------------- multi-agent form
+class TestMultiAgent:
+    """``MultiAgent...`` ids: one agent per hand, TorchRL's MARL layout, each agent paying for its own forefinger."""
+
+    def make(self, task: str = "HandOver", safety: str = "SafeFinger", **options):
+        return sg_torchrl.make("MultiAgent" + TASK_IDS[task][safety], **options)
+
+    @pytest.mark.parametrize("task", list(TASK_IDS))
+    def test_same_world_as_the_single_agent_env(self, task):
+        """The group action, flattened, is the single-agent action; the state is the single-agent observation."""
+        single, multi = make_env(num_envs=2, seed=5, task=task), self.make(task, num_envs=2, seed=5)
+        per_hand = single.action_dim // 2
+        actions = torch.rand((4, 2, 2 * per_hand), generator=torch.Generator().manual_seed(1)) * 2 - 1
+        single.reset(), multi.reset()
+        for action in actions:
+            a = single.step(TensorDict({"action": action}, batch_size=[2]))["next"]
+            b = multi.step(TensorDict({("agents", "action"): action.reshape(2, 2, per_hand)}, batch_size=[2]))["next"]
+            torch.testing.assert_close(b["state"], a["observation"], rtol=0, atol=0)
+            torch.testing.assert_close(b["agents", "reward"], a["reward"].unsqueeze(-2).expand(2, 2, 1), rtol=0, atol=0)
+        hand = single.hand_observation_dim
+        for agent in range(2):
+            own = b["state"][:, agent * hand:(agent + 1) * hand]
+            torch.testing.assert_close(b["agents", "observation"][:, agent], torch.cat((own, b["state"][:, -24:]), dim=-1))
+
+    @pytest.mark.parametrize("hand", [0, 1])
+    def test_each_agent_pays_for_its_own_hand(self, hand):
+        env = self.make(num_envs=1, seed=0)
+        env.reset()
+        # Hand ``hand`` bends its forefinger past 67.5 degrees (knuckle flexion action 0.9 > 0.5): measured after 20 steps.
+        action = torch.zeros(1, 2, 20)
+        action[0, hand, env.layout.hands[hand].actuator_index(PAPER_JOINTS[3])] = 0.9
+        for _ in range(20):
+            out = env.step(TensorDict({("agents", "action"): action}, batch_size=[1]))["next"]
+        other = 1 - hand
+        assert out["agents", "cost_info", "forefinger_flexion"][0, hand].item() == 1
+        assert out["agents", "cost_info", "forefinger_flexion"][0, other].item() == 0
+        assert out["agents", "cost"][0, :, 0].tolist() == [1.0 if a == hand else 0.0 for a in range(2)]
+        assert out["cost"].item() == 1 and out["cost_info", "forefinger_flexion"].item() == 1
+
+    def test_pettingzoo_facade(self):
+        import sg_torchrl.pettingzoo as pz
+
+        env = pz.make("MultiAgentShadowHandOverSafeJoint-v0")
+        observations, _ = env.reset(seed=0)
+        assert {agent: obs.shape for agent, obs in observations.items()} == {"agent_0": (211,), "agent_1": (211,)}
+        out = env.step({agent: env.action_space(agent).sample() for agent in env.agents})
+        assert len(out) == 6 and all(set(part) == {"agent_0", "agent_1"} for part in out)

@@ -314,6 +314,15 @@ class TestEveryId:
             assert env.full_action_spec[env.action_key].shape == (1, len(agents), agents[0][1])
             assert env.observation_spec["state"].shape == (1, state_dim)
             return
+        if registry_entry(env_id).family == "multi_agent_dexhands":
+            # One agent per hand: its hand's block of the single-agent observation plus the ball and goal (24 values).
+            state_dim, actions = REFERENCE_SIZES_BY_ID[env_id.removeprefix("MultiAgent")]
+            agent = ((state_dim - 24) // 2 + 24, actions // 2)
+            assert list(zip(env.observation_sizes, env.action_sizes)) == [agent, agent]
+            assert env.observation_spec["agents", "observation"].shape == (1, 2, agent[0])
+            assert env.full_action_spec[env.action_key].shape == (1, 2, agent[1])
+            assert env.observation_spec["state"].shape == (1, state_dim)
+            return
         if registry_entry(env_id).multi_agent:
             agents, state_dim, threshold = MULTI_AGENT_SIZES[env_id]
             assert list(zip(env.observation_sizes, env.action_sizes)) == agents

@@ -82,7 +82,8 @@ class JointRangeConstraint:
             action of each joint's actuator against the same interval mapped to [-1, 1].
 
     :meth:`__call__` returns, per simulator, the number of (hand, joint) pairs outside their range
-    (``SafeEnv`` turns it into an indicator under its default ``cost_mode``).
+    (``SafeEnv`` turns it into an indicator under its default ``cost_mode``); :meth:`per_hand` the
+    same count per hand (the multi-agent form, one agent per hand).
     """
 
     def __init__(self, name: str, ranges: Sequence[JointRange], hands: Sequence[HandLayout], source: CostSource) -> None:
@@ -107,11 +108,16 @@ class JointRangeConstraint:
                     lows.append(2.0 * (joint_range.low - lo) / (hi - lo) - 1.0)
                     highs.append(2.0 * (joint_range.high - lo) / (hi - lo) - 1.0)
             offset += len(hand.actuators)
-        self._columns = np.asarray(columns)
-        self._low = np.asarray(lows)
-        self._high = np.asarray(highs)
+        shape = (len(hands), len(ranges))  # one row per hand
+        self._columns = np.asarray(columns).reshape(shape)
+        self._low = np.asarray(lows).reshape(shape)
+        self._high = np.asarray(highs).reshape(shape)
+
+    def per_hand(self, qpos: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """Violations per simulator and hand, ``(N, H)`` float64, from ``qpos`` ``(N, nq)`` or the normalised ``action``."""
+        values = (qpos if self.source == "joints" else action)[:, self._columns]
+        return ((values < self._low) | (values > self._high)).sum(axis=2).astype(np.float64)
 
     def __call__(self, qpos: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """Violations per simulator, ``(N,)`` float64, from ``qpos`` ``(N, nq)`` or the normalised ``action``."""
-        values = (qpos if self.source == "joints" else action)[:, self._columns]
-        return ((values < self._low) | (values > self._high)).sum(axis=1).astype(np.float64)
+        """Violations per simulator, ``(N,)`` float64, summed over the hands."""
+        return self.per_hand(qpos, action).sum(axis=1)

@@ -69,6 +69,8 @@ FORCE_SCALE = 10.0  # Isaac Gym's force_torque_obs_scale
 JOINT_NOISE = 0.2  # Isaac Gym's resetDofPosRandomInterval: fraction of the way to a random point of the range
 BALL_POSITION_NOISE = 0.01  # Isaac Gym's resetPositionNoise (m)
 FRAME_SKIP = 8
+#: The observation's tail after the hands' blocks: ball pose 7, velocities 3 + 3, goal pose 7, rotation difference 4.
+OBJECT_OBSERVATION_DIM = 24
 
 
 class ShadowHandEnv(MujocoSafeEnv):
@@ -132,7 +134,8 @@ class ShadowHandEnv(MujocoSafeEnv):
         self._ctrl = np.zeros((num_envs, model.nu))
         per_hand = (3 * len(hands[0].qpos) + sum(len(c) for c in (self._tip_state[0], self._tip_force[0]))
                     + len(hands[0].base_qpos) + num_actions // 2)
-        self._observation = np.zeros((num_envs, len(hands) * per_hand + 7 + 3 + 3 + 7 + 4))
+        self.hand_observation_dim = per_hand
+        self._observation = np.zeros((num_envs, len(hands) * per_hand + OBJECT_OBSERVATION_DIM))
         super().__init__(
             num_envs=num_envs,
             observation_dim=self._observation.shape[1],
