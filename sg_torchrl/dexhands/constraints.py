@@ -31,7 +31,13 @@ the joint actually reached (a joint pushed by the ball, or lagging its servo, is
 coupled middle+distal pair (tendon ``T_FFJ1c``); its joint angle is ``FFJ1``'s.
 
 Both hands are checked: a step costs when either hand's forefinger leaves a range (each hand is a
-damaged-hand replica of the other; the paper does not say which hand is constrained).
+damaged-hand replica of the other; the paper does not say which hand is constrained). The
+multi-agent form charges each hand's violations to that hand's agent.
+
+Note for SafeFinger: the hands' rest pose (flexion 0, plus 20 % reset noise, as Isaac Gym's
+default joint positions) lies *below* 22.5 deg, so under ``"joints"`` the first steps of an
+episode cost until the policy bends the forefinger into range; under ``"actions"`` a zero action
+(the middle of each range) is safe from the first step.
 """
 
 from __future__ import annotations
