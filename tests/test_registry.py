@@ -121,6 +121,12 @@ REFERENCE_SIZES_BY_ID.update({
     for level, groups in enumerate(per_level)
 })
 
+# Dexterous hands (the paper's section 4.4; sg_torchrl.dexhands): ShadowHandOver 398 / 40, CatchOver2Underarm 422 / 52.
+REFERENCE_SIZES_BY_ID.update({
+    f"ShadowHand{task}{safety}-v0": size
+    for task, size in (("Over", (398, 40)), ("CatchOver2Underarm", (422, 52))) for safety in ("SafeJoint", "SafeFinger")
+})
+
 # Multi-agent velocity (reference section 10): per-agent (observation, action) sizes, state size, threshold.
 MULTI_AGENT_SIZES = {
     "Safety2x4AntVelocity-v0": ([(21, 4), (21, 4)], 27, 2.522),
@@ -306,6 +312,15 @@ class TestEveryId:
             assert list(zip(env.observation_sizes, env.action_sizes)) == agents
             assert env.observation_spec["agents", "observation"].shape == (1, len(agents), agents[0][0])
             assert env.full_action_spec[env.action_key].shape == (1, len(agents), agents[0][1])
+            assert env.observation_spec["state"].shape == (1, state_dim)
+            return
+        if registry_entry(env_id).family == "multi_agent_dexhands":
+            # One agent per hand: its hand's block of the single-agent observation plus the ball and goal (24 values).
+            state_dim, actions = REFERENCE_SIZES_BY_ID[env_id.removeprefix("MultiAgent")]
+            agent = ((state_dim - 24) // 2 + 24, actions // 2)
+            assert list(zip(env.observation_sizes, env.action_sizes)) == [agent, agent]
+            assert env.observation_spec["agents", "observation"].shape == (1, 2, agent[0])
+            assert env.full_action_spec[env.action_key].shape == (1, 2, agent[1])
             assert env.observation_spec["state"].shape == (1, state_dim)
             return
         if registry_entry(env_id).multi_agent:

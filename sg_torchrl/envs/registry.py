@@ -23,7 +23,7 @@ __all__ = ["EnvEntry", "env_options", "MULTI_AGENT_FAMILIES", "VISION_FAMILY", "
 VISION_FAMILY = "vision"
 
 #: Families whose envs use TorchRL's multi-agent layout (group ``"agents"``, no root ``observation``).
-MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigation"})
+MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigation", "multi_agent_dexhands"})
 
 #: Robots of the multi-agent navigation ids (Safety-Gymnasium's paper and SafePO name these six).
 MULTI_AGENT_NAVIGATION_ROBOTS = ("Point", "Ant")
@@ -44,7 +44,8 @@ class EnvEntry:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
         constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
         family: ``"velocity"``, ``"navigation"``, ``"vision"`` (navigation seen through the robot's
-            camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``.
+            camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``, ``"dexhands"`` (two
+            Shadow Hands, :mod:`sg_torchrl.dexhands`), ``"multi_agent_dexhands"`` (the same, one agent per hand).
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
@@ -240,7 +241,37 @@ def _register_multi_agent_navigation() -> None:
                 )
 
 
+def _register_dexhands() -> None:
+    """``ShadowHand{Over,CatchOver2Underarm}{SafeJoint,SafeFinger}-v0``: the paper's safe dexterous-hand ids.
+
+    Ids are the paper's task names (section 4.4: ShadowHandOver, ShadowHandCatchOver2Underarm, each
+    SafeJoint or SafeFinger) with Safety-Gymnasium's ``-v0`` suffix; 75 steps per episode (Isaac
+    Gym's ``episodeLength``). The paper uses one name for the single- and the multi-agent form (the
+    algorithm decides); here the multi-agent form, one agent per hand, is ``MultiAgent`` + the id.
+    See :mod:`sg_torchrl.dexhands`.
+    """
+    from sg_torchrl.dexhands import SAFETY_VARIANTS, TASKS, MultiAgentShadowHandEnv, ShadowHandEnv
+
+    for task in TASKS.values():
+        for safety in SAFETY_VARIANTS:
+            env_id = f"ShadowHand{task.name.removeprefix('Hand')}{safety}-v0"
+            for prefix, constructor, family in (("", ShadowHandEnv, "dexhands"),
+                                                ("MultiAgent", MultiAgentShadowHandEnv, "multi_agent_dexhands")):
+                register(
+                    EnvEntry(
+                        env_id=prefix + env_id,
+                        constructor=constructor,
+                        family=family,
+                        robot="ShadowHand",
+                        task=task.name,
+                        max_episode_steps=task.max_episode_steps,
+                        kwargs={"task": task.name, "safety": safety},
+                    )
+                )
+
+
 _register_velocity()
 _register_navigation()
 _register_multi_agent_velocity()
 _register_multi_agent_navigation()
+_register_dexhands()

@@ -225,6 +225,40 @@ class AgentGroupMixin(abc.ABC):
                     tensordict.set("_reset", self._any_agent(nested))
         return super()._reset_proc_data(tensordict, tensordict_reset)
 
+    def _own_cost_arrays(self, agent_observation, observation_mask, state, reward, costs, terminated, truncated) -> dict:
+        """:meth:`_output_arrays` for envs whose agents each pay their own cost (several robots or hands).
+
+        ``agent_observation`` ``(N, A, D)``, ``observation_mask`` ``(N, A, D)``, ``state`` ``(N, S)``;
+        ``reward`` ``(N, A)`` or ``(N,)`` (shared); ``costs``: raw per-constraint costs ``(N, A)`` (or ``(N,)``,
+        shared). Each agent's ``cost``/``cost_info`` follow :attr:`cost_mode` on its own costs; the root
+        ``cost``/``cost_info`` on the agents' sum (under ``"indicator"``: 1 when some agent paid).
+        """
+        n, agents = self.num_envs, self.num_agents
+        per_agent = {name: np.broadcast_to(np.reshape(value, (n, -1)), (n, agents)) for name, value in costs.items()}
+        agent_cost, agent_info = self._aggregate_cost(per_agent)
+        team_cost, team_info = self._aggregate_cost({name: value.sum(axis=1) for name, value in per_agent.items()})
+        done = terminated | truncated
+        group = {
+            "observation": np.asarray(agent_observation, dtype=np.float32),
+            "observation_mask": observation_mask.copy(),
+            "cost": agent_column(agent_cost, n, agents, np.float32),
+            "cost_info": {name: agent_column(value, n, agents, np.float32) for name, value in agent_info.items()},
+            "terminated": agent_column(terminated, n, agents, np.bool_),
+            "truncated": agent_column(truncated, n, agents, np.bool_),
+            "done": agent_column(done, n, agents, np.bool_),
+        }
+        if reward is not None:
+            group["reward"] = agent_column(reward, n, agents, np.float32)
+        return {
+            "state": np.array(state, dtype=np.float32),
+            "cost": root_column(team_cost, n, np.float32),
+            "cost_info": {name: root_column(value, n, np.float32) for name, value in team_info.items()},
+            "terminated": root_column(terminated, n, np.bool_),
+            "truncated": root_column(truncated, n, np.bool_),
+            "done": root_column(done, n, np.bool_),
+            GROUP: group,
+        }
+
     def _any_agent(self, flags: torch.Tensor) -> torch.Tensor:
         return flags.reshape(self.num_envs, -1).any(dim=-1, keepdim=True)
 

@@ -162,28 +162,5 @@ class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
     def _output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
         """The step's (or, with ``reward=None``, the reset's) output as a nested dict of fresh numpy arrays
         (the layout of the module docstring). The PettingZoo façade reads it directly."""
-        n, agents = self.num_envs, self.num_agents
-        per_agent = {name: np.broadcast_to(np.reshape(value, (n, -1)), (n, agents)) for name, value in costs.items()}
-        agent_cost, agent_info = self._aggregate_cost(per_agent)
-        team_cost, team_info = self._aggregate_cost({name: value.sum(axis=1) for name, value in per_agent.items()})
-        done = terminated | truncated
-        group = {
-            "observation": observation[:, self._agent_index].astype(np.float32),
-            "observation_mask": self._observation_mask.copy(),
-            "cost": agent_column(agent_cost, n, agents, np.float32),
-            "cost_info": {name: agent_column(value, n, agents, np.float32) for name, value in agent_info.items()},
-            "terminated": agent_column(terminated, n, agents, np.bool_),
-            "truncated": agent_column(truncated, n, agents, np.bool_),
-            "done": agent_column(done, n, agents, np.bool_),
-        }
-        if reward is not None:
-            group["reward"] = agent_column(reward, n, agents, np.float32)
-        return {
-            "state": np.array(observation, dtype=np.float32),
-            "cost": root_column(team_cost, n, np.float32),
-            "cost_info": {name: root_column(value, n, np.float32) for name, value in team_info.items()},
-            "terminated": root_column(terminated, n, np.bool_),
-            "truncated": root_column(truncated, n, np.bool_),
-            "done": root_column(done, n, np.bool_),
-            GROUP: group,
-        }
+        return self._own_cost_arrays(observation[:, self._agent_index], self._observation_mask, observation,
+                                     reward, costs, terminated, truncated)
