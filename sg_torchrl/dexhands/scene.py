@@ -27,6 +27,7 @@ forces; here the servos' ranges, gains and damping are this project's choice, se
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from dataclasses import dataclass
 from functools import lru_cache
@@ -56,15 +57,18 @@ BALL_MASS = 0.05
 
 
 def hand_assets_dir() -> str:
-    """The gymnasium-robotics assets folder (``.../envs/assets``); a clear error if it is missing."""
-    try:
-        import gymnasium_robotics  # noqa: PLC0415 - optional at import time of sg_torchrl, needed here
-    except ImportError as error:  # pragma: no cover - depends on the installation
+    """The gymnasium-robotics assets folder (``.../envs/assets``); a clear error if it is missing.
+
+    The package is located, not imported: importing it registers all of its environments and prints
+    a notice about its Adroit tasks, neither of which the Shadow-Hand tasks need.
+    """
+    spec = importlib.util.find_spec("gymnasium_robotics")
+    if spec is None or not spec.submodule_search_locations:
         raise ImportError(
             "the Shadow-Hand tasks (sg_torchrl.dexhands) load the Shadow Hand model of gymnasium-robotics; "
             "install it with `pip install gymnasium-robotics==1.4.2` (a dependency of sg_torchrl)"
-        ) from error
-    root = os.path.join(os.path.dirname(gymnasium_robotics.__file__), "envs", "assets")
+        )
+    root = os.path.join(next(iter(spec.submodule_search_locations)), "envs", "assets")
     if not os.path.isfile(os.path.join(root, "hand", "robot.xml")):
         raise FileNotFoundError(f"gymnasium-robotics is installed but its Shadow Hand model is missing under {root}/hand")
     return root
