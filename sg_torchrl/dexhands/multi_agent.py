@@ -22,12 +22,12 @@ from __future__ import annotations
 import numpy as np
 
 from sg_torchrl.dexhands.env import OBJECT_OBSERVATION_DIM, ShadowHandEnv
-from sg_torchrl.envs.multi_agent.group import AgentGroupMixin
+from sg_torchrl.envs.multi_agent.group import JointVectorAgentsMixin
 
 __all__ = ["MultiAgentShadowHandEnv"]
 
 
-class MultiAgentShadowHandEnv(AgentGroupMixin, ShadowHandEnv):
+class MultiAgentShadowHandEnv(JointVectorAgentsMixin, ShadowHandEnv):
     """:class:`ShadowHandEnv` with one agent per hand (same arguments; see the module docstring)."""
 
     @property
@@ -39,19 +39,6 @@ class MultiAgentShadowHandEnv(AgentGroupMixin, ShadowHandEnv):
         return tuple(len(hand.actuators) for hand in self.layout.hands)
 
     @property
-    def observation_sizes(self) -> tuple[int, ...]:
-        return (self._agent_index.shape[1],) * self.num_agents
-
-    @property
-    def observation_dim(self) -> int:
-        """Per-agent observation length ``D``."""
-        return self._agent_index.shape[1]
-
-    @property
-    def state_dim(self) -> int:
-        return self._observation.shape[1]
-
-    @property
     def _action_slot(self) -> np.ndarray:
         # The single-agent action is the hands' actuators in hand order: exactly the flattened (A, Da) group action.
         return np.arange(sum(self.action_sizes))
@@ -60,25 +47,13 @@ class MultiAgentShadowHandEnv(AgentGroupMixin, ShadowHandEnv):
         per_hand, agents = self.hand_observation_dim, self.num_agents
         shared = np.arange(agents * per_hand, observation_dim)
         assert len(shared) == OBJECT_OBSERVATION_DIM
-        self._agent_index = np.stack([np.concatenate((np.arange(a * per_hand, (a + 1) * per_hand), shared))
-                                      for a in range(agents)])
-        self._observation_mask = np.ones((self.num_envs, *self._agent_index.shape), dtype=bool)
+        agent_index = np.stack([np.concatenate((np.arange(a * per_hand, (a + 1) * per_hand), shared))
+                                for a in range(agents)])
         actions = self.action_sizes[0]
-        self._make_group_specs(
-            observation_width=self._agent_index.shape[1],
-            state_dim=observation_dim,
-            action_low=self._action_low.reshape(agents, actions),
-            action_high=self._action_high.reshape(agents, actions),
-            constraint_names=self.constraint_names,
-            agent_constraints=self.constraint_names,
-        )
+        self._make_joint_view_specs(agent_index, observation_dim, self._action_low.reshape(agents, actions),
+                                    self._action_high.reshape(agents, actions))
 
     def _compute_cost(self) -> dict[str, np.ndarray]:
         """Each agent's raw cost per constraint: its own hand's violations, ``(N, A)`` each."""
         qpos = self.physics.qpos()
         return {c.name: c.per_hand(qpos, self._last_action) for c in self.constraints}
-
-    def _output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
-        """The step's (or, with ``reward=None``, the reset's) output as a nested dict of fresh numpy arrays."""
-        return self._own_cost_arrays(observation[:, self._agent_index], self._observation_mask, observation,
-                                     reward, costs, terminated, truncated)

@@ -42,7 +42,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
-__all__ = ["GROUP", "AgentGroupMixin", "agent_column", "root_column"]
+__all__ = ["GROUP", "AgentGroupMixin", "JointVectorAgentsMixin", "agent_column", "root_column"]
 
 #: Name of the agents' group sub-TensorDict (TorchRL's MARL convention).
 GROUP = "agents"
@@ -279,3 +279,58 @@ class AgentGroupMixin(abc.ABC):
 
         out = tensors(arrays, tuple(self.batch_size))
         return out if self.device is None or self.device.type == "cpu" else out.to(self.device)
+
+
+class JointVectorAgentsMixin(AgentGroupMixin):
+    """Agents that each observe fixed columns of the env's joint observation vector and pay their own costs.
+
+    The multi-robot navigation tasks (MultiGoal) and the two-hand tasks split one world this way:
+    the joint vector is the global ``"state"``, agent ``a`` observes ``state[:, agent_index[a]]`` (every
+    agent the same width, so no padding), and each agent's ``cost`` follows its own per-agent costs
+    (:meth:`_own_cost_arrays`). The env calls :meth:`_make_joint_view_specs` from its ``_make_specs``.
+    """
+
+    _agent_index: np.ndarray
+    _observation: np.ndarray
+    _action_low: np.ndarray
+    _action_high: np.ndarray
+    constraint_names: list[str]
+
+    @property
+    def observation_sizes(self) -> tuple[int, ...]:
+        """Observation length per agent (all equal)."""
+        return (self._agent_index.shape[1],) * self.num_agents
+
+    @property
+    def observation_dim(self) -> int:
+        """Per-agent observation length ``D``."""
+        return self._agent_index.shape[1]
+
+    @property
+    def state_dim(self) -> int:
+        """Length ``S`` of ``"state"``, the joint observation vector."""
+        return self._observation.shape[1]
+
+    def _make_joint_view_specs(
+        self, agent_index: np.ndarray, state_dim: int, action_low: np.ndarray, action_high: np.ndarray
+    ) -> None:
+        """Record each agent's ``(A, D)`` columns of the joint vector and build the group specs.
+
+        ``action_low`` / ``action_high``: ``(A, Da)`` bounds of the group action slots.
+        """
+        self._agent_index = agent_index
+        self._observation_mask = np.ones((self.num_envs, *agent_index.shape), dtype=bool)
+        self._make_group_specs(
+            observation_width=agent_index.shape[1],
+            state_dim=state_dim,
+            action_low=action_low,
+            action_high=action_high,
+            constraint_names=self.constraint_names,
+            agent_constraints=self.constraint_names,
+        )
+
+    def _output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
+        """The step's (or, with ``reward=None``, the reset's) output as a nested dict of fresh numpy arrays
+        (the layout of the module docstring). The PettingZoo façade reads it directly."""
+        return self._own_cost_arrays(observation[:, self._agent_index], self._observation_mask, observation,
+                                     reward, costs, terminated, truncated)

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from sg_torchrl.envs.base import CostMode
-from sg_torchrl.envs.multi_agent.group import GROUP, AgentGroupMixin, agent_column, root_column
+from sg_torchrl.envs.multi_agent.group import GROUP, JointVectorAgentsMixin, agent_column, root_column
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.lidar import LidarMode
 from sg_torchrl.envs.navigation.tasks import Task
@@ -54,7 +54,7 @@ __all__ = ["AgentView", "MultiAgentNavigationEnv"]
 AgentView = Literal["joint", "own"]
 
 
-class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
+class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
     """A multi-agent navigation task (several robots, one world) in TorchRL's multi-agent layout, batched.
 
     Args:
@@ -90,7 +90,6 @@ class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
         self.agent_view: AgentView = agent_view
         super().__init__(robot, task, level, num_envs=num_envs, device=device, seed=seed, cost_mode=cost_mode,
                          max_episode_steps=max_episode_steps, lidar=lidar, compass=compass)
-        self._observation_mask = np.ones((num_envs, *self._agent_index.shape), dtype=bool)
 
     # ------------------------------------------------------------------ layout
     @property
@@ -98,24 +97,9 @@ class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
         return len(self.robots)
 
     @property
-    def observation_sizes(self) -> tuple[int, ...]:
-        """Observation length per agent (all equal)."""
-        return (self._agent_index.shape[1],) * self.num_agents
-
-    @property
     def action_sizes(self) -> tuple[int, ...]:
         """Number of actuators per agent: its robot's."""
         return tuple(robot.action_size for robot in self.robots)
-
-    @property
-    def observation_dim(self) -> int:
-        """Per-agent observation length ``D``."""
-        return self._agent_index.shape[1]
-
-    @property
-    def state_dim(self) -> int:
-        """Length ``S`` of ``"state"``, the joint observation vector."""
-        return self._observation.shape[1]
 
     @property
     def _action_slot(self) -> np.ndarray:
@@ -135,19 +119,12 @@ class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
 
     def _make_specs(self, observation_dim: int) -> None:
         # Called by the base constructor once the observation layout is known: resolve the agents' columns here.
-        self._agent_index = self._agent_columns()
         # The robots are of one kind: agent a's slot k drives the k-th actuator of robot a.
         actuators = np.stack([robot.actuator_ids for robot in self.robots])  # (A, Da)
         self._slots = np.empty(self.physics.model.nu, dtype=np.int64)
         self._slots[actuators.reshape(-1)] = np.arange(actuators.size)
-        self._make_group_specs(
-            observation_width=self._agent_index.shape[1],
-            state_dim=observation_dim,
-            action_low=self._action_low[actuators],
-            action_high=self._action_high[actuators],
-            constraint_names=self.constraint_names,
-            agent_constraints=self.constraint_names,
-        )
+        self._make_joint_view_specs(self._agent_columns(), observation_dim, self._action_low[actuators],
+                                    self._action_high[actuators])
 
     # ------------------------------------------------------------------ hooks
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
@@ -157,10 +134,3 @@ class MultiAgentNavigationEnv(AgentGroupMixin, NavigationEnv):
     def _compute_cost(self) -> dict[str, np.ndarray]:
         """Each agent's own raw cost per constraint, ``(N, A)`` each."""
         return self._agent_costs
-
-    # ------------------------------------------------------------------ output
-    def _output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
-        """The step's (or, with ``reward=None``, the reset's) output as a nested dict of fresh numpy arrays
-        (the layout of the module docstring). The PettingZoo façade reads it directly."""
-        return self._own_cost_arrays(observation[:, self._agent_index], self._observation_mask, observation,
-                                     reward, costs, terminated, truncated)
