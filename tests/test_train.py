@@ -215,6 +215,17 @@ class TestTraining:
             epochs = [int(float(row["Train/Epoch"])) for row in csv.DictReader(handle)]
         assert epochs == [1, 2, 3, 4]
 
+    def test_resuming_a_finished_run_keeps_one_final_row(self, tmp_path):
+        finished = Trainer(tiny_config(tmp_path, eval_episodes=1))
+        finished.run()
+        progress = tmp_path / "run" / "progress.csv"
+        rows = progress.read_text().splitlines()
+        checkpoint = Trainer.load_checkpoint(finished.checkpoint_path.parent)
+        resumed = Trainer(tiny_config(tmp_path, eval_episodes=1), checkpoint)
+        resumed.run()
+        assert progress.read_text().splitlines()[:-1] == rows[:-1]  # the epochs, once
+        assert len(progress.read_text().splitlines()) == len(rows)  # and one final row
+
     def test_missing_checkpoint_is_a_clear_error(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no checkpoint"):
             Trainer.load_checkpoint(tmp_path)

@@ -58,14 +58,15 @@ class RunLogger:
             self.progress_path.unlink()
 
     def _truncate_progress(self, last_epoch: int) -> None:
-        """Keep the header and the rows of epochs ``<= last_epoch`` of ``progress.csv``."""
+        """Keep the header and the rows of epochs ``<= last_epoch`` of ``progress.csv`` (drop the rest)."""
         with self.progress_path.open(newline="") as handle:
             rows = list(csv.reader(handle))
         if not rows:
             return
         self._columns = rows[0]
         epoch = self._columns.index("Train/Epoch") if "Train/Epoch" in self._columns else None
-        kept = [row for row in rows[1:] if epoch is None or float(row[epoch]) <= last_epoch]
+        # Rows without an epoch are a finished run's final summary: the resumed run writes its own.
+        kept = [row for row in rows[1:] if epoch is None or (row[epoch] != "" and float(row[epoch]) <= last_epoch)]
         with self.progress_path.open("w", newline="") as handle:
             csv.writer(handle).writerows([self._columns, *kept])
 
