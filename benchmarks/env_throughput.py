@@ -31,11 +31,13 @@ Usage::
     python benchmarks/env_throughput.py
     python benchmarks/env_throughput.py --ids SafetyAntVelocity-v1 --num-envs 16 --steps 500 --json out.json
     python benchmarks/env_throughput.py --ids SafetyPointGoal1-v0 --num-envs 1 64 --steps 1000 --reset-time
+    python benchmarks/env_throughput.py --ids ShadowHandOverSafeJoint-v0 --num-envs 16 64 --physics-threads 1 2
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 
 import mujoco
@@ -114,8 +116,8 @@ def time_raw(model: mujoco.MjModel, start: np.ndarray, action: np.ndarray, frame
 
 
 def measure(env_id: str, num_envs: int, steps: int, repeats: int, warmup: int, seed: int,
-            raw_step_only: bool = False, reset_time: bool = False) -> dict:
-    env = sg_torchrl.make(env_id, num_envs=num_envs, seed=seed)
+            raw_step_only: bool = False, reset_time: bool = False, physics_threads: int = 1) -> dict:
+    env = sg_torchrl.make(env_id, num_envs=num_envs, seed=seed, physics_threads=physics_threads)
     action = _fixed_action(env, seed)
     raw_action = _robot_control(env, action)
     physics = env.physics  # the env's own compiled model and post-step work
@@ -130,7 +132,7 @@ def measure(env_id: str, num_envs: int, steps: int, repeats: int, warmup: int, s
     ours_rate = num_envs * steps / min(ours)
     raw_rate = num_envs * steps / min(raw)
     row = {
-        "env_id": env_id, "num_envs": num_envs, "steps": steps, "repeats": repeats,
+        "env_id": env_id, "num_envs": num_envs, "physics_threads": physics_threads, "steps": steps, "repeats": repeats,
         "ours_steps_per_s": ours_rate, "raw_steps_per_s": raw_rate, "ratio": ours_rate / raw_rate,
         "raw_includes": [name for name, on in (("mj_forward", forward), ("mj_rnePostConstraint", post)) if on],
         "physics_errors": env.physics_errors,
@@ -146,9 +148,9 @@ def measure(env_id: str, num_envs: int, steps: int, repeats: int, warmup: int, s
 def markdown_table(rows: list[dict]) -> str:
     resets = any("reset_one_sim_median_ms" in row for row in rows)
     lines = [
-        "| env id | N | ours (env steps/s) | raw MuJoCo (env steps/s) | ours / raw |"
+        "| env id | N | physics threads | ours (env steps/s) | raw MuJoCo, 1 thread (env steps/s) | ours / raw |"
         + (" reset 1 sim, median (ms) |" if resets else ""),
-        "|---|---:|---:|---:|---:|" + ("---:|" if resets else ""),
+        "|---|---:|---:|---:|---:|---:|" + ("---:|" if resets else ""),
     ]
     for row in rows:
         reset = ""
@@ -156,7 +158,7 @@ def markdown_table(rows: list[dict]) -> str:
             value = row.get("reset_one_sim_median_ms")
             reset = " |" if value is None else f" {value:.3f} |"
         lines.append(
-            f"| {row['env_id']} | {row['num_envs']} | {row['ours_steps_per_s']:,.0f} | "
+            f"| {row['env_id']} | {row['num_envs']} | {row['physics_threads']} | {row['ours_steps_per_s']:,.0f} | "
             f"{row['raw_steps_per_s']:,.0f} | {row['ratio']:.0%} |" + reset
         )
     return "\n".join(lines)
@@ -171,6 +173,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--warmup", type=int, default=20, help="untimed steps before each run")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    parser.add_argument("--physics-threads", nargs="+", type=int, default=[1],
+                        help="the envs' physics_threads to measure (the raw loop always runs on one thread)")
     parser.add_argument("--raw-step-only", action="store_true",
                         help="raw loop: mj_step only (no mj_forward / mj_rnePostConstraint the env runs)")
     parser.add_argument("--reset-time", action="store_true",
@@ -180,13 +184,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
     torch.set_num_threads(args.threads)
     rows = []
-    for env_id in args.ids:
-        for num_envs in args.num_envs:
-            rows.append(measure(env_id, num_envs, args.steps, args.repeats, args.warmup, args.seed,
-                                raw_step_only=args.raw_step_only, reset_time=args.reset_time))
-            row = rows[-1]
-            print(f"{env_id} N={num_envs}: ours {row['ours_steps_per_s']:,.0f}/s, "
-                  f"raw {row['raw_steps_per_s']:,.0f}/s ({row['ratio']:.0%})", flush=True)
+    for env_id, num_envs, physics_threads in itertools.product(args.ids, args.num_envs, args.physics_threads):
+        row = measure(env_id, num_envs, args.steps, args.repeats, args.warmup, args.seed,
+                      raw_step_only=args.raw_step_only, reset_time=args.reset_time, physics_threads=physics_threads)
+        rows.append(row)
+        print(f"{env_id} N={num_envs} physics_threads={physics_threads}: ours {row['ours_steps_per_s']:,.0f}/s, "
+              f"raw {row['raw_steps_per_s']:,.0f}/s ({row['ratio']:.0%})", flush=True)
     print()
     print(markdown_table(rows))
     if args.json:

@@ -84,6 +84,8 @@ class ShadowHandEnv(MujocoSafeEnv):
         distance_scale: ``alpha`` of the reward.
         fall_height: the episode terminates when the ball's centre is below this height (m);
             default: the task's.
+        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`);
+            the two-hand scene is heavy enough for 2 to pay on 2 cores (``benchmarks/threaded_stepping.py``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -103,6 +105,7 @@ class ShadowHandEnv(MujocoSafeEnv):
         max_episode_steps: int = 75,
         distance_scale: float = 20.0,
         fall_height: float | None = None,
+        physics_threads: int = 1,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -116,7 +119,8 @@ class ShadowHandEnv(MujocoSafeEnv):
         self.layout = layout
         self.distance_scale = float(distance_scale)
         self.fall_height = float(self.task.fall_height if fall_height is None else fall_height)
-        self.physics = MujocoBatch(model, num_envs, fields=("sensordata", "qfrc_actuator"), forward_after_step=True)
+        self.physics = MujocoBatch(model, num_envs, fields=("sensordata", "qfrc_actuator"), forward_after_step=True,
+                                   threads=physics_threads)
         hands = layout.hands
         self.constraints = [JointRangeConstraint(name, ranges, hands, cost_source)
                             for name, ranges in SAFETY_VARIANTS[safety].items()]

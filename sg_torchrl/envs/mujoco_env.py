@@ -6,7 +6,8 @@ navigation alike) share two facts, kept here once:
 
 * divergence: MuJoCo resets an unstable simulator by itself, so its observation is finite and
   only the physics' instability warnings tell it apart (``physics.unstable``);
-* snapshots: the full physics state of every simulator is what checkpoints save.
+* snapshots: the full physics state of every simulator is what checkpoints save;
+* ``close`` also stops the physics' stepping threads (``physics_threads`` > 1).
 """
 
 from __future__ import annotations
@@ -32,3 +33,9 @@ class MujocoSafeEnv(SafeEnv):
 
     def _load_physics_state(self, state) -> None:
         self.physics.set_state(state)
+
+    def close(self, *args, **kwargs):
+        physics = self.__dict__.get("physics")  # absent when the constructor failed early
+        if physics is not None:
+            physics.close()
+        return super().close(*args, **kwargs)

@@ -57,6 +57,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         agent_obsk: graph distance of the joints an agent observes (MaMuJoCo's ``agent_obsk``; the
             reference and its sizes use 1).
         velocity_threshold: override the configuration's threshold (reference section 9).
+        physics_threads: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`~sg_torchrl.envs.base.SafeEnv`.
 
     See the module docstring for the TensorDict layout.
@@ -74,6 +75,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         cost_mode: CostMode = "indicator",
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,
+        physics_threads: int = 1,
     ) -> None:
         spec: Scenario = scenario_of(scenario)
         robot = ROBOTS[spec.robot]
@@ -92,6 +94,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
             max_episode_steps=max_episode_steps,
             velocity_threshold=threshold,
             planar_cost=spec.cost_velocity == "planar",
+            physics_threads=physics_threads,
         )
         layout = self.layout
         # The source rows (see .layout): state, raw velocities if observed, a constant 0 column.

@@ -64,7 +64,7 @@ class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
         level: the task level (0, 1, 2).
         agent_view: ``"joint"`` (default, the reference's: every agent observes the joint vector) or
             ``"own"`` (each agent its own robot's sensors and lidars); see the module docstring.
-        num_envs, device, seed, cost_mode, max_episode_steps, lidar, compass: see
+        num_envs, device, seed, cost_mode, max_episode_steps, lidar, compass, physics_threads: see
             :class:`~sg_torchrl.envs.navigation.NavigationEnv`.
 
     See the module docstring for the TensorDict layout.
@@ -84,12 +84,14 @@ class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
         max_episode_steps: int | None = None,
         lidar: LidarMode = "pseudo",
         compass: bool = False,
+        physics_threads: int = 1,
     ) -> None:
         if agent_view not in ("joint", "own"):
             raise ValueError(f"agent_view must be 'joint' or 'own', got {agent_view!r}")
         self.agent_view: AgentView = agent_view
         super().__init__(robot, task, level, num_envs=num_envs, device=device, seed=seed, cost_mode=cost_mode,
-                         max_episode_steps=max_episode_steps, lidar=lidar, compass=compass)
+                         max_episode_steps=max_episode_steps, lidar=lidar, compass=compass,
+                         physics_threads=physics_threads)
 
     # ------------------------------------------------------------------ layout
     @property

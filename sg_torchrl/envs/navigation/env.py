@@ -66,6 +66,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             of the robot's ``vision`` camera only: ``pixels`` and ``depth``), ``"vector+rgb"`` /
             ``"vector+rgbd"`` (both); see :mod:`sg_torchrl.envs.vision`. Single-robot tasks only.
         image_size: side of the square images in pixels (default 64; the reference's is 256).
+        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
+            1, the default, is fastest for the light robots; it can pay for Doggo and Ant at large ``num_envs``).
 
     Attributes:
         observation_slices: ``{name: slice}`` of every observation part (``"accelerometer"``, ...,
@@ -92,6 +94,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         compass: bool = False,
         obs_mode: ObsMode = "vector",
         image_size: int = DEFAULT_IMAGE_SIZE,
+        physics_threads: int = 1,
     ) -> None:
         content = ObservationContent.parse(obs_mode)  # before building anything, for this message
         if not isinstance(num_envs, int) or num_envs < 1:  # before building the scene, for this message
@@ -116,7 +119,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         )
         for each in self.robots:
             each.bind(model)
-        self.scene = Scene(model, num_envs, self.robots)
+        self.scene = Scene(model, num_envs, self.robots, physics_threads=physics_threads)
         self.physics = self.scene.physics
         for obj in objects:
             obj.bind(self.scene)

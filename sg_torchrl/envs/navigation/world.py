@@ -164,17 +164,20 @@ class Scene:
         model: the compiled world.
         num_envs: number of simulators.
         robot: the (bound) robot of this world, or its robots in agent order.
+        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`).
 
     Agent-relative views (:meth:`agent_pos`, :meth:`planar_distance`, :attr:`robot_geoms`,
     :meth:`robot_contacts`, ...) refer to one robot: the first. :meth:`for_robot` gives the same
     simulators seen from another robot; :attr:`views` lists one scene per robot.
     """
 
-    def __init__(self, model: mujoco.MjModel, num_envs: int, robot: Robot | Sequence[Robot]) -> None:
+    def __init__(self, model: mujoco.MjModel, num_envs: int, robot: Robot | Sequence[Robot], *,
+                 physics_threads: int = 1) -> None:
         self.model = model
         self.num_envs = num_envs
         self.robots: list[Robot] = list(robot) if isinstance(robot, Sequence) else [robot]
-        self.physics = MujocoBatch(model, num_envs, fields=("xpos", "xmat", "sensordata"), forward_after_step=True)
+        self.physics = MujocoBatch(model, num_envs, fields=("xpos", "xmat", "sensordata"), forward_after_step=True,
+                                   threads=physics_threads)
         mocap_bodies = np.flatnonzero(model.body_mocapid >= 0)
         order = model.body_mocapid[mocap_bodies]
         self._mocap_pos = np.empty((model.nmocap, 3))

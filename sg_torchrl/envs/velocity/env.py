@@ -34,6 +34,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         planar_cost: override the version's velocity measure: ``True`` prices the planar speed
             ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
             velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
+        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
+            these models are light, so 1, the default, is usually fastest).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
@@ -53,6 +55,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,
         planar_cost: bool | None = None,
+        physics_threads: int = 1,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -70,6 +73,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             num_envs,
             post_constraint="cfrc_ext" in spec.extra_observations,
             fields=position_field + spec.extra_observations,
+            threads=physics_threads,
         )
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
