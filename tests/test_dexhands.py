@@ -375,3 +375,61 @@ class TestMultiAgent:
         assert {agent: obs.shape for agent, obs in observations.items()} == {"agent_0": (211,), "agent_1": (211,)}
         out = env.step({agent: env.action_space(agent).sample() for agent in env.agents})
         assert len(out) == 6 and all(set(part) == {"agent_0", "agent_1"} for part in out)
+
+
+# ---------------------------------------------------------------------------- rendering
+@pytest.mark.parametrize("env_id", ["ShadowHandOverSafeJoint-v0", "MultiAgentShadowHandCatchOver2UnderarmSafeFinger-v0"])
+def test_render_shows_both_hands_and_the_ball(backend, env_id):
+    env = sg_torchrl.make(env_id, num_envs=2, seed=0)
+    env.reset()
+    frame = env.render(0, width=120, height=90)
+    assert frame.shape == (90, 120, 3) and frame.dtype == np.uint8
+    assert frame.std() > 10 and len(np.unique(frame.reshape(-1, 3), axis=0)) > 20  # a picture, not a blank
+    assert np.array_equal(env.render(0, 120, 90), frame)  # rendering only reads the state
+    # Lift simulator 0's ball well above the hands: the picture changes, simulator 1's does not.
+    other = env.render(1, 120, 90)
+    start = env.layout.ball_qpos
+    env.physics.datas[0].qpos[start + 2] += 0.15
+    mujoco.mj_forward(env.physics.model, env.physics.datas[0])
+    assert not np.array_equal(env.render(0, 120, 90), frame)
+    assert np.array_equal(env.render(1, 120, 90), other)
+    env.close()
+    with pytest.raises(RuntimeError, match="after close"):
+        env.render(0)
+
+
+# ---------------------------------------------------------------------------- training
+class TestTraining:
+    """``sg-train`` on the two-hand ids: the ``hands`` preset, and both agent layouts end to end."""
+
+    def test_hands_preset_follows_safepos_isaac_gym_config_in_whole_episodes(self):
+        from sg_torchrl.train.config import parse_args
+
+        cfg = parse_args(["--preset", "hands"])
+        assert (cfg.algo, cfg.env_id) == ("ppo_lag", "ShadowHandOverSafeJoint-v0")
+        # SafePO's Isaac Gym override: gamma 0.96, target KL 0.016, 8 passes of 4 minibatches, clip 1.0, no critic L2.
+        assert (cfg.gamma, cfg.target_kl, cfg.update_iters, cfg.max_grad_norm, cfg.critic_l2) == (0.96, 0.016, 8, 1.0, 0.0)
+        assert cfg.steps_per_epoch == 4 * cfg.minibatch_size
+        assert cfg.steps_per_epoch % (cfg.num_envs * 75) == 0  # every simulator ends its episodes within the epoch
+        assert cfg.total_steps % cfg.steps_per_epoch == 0
+        assert cfg.env_options == {"physics_threads": 2}
+
+    @pytest.mark.parametrize("algo, env_id", [("ppo_lag", "ShadowHandOverSafeJoint-v0"),
+                                              ("mappo_lag", "MultiAgentShadowHandOverSafeFinger-v0")])
+    def test_sg_train_runs_end_to_end(self, tmp_path, algo, env_id):
+        import csv
+
+        from sg_torchrl.train import main
+
+        code = main(["--preset", "hands", "--algo", algo, "--env-id", env_id, "--num-envs", "4",
+                     "--steps-per-epoch", "300", "--minibatch-size", "150", "--total-steps", "600",
+                     "--hidden-sizes", "32", "32", "--eval-episodes", "1", "--wandb", "disabled",
+                     "--progress", "false", "--output-dir", str(tmp_path), "--run-name", "hands"])
+        assert code == 0
+        with open(tmp_path / "hands" / "progress.csv") as handle:
+            rows = [row for row in csv.DictReader(handle) if row["Train/Epoch"]]
+        assert len(rows) == 2
+        for row in rows:
+            assert float(row["Metrics/EpLen"]) == 75.0  # the ball rests on the palm: time-limit episodes
+            assert 0.0 <= float(row["Metrics/EpCost"]) <= 2 * 75  # both hands' forefingers, per step
+            assert 0.0 < float(row["Metrics/EpRet"]) < 75.0  # exp(-...) <= 1 per step

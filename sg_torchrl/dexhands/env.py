@@ -61,6 +61,7 @@ from sg_torchrl.dexhands.tasks import TASKS
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.physics import MujocoBatch
+from sg_torchrl.envs.rendering import FollowCamera, RenderMixin
 
 __all__ = ["ShadowHandEnv"]
 
@@ -73,7 +74,7 @@ FRAME_SKIP = 8
 OBJECT_OBSERVATION_DIM = 24
 
 
-class ShadowHandEnv(MujocoSafeEnv):
+class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
     """Two Shadow Hands pass a ball from one to the other under a forefinger constraint.
 
     Args:
@@ -90,6 +91,9 @@ class ShadowHandEnv(MujocoSafeEnv):
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
     (SafeFinger); each counts the joints of both hands outside their safe ranges.
+
+    ``render(index)`` (:class:`~sg_torchrl.envs.rendering.RenderMixin`) looks at both hands from the
+    side, slightly above, centred between the two mounts; ``record_video`` works as for every env.
     """
 
     def __init__(
@@ -139,6 +143,10 @@ class ShadowHandEnv(MujocoSafeEnv):
         per_hand = (3 * len(hands[0].qpos) + sum(len(c) for c in (self._tip_state[0], self._tip_force[0]))
                     + len(hands[0].base_qpos) + num_actions // 2)
         self.hand_observation_dim = per_hand
+        # render(): a fixed side view of both hands, centred between the mounts (world body, offset)
+        between = np.mean([mount[:3] for mount in self.task.scene.mounts], axis=0)
+        self.default_camera = FollowCamera(distance=1.1, elevation=-40.0, azimuth=0.0,
+                                           offset=(float(between[0]), float(between[1]), float(between[2]) + 0.1))
         self._observation = np.zeros((num_envs, len(hands) * per_hand + OBJECT_OBSERVATION_DIM))
         super().__init__(
             num_envs=num_envs,
@@ -158,6 +166,9 @@ class ShadowHandEnv(MujocoSafeEnv):
         """``sensordata`` columns of ``hand``'s fingertip sensors of ``kinds``, tip by tip."""
         return np.concatenate([np.arange(hand.sensors[f"{tip}tip_{kind}"].start, hand.sensors[f"{tip}tip_{kind}"].stop)
                                for tip in FINGERTIPS for kind in kinds])
+
+    def _render_body(self) -> int:
+        return 0  # the world: the camera stays put between the hands
 
     # ------------------------------------------------------------------ state access
     def ball_pose(self) -> tuple[np.ndarray, np.ndarray]:

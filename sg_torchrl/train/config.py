@@ -347,6 +347,18 @@ PRESETS: dict[str, dict[str, Any]] = {
         algo="ppo_lag", env_id="SafetyPointGoal1Vision-v0", total_steps=80_000, num_envs=10,
         steps_per_epoch=10_000, update_iters=4, minibatch_size=64, eval_episodes=5, run_name="vision",
     ),
+    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (issue 8; sg_torchrl.dexhands). SafePO's
+    # Isaac Gym override config where a CPU can follow it: gamma 0.96, target KL 0.016, 8 passes of 4
+    # minibatches, gradient-norm clip 1.0, no critic L2. Scaled down for a CPU: 64 simulators on two
+    # physics threads (not 2,048 on a GPU), 9,600-step epochs (two 75-step episodes per simulator;
+    # Isaac Gym's are 32,768 steps), tanh 256 256 networks (not 1024 1024 512) and 104 epochs, about 1M steps
+    # (not 1e8).
+    "hands": dict(
+        algo="ppo_lag", env_id="ShadowHandOverSafeJoint-v0", env_options={"physics_threads": 2},
+        total_steps=998_400, num_envs=64, steps_per_epoch=9_600, gamma=0.96, target_kl=0.016, update_iters=8,
+        minibatch_size=2_400, max_grad_norm=1.0, critic_l2=0.0, hidden_sizes=[256, 256], eval_episodes=5,
+        run_name="hands",
+    ),
     # A seconds-long smoke run for tests and for trying the pipeline.
     "smoke": dict(
         total_steps=4_000, num_envs=4, steps_per_epoch=2_000, update_iters=2, eval_episodes=1,
