@@ -58,9 +58,9 @@ from sg_torchrl.dexhands.constraints import SAFETY_VARIANTS, CostSource, JointRa
 from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
 from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
 from sg_torchrl.dexhands.tasks import TASKS
+from sg_torchrl.envs.backends import Backend, make_physics
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
-from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import FollowCamera, RenderMixin
 
 __all__ = ["ShadowHandEnv"]
@@ -86,7 +86,11 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         fall_height: the episode terminates when the ball's centre is below this height (m);
             default: the task's.
         physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`);
-            the two-hand scene is heavy enough for 2 to pay on 2 cores (``benchmarks/threaded_stepping.py``).
+            the two-hand scene is heavy enough for 2 to pay on 2 cores (``benchmarks/threaded_stepping.py``;
+            ``backend="cpu"`` only).
+        backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible; thousands
+            of envs, ``benchmarks/warp_throughput.py``); see :mod:`sg_torchrl.envs.backends`.
+        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -110,6 +114,8 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         distance_scale: float = 20.0,
         fall_height: float | None = None,
         physics_threads: int = 1,
+        backend: Backend = "cpu",
+        warp_device: str | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -123,8 +129,8 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         self.layout = layout
         self.distance_scale = float(distance_scale)
         self.fall_height = float(self.task.fall_height if fall_height is None else fall_height)
-        self.physics = MujocoBatch(model, num_envs, fields=("sensordata", "qfrc_actuator"), forward_after_step=True,
-                                   threads=physics_threads)
+        self.physics = make_physics(backend, model, num_envs, fields=("sensordata", "qfrc_actuator"),
+                                    forward_after_step=True, threads=physics_threads, warp_device=warp_device)
         hands = layout.hands
         self.constraints = [JointRangeConstraint(name, ranges, hands, cost_source)
                             for name, ranges in SAFETY_VARIANTS[safety].items()]
@@ -262,7 +268,4 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         self._goal_pos[:] = state["goal_pos"]
         self._goal_quat[:] = state["goal_quat"]
         self._last_action[:] = state["last_action"]
-        for data, pos, quat in zip(self.physics.datas, self._goal_pos, self._goal_quat):
-            data.mocap_pos[self.layout.goal_mocap] = pos
-            data.mocap_quat[self.layout.goal_mocap] = quat
-        self.physics.set_state(state["physics"])
+        self.physics.set_state(state["physics"])  # the goal's mocap pose is part of the physics state

@@ -1,11 +1,12 @@
 """``MujocoSafeEnv``: the layer shared by every task simulated with :class:`MujocoBatch`.
 
 :class:`~sg_torchrl.envs.base.SafeEnv` knows nothing about the simulator. Tasks whose simulators
-are a :class:`~sg_torchrl.envs.physics.MujocoBatch` held in ``self.physics`` (velocity and
-navigation alike) share two facts, kept here once:
+are a :class:`~sg_torchrl.envs.physics.MujocoBatch` (or its MuJoCo Warp twin
+:class:`~sg_torchrl.envs.warp_physics.WarpBatch`, see :mod:`sg_torchrl.envs.backends`) held in
+``self.physics`` (velocity, navigation and the two-hand tasks alike) share these facts, kept here once:
 
-* divergence: MuJoCo resets an unstable simulator by itself, so its observation is finite and
-  only the physics' instability warnings tell it apart (``physics.unstable``);
+* divergence: the physics resets an unstable simulator by itself, so its observation is finite and
+  only ``physics.unstable`` tells it apart;
 * snapshots: the full physics state of every simulator is what checkpoints save;
 * ``close`` also stops the physics' stepping threads (``physics_threads`` > 1).
 """
@@ -15,15 +16,15 @@ from __future__ import annotations
 import numpy as np
 
 from sg_torchrl.envs.base import SafeEnv
-from sg_torchrl.envs.physics import MujocoBatch
+from sg_torchrl.envs.backends import PhysicsBatch
 
 __all__ = ["MujocoSafeEnv"]
 
 
 class MujocoSafeEnv(SafeEnv):
-    """A :class:`SafeEnv` whose simulators are the :class:`MujocoBatch` ``self.physics``."""
+    """A :class:`SafeEnv` whose simulators are the physics batch ``self.physics`` (either backend)."""
 
-    physics: MujocoBatch
+    physics: PhysicsBatch
 
     def _diverged(self, observation: np.ndarray) -> np.ndarray:
         return super()._diverged(observation) | self.physics.unstable

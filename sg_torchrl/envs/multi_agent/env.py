@@ -37,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from sg_torchrl.envs.backends import Backend
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.multi_agent.group import GROUP, AgentGroupMixin, agent_column, root_column
 from sg_torchrl.envs.multi_agent.layout import AgentLayout, agent_layout
@@ -57,7 +58,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         agent_obsk: graph distance of the joints an agent observes (MaMuJoCo's ``agent_obsk``; the
             reference and its sizes use 1).
         velocity_threshold: override the configuration's threshold (reference section 9).
-        physics_threads: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
+        physics_threads, backend, warp_device: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`~sg_torchrl.envs.base.SafeEnv`.
 
     See the module docstring for the TensorDict layout.
@@ -76,6 +77,8 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,
         physics_threads: int = 1,
+        backend: Backend = "cpu",
+        warp_device: str | None = None,
     ) -> None:
         spec: Scenario = scenario_of(scenario)
         robot = ROBOTS[spec.robot]
@@ -95,6 +98,8 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
             velocity_threshold=threshold,
             planar_cost=spec.cost_velocity == "planar",
             physics_threads=physics_threads,
+            backend=backend,
+            warp_device=warp_device,
         )
         layout = self.layout
         # The source rows (see .layout): state, raw velocities if observed, a constant 0 column.

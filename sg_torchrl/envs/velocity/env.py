@@ -14,9 +14,9 @@ import mujoco
 import numpy as np
 import torch
 
+from sg_torchrl.envs.backends import Backend, make_physics
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
-from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 
@@ -35,7 +35,10 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
             velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
         physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
-            these models are light, so 1, the default, is usually fastest).
+            these models are light, so 1, the default, is usually fastest; ``backend="cpu"`` only).
+        backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
+            see :mod:`sg_torchrl.envs.backends`.
+        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
@@ -56,6 +59,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         velocity_threshold: float | None = None,
         planar_cost: bool | None = None,
         physics_threads: int = 1,
+        backend: Backend = "cpu",
+        warp_device: str | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -68,12 +73,14 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self.version = version
         self.velocity_threshold = float(spec.thresholds[version] if velocity_threshold is None else velocity_threshold)
         position_field = {"qpos": (), "torso": ("xpos",), "mass_center": ("xipos",)}[spec.position_source]
-        self.physics = MujocoBatch(
+        self.physics = make_physics(
+            backend,
             load_model(spec.xml_file),
             num_envs,
             post_constraint="cfrc_ext" in spec.extra_observations,
             fields=position_field + spec.extra_observations,
             threads=physics_threads,
+            warp_device=warp_device,
         )
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
@@ -109,8 +116,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
 
     # ------------------------------------------------------------------ layout
     def _observation_size(self, model: mujoco.MjModel) -> int:
-        data = self.physics.datas[0]
-        extra = sum(getattr(data, name).size for name in self.robot.extra_observations)
+        extra = sum(self.physics.field(name)[0].size for name in self.robot.extra_observations)
         return model.nq - self.robot.qpos_skip + model.nv + extra
 
     # ------------------------------------------------------------------ hooks
