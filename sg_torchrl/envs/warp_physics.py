@@ -347,14 +347,13 @@ class WarpBatch:
     def set_state(self, state: np.ndarray) -> None:
         """Restore :meth:`get_state` output; derived quantities are recomputed."""
         state = torch.as_tensor(np.asarray(state))
-        start = 0
-        for name in STATE_FIELDS:
-            view = self._views[name]
-            width = int(np.prod(view.shape[1:], dtype=np.int64))
-            view.copy_(state[:, start:start + width].reshape(view.shape))
-            start += width
-        if start != state.shape[1]:
-            raise ValueError(f"state has {state.shape[1]} columns, expected {start} (a WarpBatch checkpoint?)")
+        views = [self._views[name] for name in STATE_FIELDS]
+        widths = [int(np.prod(view.shape[1:], dtype=np.int64)) for view in views]
+        if tuple(state.shape) != (self.num_sims, sum(widths)):
+            raise ValueError(f"state has shape {tuple(state.shape)}, expected {(self.num_sims, sum(widths))} "
+                             f"columns (a WarpBatch checkpoint of this model and batch size?)")
+        for view, part in zip(views, torch.split(state, widths, dim=1)):
+            view.copy_(part.reshape(view.shape))
         self._forward()
         self.unstable[:] = False
         self.version += 1
