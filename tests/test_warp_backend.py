@@ -15,6 +15,8 @@ import torch
 
 pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed: pip install 'sg_torchrl[warp]'")
 
+from torchrl.envs.utils import check_env_specs  # noqa: E402
+
 from sg_torchrl.envs import make  # noqa: E402
 from sg_torchrl.envs.velocity.robots import load_model  # noqa: E402
 from sg_torchrl.envs.warp_physics import WarpBatch  # noqa: E402
@@ -61,11 +63,24 @@ def test_specs_and_sizes_match_the_cpu_backend(envs):
     assert warp_env.physics.qpos().shape == cpu_env.physics.qpos().shape
     assert warp_env.physics.qvel().shape == cpu_env.physics.qvel().shape
     assert warp_env.physics.qpos().dtype == np.float64  # the envs' numpy code sees the CPU backend's dtype
+    check_env_specs(warp_env, seed=0)
+
+
+def test_the_multi_agent_form_takes_the_backend_too():
+    env = make("Safety2x3HalfCheetahVelocity-v0", num_envs=2, seed=0, backend="warp", warp_device="cpu")
+    try:
+        assert isinstance(env.physics, WarpBatch)
+        td = env.rollout(3, break_when_any_done=False)
+        assert torch.isfinite(td["next", "agents", "observation"]).all()
+    finally:
+        env.close()
 
 
 def test_rollout_matches_mujoco_c_to_float32_precision(envs):
     warp_env, cpu_env = envs
-    td_warp, td_cpu = warp_env.reset(seed=7), cpu_env.reset(seed=7)
+    warp_env.set_seed(7)
+    cpu_env.set_seed(7)
+    td_warp, td_cpu = warp_env.reset(), cpu_env.reset()
     # The same reset draws; Warp stores them as float32.
     np.testing.assert_allclose(warp_env.physics.qpos(), cpu_env.physics.qpos(), rtol=0, atol=1e-7)
     for action in _actions(STEPS):
@@ -78,7 +93,7 @@ def test_rollout_matches_mujoco_c_to_float32_precision(envs):
 
 def test_resetting_some_worlds_leaves_the_others_untouched(envs):
     warp_env, _ = envs
-    td = warp_env.reset(seed=3)
+    td = warp_env.reset()
     for action in _actions(3, seed=1):
         td = _step(warp_env, td, action)
     physics = warp_env.physics
@@ -107,7 +122,7 @@ def test_partial_reset_restores_the_derived_fields_of_the_other_worlds():
 
 def test_a_diverged_world_is_reported_and_reset_while_the_others_continue(envs):
     warp_env, _ = envs
-    td = warp_env.reset(seed=5)
+    td = warp_env.reset()
     physics = warp_env.physics
     state, action = physics.get_state(), _actions(1, seed=2)[0]
     clean = _step(warp_env, td.clone(), action)
@@ -142,7 +157,7 @@ def test_the_physics_resets_a_diverged_world_to_the_initial_state():
 
 def test_state_round_trip_replays_exactly(envs):
     warp_env, _ = envs
-    td = warp_env.reset(seed=11)
+    td = warp_env.reset()
     physics = warp_env.physics
     state = physics.get_state()
     assert state.shape[0] == N and state.dtype == np.float64
