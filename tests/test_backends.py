@@ -23,7 +23,7 @@ IDS = ["SafetyHalfCheetahVelocity-v1", "Safety2x3HalfCheetahVelocity-v0", "Shado
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_backend_options_are_offered_through_the_registry(env_id):
-    assert {"backend", "warp_device"} <= set(env_options(env_id))
+    assert {"backend", "warp_device", "warp_options"} <= set(env_options(env_id))
 
 
 def test_cpu_is_the_default_backend():
@@ -44,9 +44,11 @@ def test_warp_with_threads_is_refused():
         make("SafetyHalfCheetahVelocity-v1", num_envs=2, backend="warp", physics_threads=2)
 
 
-def test_warp_device_needs_the_warp_backend():
+def test_warp_settings_need_the_warp_backend():
     with pytest.raises(ValueError, match="warp_device='cpu' applies to backend='warp' only"):
         make("SafetyHalfCheetahVelocity-v1", num_envs=2, warp_device="cpu")
+    with pytest.raises(ValueError, match="warp_options=.* applies to backend='warp' only"):
+        make("ShadowHandOverSafeJoint-v0", num_envs=1, warp_options={"njmax": 512})
 
 
 def test_warp_without_mujoco_warp_says_how_to_install_it(monkeypatch):

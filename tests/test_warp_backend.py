@@ -155,6 +155,20 @@ def test_the_physics_resets_a_diverged_world_to_the_initial_state():
     assert not batch.step(np.zeros((N, model.nu)), 2).any()
 
 
+def test_a_buffer_overflow_warns_once_naming_the_size_to_raise():
+    model = load_model("half_cheetah.xml")
+    batch = WarpBatch(model, 2, device="cpu", njmax=4)  # the cheetah on the floor needs more constraint rows
+    with pytest.warns(RuntimeWarning, match=r"raise nconmax \(now 64\) or njmax \(now 4\)"):
+        for _ in range(30):
+            batch.step(np.zeros((2, model.nu)), 5)
+
+
+def test_buffer_sizes_reach_the_physics_through_warp_options():
+    env = make(ENV_ID, num_envs=2, backend="warp", warp_device="cpu", warp_options={"njmax": 96, "nconmax": 32})
+    assert env.physics.warp_data.njmax == 96
+    assert env.physics.warp_data.naconmax == 2 * 32
+
+
 def test_state_round_trip_replays_exactly(envs):
     warp_env, _ = envs
     td = warp_env.reset()

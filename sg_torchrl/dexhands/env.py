@@ -51,6 +51,8 @@ MuJoCo's (soft contacts), not PhysX's, so their scale differs from the paper's.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -91,6 +93,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible; thousands
             of envs, ``benchmarks/warp_throughput.py``); see :mod:`sg_torchrl.envs.backends`.
         warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
+        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -116,6 +119,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         physics_threads: int = 1,
         backend: Backend = "cpu",
         warp_device: str | None = None,
+        warp_options: dict[str, Any] | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -130,7 +134,8 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         self.distance_scale = float(distance_scale)
         self.fall_height = float(self.task.fall_height if fall_height is None else fall_height)
         self.physics = make_physics(backend, model, num_envs, fields=("sensordata", "qfrc_actuator"),
-                                    forward_after_step=True, threads=physics_threads, warp_device=warp_device)
+                                    forward_after_step=True, threads=physics_threads, warp_device=warp_device,
+                                    warp_options=warp_options)
         hands = layout.hands
         self.constraints = [JointRangeConstraint(name, ranges, hands, cost_source)
                             for name, ranges in SAFETY_VARIANTS[safety].items()]

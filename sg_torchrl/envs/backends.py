@@ -10,8 +10,8 @@ Envs take ``backend`` and ``warp_device`` as constructor arguments and pass them
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Literal, Union
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal, Union
 
 import mujoco
 
@@ -36,6 +36,7 @@ def make_physics(
     forward_after_step: bool = False,
     threads: int = 1,
     warp_device: str | None = None,
+    warp_options: Mapping[str, Any] | None = None,
 ) -> PhysicsBatch:
     """``num_sims`` simulators of ``model`` on ``backend``.
 
@@ -44,6 +45,8 @@ def make_physics(
         post_constraint / fields / forward_after_step: as for :class:`MujocoBatch`.
         threads: stepping threads (``"cpu"`` only; Warp parallelises over worlds itself).
         warp_device: the Warp device for ``"warp"`` (``"cuda:0"``, ``"cpu"``); ``None``: CUDA when available.
+        warp_options: more :class:`WarpBatch` keywords for ``"warp"``: buffer sizes ``nconmax``/``njmax``
+            (raise them when it warns of an overflow), ``graph``.
 
     Raises:
         ValueError: unknown backend, or an option the backend does not take.
@@ -53,10 +56,11 @@ def make_physics(
         raise ValueError(f"unknown physics backend {backend!r}; choose from {list(BACKENDS)}")
     common = dict(post_constraint=post_constraint, fields=fields, forward_after_step=forward_after_step)
     if backend == "cpu":
-        if warp_device is not None:
-            raise ValueError(f"warp_device={warp_device!r} applies to backend='warp' only")
+        for name, value in (("warp_device", warp_device), ("warp_options", warp_options)):
+            if value is not None:
+                raise ValueError(f"{name}={value!r} applies to backend='warp' only")
         return MujocoBatch(model, num_sims, threads=threads, **common)
     if threads != 1:
         raise ValueError(f"physics_threads={threads} applies to backend='cpu' only "
                          "(MuJoCo Warp parallelises over worlds itself); leave it at 1 with backend='warp'")
-    return WarpBatch(model, num_sims, device=warp_device, **common)
+    return WarpBatch(model, num_sims, device=warp_device, **common, **dict(warp_options or {}))

@@ -64,6 +64,8 @@ STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_a
                 "mocap_pos", "mocap_quat")
 #: What MuJoCo's ``mj_resetData`` zeroes besides the state written by :meth:`WarpBatch.reset`.
 _ZEROED_ON_RESET = ("time", "act", "act_dot", "qacc_warmstart", "qacc", "qfrc_applied", "xfrc_applied", "ctrl")
+#: Zeroed too, as ``mujoco_warp.reset_data`` does: Warp's per-world buffer-overflow flags (they are sticky).
+_CLEARED_ON_RESET = ("overflow",)
 _MAXVAL = 1e10  # MuJoCo's mjMAXVAL: larger |qpos|, |qvel|, |qacc| count as diverged, as in mj_checkPos & co.
 DEFAULT_NCONMAX = 64
 DEFAULT_NJMAX = 256
@@ -190,12 +192,29 @@ class WarpBatch:
         self._forward()
 
     # ------------------------------------------------------------------ device calls
+    def _on_device(self, work, *args) -> None:
+        """Run Warp ``work(*args)`` between torch's pending writes and torch's next reads.
+
+        On CUDA, torch and Warp launch on different streams: the torch views (``ctrl``, reset rows)
+        must be written before Warp's kernels read them, and Warp's results complete before torch
+        reads them. Two device synchronisations per call (tens of microseconds) buy that; when
+        :meth:`step` returns, the device state and :meth:`torch_view` tensors are final.
+        """
+        if self._on_cuda:
+            torch.cuda.synchronize(self.torch_device)
+        with self.wp.ScopedDevice(self.device):
+            work(*args)
+        if self._on_cuda:
+            self.wp.synchronize_device(self.device)
+
     def _forward(self) -> None:
         """Recompute every derived quantity of every world from its state."""
-        with self.wp.ScopedDevice(self.device):
+        def forward() -> None:
             self.mjw.forward(self.warp_model, self.warp_data)
             if self.post_constraint:
                 self.mjw.rne_postconstraint(self.warp_model, self.warp_data)
+
+        self._on_device(forward)
 
     def _advance(self, nstep: int) -> None:
         """``nstep`` physics steps, then the optional forward/post-constraint passes (device work only)."""
@@ -209,27 +228,26 @@ class WarpBatch:
 
     def _launch(self, nstep: int) -> None:
         """:meth:`_advance`, replayed from a CUDA graph (captured on the second call per ``nstep``) on CUDA devices."""
-        with self.wp.ScopedDevice(self.device):
-            if not self._use_graph:
+        if not self._use_graph:
+            self._advance(nstep)
+            return
+        graph = self._graphs.get(nstep)
+        if graph is None:
+            if nstep not in self._warmed:  # first call: load the kernels outside any capture
+                self._warmed.add(nstep)
                 self._advance(nstep)
                 return
-            graph = self._graphs.get(nstep)
-            if graph is None:
-                if nstep not in self._warmed:  # first call: load the kernels outside any capture
-                    self._warmed.add(nstep)
+            try:
+                with self.wp.ScopedCapture() as capture:
                     self._advance(nstep)
-                    return
-                try:
-                    with self.wp.ScopedCapture() as capture:
-                        self._advance(nstep)
-                except Exception as error:  # e.g. a host synchronisation inside a kernel sequence
-                    warnings.warn(f"CUDA graph capture failed ({error}); stepping without graphs", RuntimeWarning,
-                                  stacklevel=4)
-                    self._use_graph = False
-                    self._advance(nstep)
-                    return
-                graph = self._graphs[nstep] = capture.graph
-            self.wp.capture_launch(graph)
+            except Exception as error:  # e.g. a host synchronisation inside a kernel sequence
+                warnings.warn(f"CUDA graph capture failed ({error}); stepping without graphs", RuntimeWarning,
+                              stacklevel=5)
+                self._use_graph = False
+                self._advance(nstep)
+                return
+            graph = self._graphs[nstep] = capture.graph
+        self.wp.capture_launch(graph)
 
     # ------------------------------------------------------------------ stepping
     def step(self, ctrl: np.ndarray, nstep: int) -> np.ndarray:
@@ -240,7 +258,7 @@ class WarpBatch:
             initial state (module docstring).
         """
         self._views["ctrl"].copy_(torch.as_tensor(np.asarray(ctrl)))
-        self._launch(nstep)
+        self._on_device(self._launch, nstep)
         self._reset_diverged()
         self._check_overflow()
         self.version += 1
@@ -259,15 +277,17 @@ class WarpBatch:
                               np.tile(self._mocap_pos0, (n, 1, 1)), np.tile(self._mocap_quat0, (n, 1, 1)))
 
     def _check_overflow(self) -> None:
+        """Warn once when a world ran out of contact or constraint buffer (module docstring)."""
         if self._overflow_warned:
             return
         overflow = self._views["overflow"] & self._overflow_mask
         if bool(overflow.any()):
             self._overflow_warned = True
-            warnings.warn(f"MuJoCo Warp ran out of contact or constraint buffer in some worlds (overflow flags "
-                          f"{sorted(set(overflow.cpu().tolist()) - {0})}); contacts were dropped. Raise nconmax "
-                          f"(now {self.warp_data.naconmax // self.num_sims}) or njmax (now {self.warp_data.njmax}).",
-                          RuntimeWarning, stacklevel=3)
+            flags = sorted(set(overflow.cpu().tolist()) - {0})
+            nconmax, njmax = self.warp_data.naconmax // self.num_sims, self.warp_data.njmax
+            warnings.warn(f"MuJoCo Warp ran out of contact or constraint buffer in some worlds (OverflowType flags "
+                          f"{flags}) and dropped contacts or constraint rows: raise nconmax (now {nconmax}) or njmax "
+                          f"(now {njmax}), e.g. warp_options={{'njmax': {2 * njmax}}}", RuntimeWarning, stacklevel=3)
 
     def reset(
         self,
@@ -294,7 +314,7 @@ class WarpBatch:
                      mocap_pos: np.ndarray | None, mocap_quat: np.ndarray | None) -> None:
         views, n = self._views, len(rows)
         index = torch.as_tensor(rows, device=self.torch_device)
-        for name in _ZEROED_ON_RESET:
+        for name in _ZEROED_ON_RESET + _CLEARED_ON_RESET:
             views[name][index] = 0
         if mocap_pos is None:
             mocap_pos = np.tile(self._mocap_pos0, (n, 1, 1))

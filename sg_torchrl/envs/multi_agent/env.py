@@ -34,6 +34,8 @@ Heterogeneous partitions (Humanoid 9|8: 248 and 176 values, 9 and 8 actuators; H
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -58,7 +60,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         agent_obsk: graph distance of the joints an agent observes (MaMuJoCo's ``agent_obsk``; the
             reference and its sizes use 1).
         velocity_threshold: override the configuration's threshold (reference section 9).
-        physics_threads, backend, warp_device: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
+        physics_threads, backend, warp_device, warp_options: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`~sg_torchrl.envs.base.SafeEnv`.
 
     See the module docstring for the TensorDict layout.
@@ -79,6 +81,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         physics_threads: int = 1,
         backend: Backend = "cpu",
         warp_device: str | None = None,
+        warp_options: dict[str, Any] | None = None,
     ) -> None:
         spec: Scenario = scenario_of(scenario)
         robot = ROBOTS[spec.robot]
@@ -100,6 +103,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
             physics_threads=physics_threads,
             backend=backend,
             warp_device=warp_device,
+            warp_options=warp_options,
         )
         layout = self.layout
         # The source rows (see .layout): state, raw velocities if observed, a constant 0 column.

@@ -10,6 +10,8 @@ compare with the paper's.
 
 from __future__ import annotations
 
+from typing import Any
+
 import mujoco
 import numpy as np
 import torch
@@ -39,6 +41,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
             see :mod:`sg_torchrl.envs.backends`.
         warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
+        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
@@ -61,6 +64,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         physics_threads: int = 1,
         backend: Backend = "cpu",
         warp_device: str | None = None,
+        warp_options: dict[str, Any] | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -81,6 +85,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             fields=position_field + spec.extra_observations,
             threads=physics_threads,
             warp_device=warp_device,
+            warp_options=warp_options,
         )
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
