@@ -197,6 +197,12 @@ def test_datas_copies_a_world_to_the_host_for_rendering(envs):
         physics.datas[N]
 
 
+def test_render_draws_a_host_copy_of_the_world(envs, backend):
+    """``render`` works unchanged (``backend`` is conftest's headless OpenGL fixture, not the physics)."""
+    frame = envs[0].render(1, 64, 48)
+    assert frame.shape == (48, 64, 3) and frame.std() > 0
+
+
 def test_torch_views_alias_the_warp_arrays(envs):
     physics = envs[0].physics
     view = physics.torch_view("qpos")
