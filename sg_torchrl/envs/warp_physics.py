@@ -184,7 +184,7 @@ class WarpBatch:
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
         self._overflow_warned = False
-        ignored = int(self.mjw._src.types.OverflowType.ITERATIONS)  # hitting the iteration cap drops nothing
+        ignored = int(self.mjw.OverflowType.ITERATIONS)  # hitting the iteration cap drops nothing
         self._overflow_mask = ~ignored
         #: bumped whenever the state changes (step, reset, set_state): lets readers cache derived values
         self.version = 0
