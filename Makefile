@@ -17,11 +17,13 @@ GL_PACKAGES := libegl1 libgl1 libosmesa6
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml
+# The tests install the optional MuJoCo Warp backend too (about 400 MB; its kernels compile on Warp's CPU
+# device in about a minute on first use), so the warp backend's tests run here, not only on a GPU.
+$(STAMP): pyproject.toml Makefile
 	-@$(MAKE) --no-print-directory gl-libs
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,warp]'
 	touch $(STAMP)
 
 run: $(STAMP)
