@@ -31,11 +31,12 @@ sub-steps one ``mj_step`` at a time; worlds without such objects keep the single
 Threads: MuJoCo's Python bindings release the GIL inside ``mj_step``, so ``threads > 1`` steps
 contiguous slices of the simulators on a small persistent thread pool. Each simulator is still
 stepped by exactly one thread with its own ``MjData``, so results are bit-identical to one thread.
-It pays when one step is long against the ~20 us of handing a slice to a thread: the two-hand
-scene (about 70 us per ``mj_step``) steps 1.6x faster on 2 cores, the Point robot (about 5 us)
-does not (``benchmarks/threaded_stepping.py``, which also measures ``mujoco.rollout``'s own thread
-pool: as fast, but it restarts every simulator from a state array each call, and without the
-solver warm-start that is no longer bit-identical).
+On 2 idle cores and N = 16-64 simulators, 2 threads step 1.5-1.9x faster for every robot
+measured, from the Point (about 5 us per ``mj_step``) to the two hands (about 70 us)
+(``benchmarks/threaded_stepping.py``, which also measures ``mujoco.rollout``'s own thread pool: as
+fast, but it restarts every simulator from a state array each call, and without the solver
+warm-start that is no longer bit-identical). The default stays 1: threads only pay when a core
+is idle, which is not the case when several jobs share the machine.
 """
 
 from __future__ import annotations

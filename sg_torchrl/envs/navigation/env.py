@@ -67,7 +67,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             ``"vector+rgbd"`` (both); see :mod:`sg_torchrl.envs.vision`. Single-robot tasks only.
         image_size: side of the square images in pixels (default 64; the reference's is 256).
         physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
-            1, the default, is fastest for the light robots; it can pay for Doggo and Ant at large ``num_envs``).
+            2 pays when a core is idle, see its module docstring).
 
     Attributes:
         observation_slices: ``{name: slice}`` of every observation part (``"accelerometer"``, ...,

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.physics import MujocoBatch
+from sg_torchrl.envs.backends import make_physics
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
@@ -176,8 +176,8 @@ class Scene:
         self.model = model
         self.num_envs = num_envs
         self.robots: list[Robot] = list(robot) if isinstance(robot, Sequence) else [robot]
-        self.physics = MujocoBatch(model, num_envs, fields=("xpos", "xmat", "sensordata"), forward_after_step=True,
-                                   threads=physics_threads)
+        self.physics = make_physics("cpu", model, num_envs, fields=("xpos", "xmat", "sensordata"),
+                                    forward_after_step=True, threads=physics_threads)
         mocap_bodies = np.flatnonzero(model.body_mocapid >= 0)
         order = model.body_mocapid[mocap_bodies]
         self._mocap_pos = np.empty((model.nmocap, 3))

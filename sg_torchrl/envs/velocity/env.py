@@ -37,7 +37,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
             velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
         physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
-            these models are light, so 1, the default, is usually fastest; ``backend="cpu"`` only).
+            2 pays when a core is idle, see its module docstring; ``backend="cpu"`` only).
         backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
             see :mod:`sg_torchrl.envs.backends`.
         warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
