@@ -315,6 +315,7 @@ class Trainer(EpochTrainer):
             actor=self.actor, critics=(self.critic, self.cost_critic), loss=self.loss, optimizer=self.optimizer,
             rng=self.minibatch_rng, passes=cfg.update_iters, minibatch_size=cfg.minibatch_size,
             target_kl=cfg.target_kl, max_grad_norm=cfg.max_grad_norm, chunk_size=self.layout.chunk_size,
+            compile=cfg.compile,
         )
         self.policy_update = self.algorithm.make_update(parts, self.multiplier, cfg)
         self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
