@@ -103,7 +103,8 @@ def run_all(args: argparse.Namespace) -> None:
 
 
 def cell_summary(directory: Path) -> dict[str, float] | None:
-    """A run's final figures and its mean update seconds per epoch, or None if it has not finished."""
+    """A run's final figures, its mean update seconds per epoch and whether its losses were compiled
+    (``--compile true``, which shortens the update), or None if it has not finished."""
     path = directory / "summary.json"
     if not path.exists():
         return None
@@ -114,6 +115,8 @@ def cell_summary(directory: Path) -> dict[str, float] | None:
         with progress.open() as handle:
             update_seconds = [float(row["Time/Update"]) for row in csv.DictReader(handle) if row.get("Time/Update")]
     summary["update_s"] = sum(update_seconds) / len(update_seconds) if update_seconds else float("nan")
+    config = directory / "config.json"
+    summary["compiled"] = bool(json.loads(config.read_text()).get("compile", False)) if config.exists() else False
     return summary
 
 
@@ -145,9 +148,11 @@ def table(args: argparse.Namespace) -> str:
             reward = _mean([r["Final/EpRetLast10"] for r in runs])
             cost = _mean([r["Final/EpCostLast10"] for r in runs])
             update = _mean([r["update_s"] for r in runs])
+            compiled = sum(r["compiled"] for r in runs)
+            seeds = f"{len(runs)} ({compiled} compiled)" if compiled else str(len(runs))
             paper_reward, paper_cost = paper.get((env_name, PAPER_NAMES[algo]), (float("nan"), float("nan")))
             lines.append(
-                f"| {env_id} | {PAPER_NAMES[algo]} | {len(runs)} | {reward:.2f} | {cost:.2f} | "
+                f"| {env_id} | {PAPER_NAMES[algo]} | {seeds} | {reward:.2f} | {cost:.2f} | "
                 f"{reward / ppo_return:.2f} | {cost / args.cost_limit:.2f} | {update:.1f} | "
                 f"{paper_reward:.2f} | {paper_cost:.2f} | {paper_reward / paper_ppo:.2f} | "
                 f"{paper_cost / args.cost_limit:.2f} |".replace("nan", "-")

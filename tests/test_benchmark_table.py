@@ -20,9 +20,12 @@ def bench():
     return module
 
 
-def _finished_run(bench, root: Path, env_id: str, algo: str, seed: int, ret: float, cost: float) -> None:
+def _finished_run(bench, root: Path, env_id: str, algo: str, seed: int, ret: float, cost: float,
+                  compiled: bool | None = None) -> None:
     directory = bench.run_dir(str(root), env_id, algo, seed)
     directory.mkdir(parents=True)
+    if compiled is not None:
+        (directory / "config.json").write_text(json.dumps({"algo": algo, "compile": compiled}))
     (directory / "summary.json").write_text(json.dumps({"Final/EpRetLast10": ret, "Final/EpCostLast10": cost}))
     (directory / "progress.csv").write_text("Time/Update,Metrics/EpRet\n2.0,1\n4.0,2\n")
 
@@ -67,3 +70,16 @@ def test_published_multi_agent_rows_are_read(bench):
         pytest.skip(f"no published results at {bench.PAPER_RESULTS} (shared/ is not beside this checkout)")
     paper = bench.load_paper_results()
     assert ("2x3HalfCheetahVel", "MAPPO-Lag") in paper and ("PointGoal1", "PPO-Lag") in paper
+
+
+def test_seeds_column_counts_the_compiled_runs(bench, tmp_path, monkeypatch):
+    env_id = "SafetyHalfCheetahVelocity-v1"
+    _finished_run(bench, tmp_path, env_id, "ppo_lag", 0, 100.0, 10.0, compiled=False)
+    _finished_run(bench, tmp_path, env_id, "ppo_lag", 1, 100.0, 10.0, compiled=True)
+    _finished_run(bench, tmp_path, env_id, "cpo", 0, 100.0, 10.0)  # a run from before the option
+    monkeypatch.setattr(bench, "load_paper_results", lambda: {})
+    args = argparse.Namespace(envs=[env_id], algos=["ppo_lag", "cpo"], seeds=[0, 1], total_steps=1_000_000,
+                              cost_limit=25.0, output_dir=str(tmp_path))
+    seeds = {line.split("|")[2].strip(): line.split("|")[3].strip()
+             for line in bench.table(args).splitlines() if line.startswith("| Safety")}
+    assert seeds == {"PPO-Lag": "2 (1 compiled)", "CPO": "1"}
