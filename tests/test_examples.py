@@ -18,6 +18,7 @@ TINY = ["--env-id", "SafetyHalfCheetahVelocity-v1", "--total-steps", "4000", "--
     "script, args",
     [
         ("first_order.py", ["--algo", "focops", "--update-iters", "2"]),
+        ("first_order.py", ["--algo", "ppo_lag", "--update-iters", "2", "--compile"]),
         ("second_order.py", ["--algo", "cpo", "--critic-iters", "2"]),
     ],
 )
