@@ -10,7 +10,7 @@ torch.set_num_threads(1)
 
 from torch._dynamo.utils import counters  # noqa: E402
 
-from sg_torchrl.objectives import CUPLoss, FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
+from sg_torchrl.objectives import FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.train import TrainConfig, Trainer  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
 from sg_torchrl.train.updates import loss_inputs  # noqa: E402
@@ -27,13 +27,9 @@ def _loss_and_batch(kind: str):
     batch = make_batch(actor)
     if kind == "ppo_lag":
         loss = PPOLagLoss(actor, critic, cost_critic, multiplier, functional=False)
-    elif kind == "focops":
+    else:
         loss = FOCOPSLoss(actor, critic, cost_critic, multiplier, functional=False)
         batch["loc"] = batch["loc"] + 0.1  # a rollout policy away from the current one
-    else:
-        loss = CUPLoss(actor, critic, cost_critic, multiplier, functional=False)
-        batch["stage1_loc"] = batch["loc"] + 0.1
-        batch["stage1_scale"] = batch["scale"] * 1.1
     return loss, batch
 
 
@@ -51,7 +47,8 @@ class TestLossInputs:
         assert loss_inputs(lambda td: {}, batch) is batch
 
 
-@pytest.mark.parametrize("kind", ["ppo_lag", "focops", "cup"])
+# CUP's projection loss is compiled in the training test below (each compile costs 10-40 s on a cold cache).
+@pytest.mark.parametrize("kind", ["ppo_lag", "focops"])
 def test_compiled_loss_matches_eager_values_and_gradients(kind):
     loss, batch = _loss_and_batch(kind)
     batch = loss_inputs(loss, batch)
@@ -85,7 +82,8 @@ def _config(tmp_path, **overrides) -> TrainConfig:
     return TrainConfig(**values)
 
 
-@pytest.mark.parametrize("algo", ["ppo_lag", "cup", "cpo"])
+# CUP runs the first-order loop (its stage one, as PPO-Lag's) and the projection passes; CPO the critic passes.
+@pytest.mark.parametrize("algo", ["cup", "cpo"])
 def test_compiled_training_reuses_its_graphs_after_the_first_epoch(tmp_path, algo):
     trainer = Trainer(_config(tmp_path, algo=algo))
     first = trainer.train_epoch()
