@@ -123,7 +123,7 @@ class UpdateParts:
         if compiled is None:
             # TorchRL losses fill their in_keys / out_keys caches on first use; filled before
             # compiling, the graph does not guard on an empty cache that the first call then fills.
-            owner = getattr(loss_fn, "__self__", loss_fn)
+            owner = _loss_module(loss_fn)
             for name in ("in_keys", "out_keys"):
                 getattr(owner, name, None)
             compiled = self._compiled[loss_fn] = torch.compile(loss_fn, dynamic=False)
@@ -141,6 +141,11 @@ class UpdateParts:
         return gaussian_kl(loc, scale, current_loc, current_scale).mean().item()
 
 
+def _loss_module(loss_fn: LossFn) -> object:
+    """The loss behind ``loss_fn``: the module itself, or the owner of a bound method (``loss.critic_losses``)."""
+    return getattr(loss_fn, "__self__", loss_fn)
+
+
 def loss_inputs(loss_fn: LossFn, data: TensorDictBase) -> TensorDictBase:
     """The entries of ``data`` that ``loss_fn`` reads, in the order of its loss's ``in_keys``.
 
@@ -149,7 +154,7 @@ def loss_inputs(loss_fn: LossFn, data: TensorDictBase) -> TensorDictBase:
     the loss reads (not the ``"next"`` observations, values, rewards, ...), and their keys come in
     the same order every epoch, which compiled losses guard on.
     """
-    in_keys = getattr(getattr(loss_fn, "__self__", loss_fn), "in_keys", None)
+    in_keys = getattr(_loss_module(loss_fn), "in_keys", None)
     return data if in_keys is None else data.select(*in_keys)
 
 
