@@ -3,7 +3,8 @@
 Each cell is one ``sg-train`` run with the paper's hyper-parameters for its algorithm (override with
 extra flags after ``--``); runs go ``--jobs`` at a time as separate processes (one torch thread
 each) and a cell whose ``summary.json`` exists is reused, so an interrupted benchmark continues (from
-the cell's last checkpoint). The cells measured so far are kept in ``benchmarks/runs`` (config,
+the cell's last checkpoint; Ctrl-C stops the running cells at the end of their epoch under way,
+checkpointed). The cells measured so far are kept in ``benchmarks/runs`` (config,
 progress and summary of each; ``--report-only`` prints their table), so a later benchmark only
 runs the missing cells.
 
@@ -24,6 +25,7 @@ import argparse
 import csv
 import json
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -72,34 +74,69 @@ def command(args: argparse.Namespace, env_id: str, algo: str, seed: int) -> list
 
 
 def run_all(args: argparse.Namespace) -> None:
-    """Run every missing cell, ``--jobs`` processes at a time; resume cells that have a checkpoint."""
+    """Run every missing cell, ``--jobs`` processes at a time; resume cells that have a checkpoint.
+
+    Ctrl-C (or ``SIGTERM``) starts no further cell and asks the running ones to stop after their
+    epoch under way, checkpointed (``sg-train``'s own handling, :mod:`sg_torchrl.train.interrupt`);
+    running the benchmark again continues them. The cells run in their own sessions, so a Ctrl-C
+    at the terminal reaches them once, through this runner, not twice (which would stop them at once).
+    """
     pending = [(env, algo, seed) for env in args.envs for algo in args.algos for seed in args.seeds]
     if args.seed_major:  # every cell's first seed before any second seed: a cut-short benchmark covers every cell
         pending.sort(key=lambda cell: args.seeds.index(cell[2]))
     running: list[tuple[str, subprocess.Popen, object]] = []
-    while pending or running:
-        while pending and len(running) < args.jobs:
-            env_id, algo, seed = pending.pop(0)
-            directory = run_dir(args.output_dir, env_id, algo, seed)
-            label = f"{env_id} {algo} seed {seed}"
-            if (directory / "summary.json").exists() and not args.force:
-                print(f"[skip] {label}: summary.json exists", flush=True)
-                continue
-            cmd = command(args, env_id, algo, seed)
-            if (directory / "checkpoint.pt").exists() and not args.force:
-                cmd += ["--resume", str(directory)]
-            directory.mkdir(parents=True, exist_ok=True)
-            log = open(directory / "stdout.log", "a")
-            print(f"[start] {label} -> {directory}", flush=True)
-            running.append((label, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
-        time.sleep(2)
-        for item in list(running):
-            label, proc, log = item
-            if proc.poll() is not None:
-                log.close()
-                running.remove(item)
-                status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}, see stdout.log)"
-                print(f"[{status}] {label}", flush=True)
+    previous_sigterm = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        while pending or running:
+            while pending and len(running) < args.jobs:
+                env_id, algo, seed = pending.pop(0)
+                directory = run_dir(args.output_dir, env_id, algo, seed)
+                label = f"{env_id} {algo} seed {seed}"
+                if (directory / "summary.json").exists() and not args.force:
+                    print(f"[skip] {label}: summary.json exists", flush=True)
+                    continue
+                cmd = command(args, env_id, algo, seed)
+                if (directory / "checkpoint.pt").exists() and not args.force:
+                    cmd += ["--resume", str(directory)]
+                directory.mkdir(parents=True, exist_ok=True)
+                log = open(directory / "stdout.log", "a")
+                print(f"[start] {label} -> {directory}", flush=True)
+                process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                running.append((label, process, log))
+            time.sleep(2)
+            _reap(running)
+    except KeyboardInterrupt:
+        print(f"[stopping] {len(running)} running cell(s) finish their epoch and checkpoint; "
+              "run the same command again to continue", flush=True)
+        for _, process, _ in running:
+            process.send_signal(signal.SIGINT)
+        while running:
+            time.sleep(0.5)
+            _reap(running)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
+
+
+#: sg-train's exit codes after a Ctrl-C / SIGTERM stop (128 + the signal), checkpointed at an epoch's end.
+INTERRUPTED_EXIT_CODES = frozenset({128 + signal.SIGINT, 128 + signal.SIGTERM})
+
+
+def _reap(running: list[tuple[str, subprocess.Popen, object]]) -> None:
+    """Report and drop the finished processes of ``running``."""
+    for item in list(running):
+        label, proc, log = item
+        if proc.poll() is None:
+            continue
+        log.close()
+        running.remove(item)
+        if proc.returncode == 0:
+            status = "done"
+        elif proc.returncode in INTERRUPTED_EXIT_CODES:
+            status = "interrupted (checkpointed; the same command continues it)"
+        else:
+            status = f"FAILED (exit {proc.returncode}, see stdout.log)"
+        print(f"[{status}] {label}", flush=True)
 
 
 def cell_summary(directory: Path) -> dict[str, float] | None:
@@ -178,7 +215,10 @@ def main() -> None:
     parser.add_argument("extra", nargs="*", help="extra sg-train flags after --, e.g. -- --num-envs 20")
     args = parser.parse_args()
     if not args.report_only:
-        run_all(args)
+        try:
+            run_all(args)
+        except KeyboardInterrupt:
+            sys.exit(128 + signal.SIGINT)
     print(table(args))
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -83,3 +85,36 @@ def test_seeds_column_counts_the_compiled_runs(bench, tmp_path, monkeypatch):
     seeds = {line.split("|")[2].strip(): line.split("|")[3].strip()
              for line in bench.table(args).splitlines() if line.startswith("| Safety")}
     assert seeds == {"PPO-Lag": "2 (1 compiled)", "CPO": "1"}
+
+
+def test_ctrl_c_asks_running_cells_to_checkpoint_and_waits_for_them(bench, tmp_path, monkeypatch, capsys):
+    # A stand-in cell that exits like sg-train does on a stop request (130) once it gets SIGINT.
+    ready = tmp_path / "ready"
+    cell = ("import pathlib, signal, sys, time\n"
+            "signal.signal(signal.SIGINT, lambda *_: sys.exit(130))\n"
+            f"pathlib.Path({str(ready)!r}).touch()\n"
+            "time.sleep(60)\n")
+    monkeypatch.setattr(bench, "command", lambda *_: [sys.executable, "-c", cell])
+    waited = []
+    real_sleep = time.sleep  # bench.time is the time module itself: the patch below replaces time.sleep
+
+    def sleep(seconds: float) -> None:  # Ctrl-C arrives at the runner's first wait, once the cell listens
+        waited.append(seconds)
+        if len(waited) == 1:
+            deadline = time.monotonic() + 30
+            while not ready.exists() and time.monotonic() < deadline:
+                real_sleep(0.05)
+            raise KeyboardInterrupt
+        real_sleep(seconds)
+
+    monkeypatch.setattr(bench.time, "sleep", sleep)
+    args = argparse.Namespace(envs=["SafetyHalfCheetahVelocity-v1"], algos=["ppo"], seeds=[0, 1], seed_major=False,
+                              jobs=1, output_dir=str(tmp_path / "runs"), force=False)
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        bench.run_all(args)
+    out = capsys.readouterr().out
+    assert "[stopping] 1 running cell(s)" in out
+    assert "[interrupted (checkpointed; the same command continues it)] SafetyHalfCheetahVelocity-v1 ppo seed 0" in out
+    assert "seed 1" not in out  # no new cell starts after Ctrl-C
+    assert time.monotonic() - start < 30  # the cell stopped on the forwarded SIGINT, not at its 60 s sleep

@@ -13,17 +13,7 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
-from trainer_checks import flat_parameters  # noqa: E402
-
-
-def tiny_config(tmp_path, **overrides) -> TrainConfig:
-    values = dict(
-        env_id="SafetyHalfCheetahVelocity-v1", num_envs=2, steps_per_epoch=200, total_steps=600,
-        update_iters=2, minibatch_size=64, eval_episodes=0, wandb="disabled", progress=False,
-        output_dir=str(tmp_path), run_name="run", checkpoint_every=100,
-    )
-    values.update(overrides)
-    return TrainConfig(**values)
+from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
 
 class TestConfig:

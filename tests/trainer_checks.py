@@ -4,10 +4,21 @@ from __future__ import annotations
 
 import torch
 
-from sg_torchrl.train import Trainer
+from sg_torchrl.train import TrainConfig, Trainer
 
 
 def flat_parameters(trainer: Trainer) -> torch.Tensor:
     """Every parameter of the actor and both critics, flattened into one vector (for exact-equality checks)."""
     modules = (trainer.actor, trainer.critic, trainer.cost_critic)
     return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
+
+
+def tiny_config(tmp_path, **overrides) -> TrainConfig:
+    """Three 200-step epochs of PPO-Lag on HalfCheetah (2 simulators, 2 passes): a run in about a second."""
+    values = dict(
+        env_id="SafetyHalfCheetahVelocity-v1", num_envs=2, steps_per_epoch=200, total_steps=600,
+        update_iters=2, minibatch_size=64, eval_episodes=0, wandb="disabled", progress=False,
+        output_dir=str(tmp_path), run_name="run", checkpoint_every=100,
+    )
+    values.update(overrides)
+    return TrainConfig(**values)

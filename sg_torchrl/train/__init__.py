@@ -3,6 +3,7 @@
 Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. The twelve
 single-agent algorithms run in :class:`Trainer`, the four multi-agent ones (``--algo mappo``,
 ``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`.
+Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 """
 
 from __future__ import annotations
@@ -11,12 +12,13 @@ import sys
 
 from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import PRESETS, TrainConfig, parse_args
+from sg_torchrl.train.interrupt import TrainingInterrupted
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTrainer
 from sg_torchrl.train.trainer import EpochTrainer, Trainer
 
 __all__ = [
     "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "MultiAgentTrainer", "TrainConfig", "Trainer",
-    "algorithm_title", "main", "train", "trainer_class",
+    "TrainingInterrupted", "algorithm_title", "main", "train", "trainer_class",
 ]
 
 
@@ -55,8 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as error:
         print(f"sg-train: error: {error}", file=sys.stderr)
         return 2
-    metrics = train(cfg)
     run_dir = cfg.run_dir
+    try:
+        metrics = train(cfg)
+    except TrainingInterrupted as stop:
+        print(f"sg-train: {stop}\n  continue with: sg-train --resume {run_dir}", file=sys.stderr)
+        return stop.exit_code
     print()
     print(f"{algorithm_title(cfg.algo)} on {cfg.env_id}, seed {cfg.seed}: {metrics.get('Train/TotalSteps', 0):.0f} env steps")
     print(f"  training (last 50 episodes): EpRet {metrics.get('Metrics/EpRet', float('nan')):.1f}  "

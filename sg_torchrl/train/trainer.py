@@ -11,6 +11,9 @@ One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
    early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
 5. log SafePO's metrics, checkpoint.
 
+Ctrl-C or ``SIGTERM`` stops a run at the end of the epoch under way, with a checkpoint
+(:mod:`sg_torchrl.train.interrupt`).
+
 The networks read what the env emits (:class:`~sg_torchrl.train.models.ObservationLayout`): the
 flat vector, or images through CNN encoders; with images, whole-batch passes without gradient (the
 critics' values for GAE, the KL early stop) run in chunks so an epoch of ``uint8`` frames is never
@@ -48,6 +51,7 @@ from sg_torchrl.objectives import make_cost_gae, make_gae, normalize_advantages
 from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
+from sg_torchrl.train.interrupt import StopRequests, TrainingInterrupted
 from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
@@ -142,6 +146,10 @@ class EpochTrainer(abc.ABC):
         """Train until the budget is spent (or ``max_epochs`` more epochs), then checkpoint.
 
         Returns the last epoch's metrics, plus the evaluation summary when the run finished.
+
+        Raises:
+            TrainingInterrupted: on Ctrl-C or ``SIGTERM`` (:mod:`~sg_torchrl.train.interrupt`),
+                after the epoch under way has finished and been checkpointed.
         """
         cfg = self.cfg
         cfg.run_dir.mkdir(parents=True, exist_ok=True)
@@ -151,13 +159,17 @@ class EpochTrainer(abc.ABC):
         bar = tqdm(total=cfg.epochs * cfg.steps_per_epoch, initial=self.total_steps, unit="step",
                    disable=not cfg.progress, desc=f"{self.title} {cfg.env_id}", dynamic_ncols=True)
         try:
-            while self.epoch < last_epoch:
-                metrics = self.train_epoch()
-                bar.update(cfg.steps_per_epoch)
-                bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}", EpCost=f"{metrics['Metrics/EpCost']:.1f}",
-                                lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
-                if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
-                    self.save_checkpoint()
+            with StopRequests() as stop:
+                while self.epoch < last_epoch:
+                    metrics = self.train_epoch()
+                    bar.update(cfg.steps_per_epoch)
+                    bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}",
+                                    EpCost=f"{metrics['Metrics/EpCost']:.1f}",
+                                    lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
+                    if stop.requested:
+                        raise TrainingInterrupted(stop.signum, self.epoch, self.save_checkpoint())
+                    if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
+                        self.save_checkpoint()
             if self.epoch >= cfg.epochs:
                 metrics.update(self.finish())
         finally:
