@@ -13,7 +13,8 @@ over seeds of the last 10 training episodes' return and cost), the normalised J^
 PPO run on the same env and budget, when it is in the benchmark; MAPPO for the multi-agent
 algorithms on the multi-agent ids) and J^C / cost limit, the seconds per update of one epoch
 (20,000 steps; multi-agent 10,000), and the published numbers from
-``shared/reference/paper_results.csv`` (10M steps) with their own normalisation.
+``shared/reference/paper_results.csv`` (10M steps) with their own normalisation. ``--per-seed``
+adds one row per finished run (its figures, evaluation, update seconds and wall minutes).
 
     python benchmarks/algorithms.py --envs SafetyPointGoal1-v0 --algos ppo ppo_lag cpo --seeds 0 1 2 \\
         --total-steps 1000000 --jobs 2
@@ -197,6 +198,29 @@ def table(args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
+def seed_table(args: argparse.Namespace) -> str:
+    """One row per finished run: its last-10-episode and deterministic-evaluation figures, its update
+    seconds per epoch and wall minutes (``*`` marks compiled runs, whose update times are shorter)."""
+    lines = [
+        "| env | algorithm | seed | EpRet (last 10) | EpCost (last 10) | eval EpRet | eval EpCost "
+        "| update s / epoch | wall min |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for env_id in args.envs:
+        for algo in args.algos:
+            for seed in args.seeds:
+                run = cell_summary(run_dir(args.output_dir, env_id, algo, seed))
+                if run is None:
+                    continue
+                lines.append(
+                    f"| {env_id} | {PAPER_NAMES[algo]} | {seed}{'*' if run['compiled'] else ''} | "
+                    f"{run['Final/EpRetLast10']:.1f} | {run['Final/EpCostLast10']:.1f} | "
+                    f"{run.get('Metrics/EvalEpRet', float('nan')):.1f} | {run.get('Metrics/EvalEpCost', float('nan')):.1f} | "
+                    f"{run['update_s']:.1f} | {run.get('Time/Total', float('nan')) / 60:.0f} |".replace("nan", "-")
+                )
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=["SafetyPointGoal1-v0"])
@@ -212,6 +236,7 @@ def main() -> None:
     parser.add_argument("--force", action="store_true", help="re-run cells that already have results")
     parser.add_argument("--seed-major", action="store_true", help="run seed 0 of every cell, then seed 1, ...")
     parser.add_argument("--report-only", action="store_true", help="only print the table of existing runs")
+    parser.add_argument("--per-seed", action="store_true", help="also print one row per finished run")
     parser.add_argument("extra", nargs="*", help="extra sg-train flags after --, e.g. -- --num-envs 20")
     args = parser.parse_args()
     if not args.report_only:
@@ -220,6 +245,9 @@ def main() -> None:
         except KeyboardInterrupt:
             sys.exit(128 + signal.SIGINT)
     print(table(args))
+    if args.per_seed:
+        print()
+        print(seed_table(args))
 
 
 if __name__ == "__main__":

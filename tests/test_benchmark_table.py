@@ -118,3 +118,15 @@ def test_ctrl_c_asks_running_cells_to_checkpoint_and_waits_for_them(bench, tmp_p
     assert "[interrupted (checkpointed; the same command continues it)] SafetyHalfCheetahVelocity-v1 ppo seed 0" in out
     assert "seed 1" not in out  # no new cell starts after Ctrl-C
     assert time.monotonic() - start < 30  # the cell stopped on the forwarded SIGINT, not at its 60 s sleep
+
+
+def test_per_seed_table_has_one_row_per_finished_run(bench, tmp_path):
+    env_id = "SafetyHalfCheetahVelocity-v1"
+    _finished_run(bench, tmp_path, env_id, "cpo", 0, 120.0, 7.5, compiled=False)
+    _finished_run(bench, tmp_path, env_id, "cpo", 2, 80.0, 30.0, compiled=True)
+    bench.run_dir(str(tmp_path), env_id, "cpo", 1).mkdir(parents=True)  # unfinished: no summary.json
+    args = argparse.Namespace(envs=[env_id], algos=["cpo"], seeds=[0, 1, 2], output_dir=str(tmp_path))
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]]
+            for line in bench.seed_table(args).splitlines() if line.startswith("| Safety")]
+    assert [row[2:5] for row in rows] == [["0", "120.0", "7.5"], ["2*", "80.0", "30.0"]]
+    assert rows[0][5:] == ["-", "-", "3.0", "-"]  # no evaluation or wall time in the summary: shown as "-"
