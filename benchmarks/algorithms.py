@@ -158,6 +158,12 @@ def cell_summary(directory: Path) -> dict[str, float] | None:
     return summary
 
 
+def finished_runs(args: argparse.Namespace, env_id: str, algo: str) -> list[tuple[int, dict[str, float]]]:
+    """``(seed, cell_summary)`` of each of ``args.seeds`` whose run on (``env_id``, ``algo``) has finished."""
+    return [(seed, summary) for seed in args.seeds
+            if (summary := cell_summary(run_dir(args.output_dir, env_id, algo, seed)))]
+
+
 def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else float("nan")
 
@@ -176,7 +182,7 @@ def table(args: argparse.Namespace) -> str:
     for env_id in args.envs:
         cells = {}
         for algo in args.algos:
-            runs = [s for seed in args.seeds if (s := cell_summary(run_dir(args.output_dir, env_id, algo, seed)))]
+            runs = [summary for _, summary in finished_runs(args, env_id, algo)]
             if runs:
                 cells[algo] = runs
         env_name = paper_env_name(env_id)
@@ -208,10 +214,7 @@ def seed_table(args: argparse.Namespace) -> str:
     ]
     for env_id in args.envs:
         for algo in args.algos:
-            for seed in args.seeds:
-                run = cell_summary(run_dir(args.output_dir, env_id, algo, seed))
-                if run is None:
-                    continue
+            for seed, run in finished_runs(args, env_id, algo):
                 lines.append(
                     f"| {env_id} | {PAPER_NAMES[algo]} | {seed}{'*' if run['compiled'] else ''} | "
                     f"{run['Final/EpRetLast10']:.1f} | {run['Final/EpCostLast10']:.1f} | "

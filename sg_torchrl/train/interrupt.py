@@ -55,13 +55,9 @@ class StopRequests:
     the first signal (so a second one acts as it would have: ``KeyboardInterrupt`` / termination)
     and when the block exits. Outside the main thread, where Python cannot install handlers, the
     block does nothing and signals keep their usual effect.
-
-    Args:
-        what: how the message names the unit of work that is finished first (``"epoch"``).
     """
 
-    def __init__(self, what: str = "epoch") -> None:
-        self.what = what
+    def __init__(self) -> None:
         self.signum: int | None = None
         self._previous: dict[int, object] = {}
 
@@ -82,7 +78,7 @@ class StopRequests:
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         self.signum = signum
         self._restore()  # a second signal takes the usual, immediate path
-        print(f"\n{signal.Signals(signum).name} received: finishing this {self.what}, saving a checkpoint, "
+        print(f"\n{signal.Signals(signum).name} received: finishing this epoch, saving a checkpoint, "
               "then stopping (send it again to stop at once)", file=sys.stderr, flush=True)
 
     def _restore(self) -> None:
