@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import os
 import signal
+import threading
 
 import pytest
 import torch
@@ -15,6 +15,15 @@ from sg_torchrl.train.interrupt import StopRequests  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
 
+def send_to_this_thread(signum: int) -> None:
+    """Signal the calling (main) thread; its Python handler has run when this returns.
+
+    ``os.kill(os.getpid(), ...)`` may deliver to another thread of the process and return before the
+    handler runs, and under load two such signals can coalesce into one, so a test would flake.
+    """
+    signal.pthread_kill(threading.get_ident(), signum)
+
+
 def signal_during_epoch(trainer: EpochTrainer, epoch: int, *signums: int) -> None:
     """Make ``trainer`` send itself ``signums`` at the start of its epoch number ``epoch`` (1-based)."""
     train_epoch = trainer.train_epoch
@@ -22,7 +31,7 @@ def signal_during_epoch(trainer: EpochTrainer, epoch: int, *signums: int) -> Non
     def train_epoch_with_signals() -> dict[str, float]:
         if trainer.epoch + 1 == epoch:
             for signum in signums:
-                os.kill(os.getpid(), signum)
+                send_to_this_thread(signum)
         return train_epoch()
 
     trainer.train_epoch = train_epoch_with_signals
@@ -74,7 +83,7 @@ def test_the_previous_handlers_come_back(tmp_path):
     Trainer(tiny_config(tmp_path)).run(max_epochs=1)
     with StopRequests() as stop:
         assert signal.getsignal(signal.SIGINT) != before[signal.SIGINT]
-        os.kill(os.getpid(), signal.SIGTERM)
+        send_to_this_thread(signal.SIGTERM)
         assert stop.signum == signal.SIGTERM
         assert signal.getsignal(signal.SIGTERM) == before[signal.SIGTERM]  # restored by the first signal
     assert {signum: signal.getsignal(signum) for signum in before} == before
@@ -85,7 +94,7 @@ def test_sg_train_exits_with_the_signal_code_and_says_how_to_resume(tmp_path, mo
 
     def train_epoch_with_sigterm(self) -> dict[str, float]:
         if self.epoch == 0:
-            os.kill(os.getpid(), signal.SIGTERM)
+            send_to_this_thread(signal.SIGTERM)
         return train_epoch(self)
 
     monkeypatch.setattr(Trainer, "train_epoch", train_epoch_with_sigterm)
