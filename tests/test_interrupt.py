@@ -68,7 +68,20 @@ def test_multi_agent_runs_stop_the_same_way(tmp_path):
     assert MultiAgentTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
 
 
-def test_a_second_signal_stops_at_once_without_a_checkpoint(tmp_path):
+@pytest.fixture
+def python_sigint_handler():
+    """SIGINT handled by Python's ``default_int_handler`` (``KeyboardInterrupt``) during the test.
+
+    Python installs it at start-up only when SIGINT is not ignored; a process started in the
+    background by a non-interactive shell (``make test &``, nohup) inherits SIGINT ignored, and
+    then the "previous handler" a second signal falls back to ignores it too.
+    """
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_second_signal_stops_at_once_without_a_checkpoint(tmp_path, python_sigint_handler):
     trainer = Trainer(tiny_config(tmp_path))
     signal_during_epoch(trainer, 2, signal.SIGINT, signal.SIGINT)
     with pytest.raises(KeyboardInterrupt) as stop:
