@@ -19,7 +19,7 @@ def send_to_this_thread(signum: int) -> None:
     """Signal the calling (main) thread; its Python handler has run when this returns.
 
     ``os.kill(os.getpid(), ...)`` may deliver to another thread of the process and return before the
-    handler runs, and under load two such signals can coalesce into one, so a test would flake.
+    handler runs, so a check right after it could see no request yet.
     """
     signal.pthread_kill(threading.get_ident(), signum)
 
