@@ -13,7 +13,7 @@ over seeds of the last 10 training episodes' return and cost), the normalised J^
 PPO run on the same env and budget, when it is in the benchmark; MAPPO for the multi-agent
 algorithms on the multi-agent ids) and J^C / cost limit, the seconds per update of one epoch
 (20,000 steps; multi-agent 10,000), and the published numbers from
-``shared/reference/paper_results.csv`` (10M steps) with their own normalisation. ``--per-seed``
+``benchmarks/paper_results.csv`` (10M steps) with their own normalisation. ``--per-seed``
 adds one row per finished run (its figures, evaluation, update seconds and wall minutes).
 
     python benchmarks/algorithms.py --envs SafetyPointGoal1-v0 --algos ppo ppo_lag cpo --seeds 0 1 2 \\
@@ -32,7 +32,8 @@ import sys
 import time
 from pathlib import Path
 
-PAPER_RESULTS = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "paper_results.csv"
+#: The Safety-Gymnasium paper's published J^R / J^C tables (Ji et al. 2023), kept in the project as data.
+PAPER_RESULTS = Path(__file__).resolve().parent / "paper_results.csv"
 PAPER_NAMES = {
     "pg": "PG", "ppo": "PPO", "ppo_lag": "PPO-Lag", "cppo_pid": "CPPO-PID", "focops": "FOCOPS", "cup": "CUP",
     "npg": "NPG", "trpo": "TRPO", "trpo_lag": "TRPO-Lag", "rcpo": "RCPO", "cpo": "CPO", "pcpo": "PCPO",
