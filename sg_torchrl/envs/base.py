@@ -14,8 +14,8 @@ class owns everything tasks share:
 * seeding with one generator per simulator (``SeedSequence(seed).spawn``), so simulator ``i`` with
   seed ``s`` produces the same trajectory whatever ``N`` is;
 * action validation (shape, finiteness) with errors that name the problem, clipping to the
-  action bounds as the reference does, and isolation of a diverged simulator (it is reset and
-  reported ``truncated``, the rest of the batch carries on).
+  action bounds as the reference does, and isolation of a diverged simulator or one whose reward
+  or cost is not finite (it is reset and reported ``truncated``, the rest of the batch carries on).
 
 Where ``cost`` is declared
 --------------------------
@@ -46,6 +46,8 @@ from torchrl.envs import EnvBase
 __all__ = ["SafeEnv", "CostMode"]
 
 CostMode = Literal["indicator", "raw"]
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
 
 
 class SafeEnv(EnvBase, abc.ABC):
@@ -108,7 +110,7 @@ class SafeEnv(EnvBase, abc.ABC):
         self._action_high = np.asarray(action_high, dtype=np.float64)
         self._elapsed = np.zeros(num_envs, dtype=np.int64)
         self._cpu = torch.device("cpu")
-        self.physics_errors = 0  # simulators isolated and reset after diverging, since construction
+        self.physics_errors = 0  # simulators isolated and reset (diverged, or non-finite reward/cost), since construction
         self._make_specs(observation_dim)
         self._rngs: list[np.random.Generator] = []
         self._set_seed(seed)
@@ -184,6 +186,33 @@ class SafeEnv(EnvBase, abc.ABC):
         """Which simulators hold a non-finite state after stepping, ``(N,)`` bool."""
         return ~np.isfinite(observation).all(axis=1)
 
+    def _nonfinite_outcome(self, reward: np.ndarray, costs: dict[str, np.ndarray]) -> np.ndarray:
+        """Which simulators' reward or cost would be emitted non-finite, ``(N,)`` bool.
+
+        A finite state can still give a non-finite outcome: the velocity tasks price the action as
+        given, so an action of 1e20 (finite, hence accepted) costs 1e39, which is ``-inf`` once cast
+        to the emitted float32. Such a transition is no more usable than a diverged one, so
+        :meth:`_transition_arrays` isolates it the same way (truncated, counted in
+        :attr:`physics_errors`, reward and cost zeroed). ``reward`` and the raw per-constraint
+        ``costs`` may be ``(N,)`` or ``(N, A)``; the raw costs are checked, not their indicators
+        (which turn ``inf`` into 1 and NaN into 0, hiding the fault).
+
+        The test is that a simulator's absolute rewards and costs sum to at most float32's largest
+        value (NaN fails every comparison): then every emitted value, the raw cost total included,
+        is finite. One sum over the whole batch decides the common all-finite case (about 3 us, the
+        per-step price of this check); only when it fails is the sum taken per simulator.
+        """
+        magnitude = np.abs(reward).sum()
+        for value in costs.values():
+            magnitude += np.abs(value).sum()
+        if magnitude <= _FLOAT32_MAX:
+            return np.zeros(self.num_envs, dtype=bool)
+        n = self.num_envs
+        per_sim = np.abs(np.reshape(reward, (n, -1))).sum(axis=1)
+        for value in costs.values():
+            per_sim += np.abs(np.reshape(value, (n, -1))).sum(axis=1)
+        return ~(per_sim <= _FLOAT32_MAX)
+
     # ------------------------------------------------------------------ TorchRL API
     def _set_seed(self, seed: int | None) -> None:
         sequence = np.random.SeedSequence(seed)
@@ -225,7 +254,7 @@ class SafeEnv(EnvBase, abc.ABC):
         terminated = self._compute_terminated()
         self._elapsed[:] += 1  # in place: assigning an attribute of an nn.Module costs microseconds
         truncated = self._elapsed >= self.max_episode_steps
-        diverged = self._diverged(observation)
+        diverged = self._diverged(observation) | self._nonfinite_outcome(reward, costs)
         if diverged.any():
             return self._isolate(diverged, observation, reward, costs, terminated, truncated)
         return observation, reward, costs, terminated, truncated
