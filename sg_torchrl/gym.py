@@ -30,7 +30,9 @@ API
 * Errors: ``step`` before the first ``reset`` or after the episode ended raises
   :class:`EpisodeEndedError` (a ``gymnasium.error.ResetNeeded`` that is also an ``AssertionError``,
   which is what Safety-Gymnasium raises there); an action whose shape differs from
-  ``action_space.shape``, or that is not finite, raises ``ValueError``. Actions outside the bounds
+  ``action_space.shape``, or that is not finite, raises ``ValueError``; an option the env does not
+  take raises ``TypeError`` worded as Python words it (``... got an unexpected keyword argument
+  'frameskip'``), which TorchRL's ``GymEnv`` relies on to drop its ``frameskip``. Actions outside the bounds
   are clipped, as in Safety-Gymnasium. ``render_mode`` other than ``None`` and ``"rgb_array"``
   raises ``NotImplementedError``. Using a closed env raises
   ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
@@ -88,7 +90,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.base import SafeEnv
-from sg_torchrl.envs.registry import list_envs, registry_entry
+from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 
 __all__ = [
@@ -195,6 +197,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
             )
         if registry_entry(env_id).multi_agent:
             raise ValueError(f"{env_id!r} is a multi-agent env: use sg_torchrl.pettingzoo.make({env_id!r})")
+        _check_options(env_id, options)
         if "max_episode_steps" in options and options["max_episode_steps"] is None:
             options["max_episode_steps"] = _NO_LIMIT
         self.env_id = env_id
@@ -350,6 +353,23 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
 
 _RENDER_OPTIONS = ("width", "height", "camera", "camera_name", "camera_id")
+
+
+def _check_options(env_id: str, options: dict[str, Any]) -> None:
+    """Reject options ``env_id`` does not take, in Python's own words for an unknown keyword.
+
+    Callers that build gymnasium envs generically rely on that wording: TorchRL's ``GymEnv`` passes
+    ``frameskip`` to ``gymnasium.make`` and drops it (skipping frames in its wrapper instead) only when
+    the ``TypeError`` says ``unexpected keyword argument 'frameskip'``; any other message is re-raised.
+    """
+    accepted = env_options(env_id)
+    if accepted is None:  # the constructor takes **kwargs and checks them itself
+        return
+    unknown = [key for key in options if key not in accepted]
+    if unknown:
+        takes = ", ".join([*accepted, "seed", *_RENDER_OPTIONS])
+        raise TypeError(f"make() got an unexpected keyword argument {unknown[0]!r} "
+                        f"({env_id} takes {takes}; unknown: {', '.join(map(repr, unknown))})")
 
 
 def _observation_space(observation_spec) -> spaces.Space:

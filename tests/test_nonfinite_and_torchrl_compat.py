@@ -4,6 +4,8 @@
   but finite action, ``-inf`` once cast to float32) is handled like a physics error by the shared
   ``SafeEnv`` step: that simulator is truncated, counted in ``physics_errors`` and its reward and
   cost are zeroed; the other simulators' transitions are those of a run without the bad action.
+* Stock ``torchrl.envs.GymEnv`` builds our gymnasium ids: it passes ``frameskip`` and drops it only
+  when the ``TypeError`` uses Python's wording for an unknown keyword.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+from torchrl.envs import GymEnv
+from torchrl.envs.utils import check_env_specs
 
 import sg_torchrl
 import sg_torchrl.gym
@@ -133,3 +137,30 @@ def test_gym_facade_truncates_a_huge_action():
     assert env.torchrl_env.physics_errors == 1
     env.close()
 
+
+# ---------------------------------------------------------------------------- stock TorchRL GymEnv
+def test_stock_gym_env_builds_and_steps_a_twin_id():
+    env = GymEnv("SafetyPointGoal1Gymnasium-v0")
+    check_env_specs(env)
+    env.set_seed(0)
+    rollout = env.rollout(20)
+    assert rollout.batch_size == (20,)
+    assert rollout["next", "observation"].shape == (20, 60)
+    assert torch.isfinite(rollout["next", "reward"]).all()
+    env.close()
+
+
+def test_stock_gym_env_frame_skip_is_done_by_the_wrapper():
+    # TorchRL's fallback: the env rejects ``frameskip``, the wrapper repeats the action itself.
+    env = GymEnv("SafetyHalfCheetahVelocityGymnasium-v1", frame_skip=2)
+    assert env.wrapper_frame_skip == 2
+    assert env.rollout(3)["next", "observation"].shape == (3, 17)
+    env.close()
+
+
+def test_unknown_option_uses_pythons_wording():
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'") as error:
+        sg_torchrl.gym.make("SafetyPointGoal1Gymnasium-v0", frameskip=1)
+    assert "max_episode_steps" in str(error.value)  # still says what the env takes
+    with pytest.raises(TypeError, match="unexpected keyword argument 'bogus'"):
+        sg_torchrl.gym.make("SafetyHalfCheetahVelocity-v1", bogus=3, width=64)
