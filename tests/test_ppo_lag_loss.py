@@ -296,6 +296,32 @@ class TestPPOLagLoss:
         assert (keys.reward, keys.value, keys.advantage) == ("my_cost", "cost_value", "my_cadv")
         assert float(gae.gamma) == pytest.approx(0.9)
 
+    def test_cost_value_estimator_with_nested_keys(self):
+        """A cost critic writing ``("agents", "cost_value")``, the loss remapped to the group's keys."""
+        actor, critic, _ = make_modules()
+        torch.manual_seed(4)
+        cost_critic = TensorDictModule(nn.Linear(OBS_DIM, 1), in_keys=[("agents", "observation")],
+                                       out_keys=[("agents", "cost_value")])
+        loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier())
+        group = {name: ("agents", name) for name in
+                 ("cost", "cost_value", "cost_advantage", "cost_value_target", "done", "terminated")}
+        loss.set_keys(**group)
+        gae = loss.make_cost_value_estimator(gamma=0.9, lmbda=0.8)
+        keys = gae.tensor_keys
+        assert (keys.reward, keys.value, keys.advantage, keys.done) == (
+            group["cost"], group["cost_value"], group["cost_advantage"], group["done"])
+        n, t, agents = 2, 5, 3
+        agent_td = TensorDict(observation=torch.randn(n, t, agents, OBS_DIM), batch_size=[n, t, agents])
+        next_td = TensorDict(observation=torch.randn(n, t, agents, OBS_DIM), cost=torch.rand(n, t, agents, 1),
+                             done=torch.zeros(n, t, agents, 1, dtype=torch.bool),
+                             terminated=torch.zeros(n, t, agents, 1, dtype=torch.bool), batch_size=[n, t, agents])
+        data = TensorDict({"agents": agent_td, "next": {"agents": next_td}}, batch_size=[n, t])
+        with torch.no_grad():
+            gae(data)
+            loss.cost_value_estimator(data.clone())
+        assert data["agents", "cost_advantage"].shape == (n, t, agents, 1)
+        assert loss.cost_value_estimator.tensor_keys.value == ("agents", "cost_value")
+
 
 
 class TestGaussianKL:

@@ -133,6 +133,53 @@ class TestCostGAE:
         adv3, _ = hand_gae([3.0 * c for c in COST], 2.0, 0.5)
         torch.testing.assert_close(batched["cost_advantage"][1], adv3)
 
+    @staticmethod
+    def grouped(td: TensorDict, n_agents: int = 2) -> TensorDict:
+        """``td`` as a multi-agent group: every entry under ``"agents"``, agent k's cost times k + 1."""
+        def group(source):
+            entries = {key: source[key].unsqueeze(1).expand(-1, n_agents, 1).clone()
+                       for key in source.keys() if key != "next"}
+            return TensorDict(entries, batch_size=[source.shape[0], n_agents])
+
+        out = TensorDict({"agents": group(td), "next": {"agents": group(td["next"])}}, batch_size=td.shape)
+        out["next", "agents", "cost"] *= torch.arange(1.0, n_agents + 1).unsqueeze(-1)
+        return out
+
+    def test_nested_critic_keys_follow_its_group(self):
+        critic = make_linear_critic("cost_value", 2.0, 0.5)
+        nested = TensorDictModule(critic.module, in_keys=[("agents", "observation")],
+                                  out_keys=[("agents", "cost_value")])
+        gae = make_cost_gae(nested, gamma=GAMMA, lmbda=LMBDA)
+        keys = gae.tensor_keys
+        assert (keys.reward, keys.value, keys.advantage, keys.value_target, keys.done, keys.terminated) == (
+            ("agents", "cost"), ("agents", "cost_value"), ("agents", "cost_advantage"),
+            ("agents", "cost_value_target"), ("agents", "done"), ("agents", "terminated"))
+        td = self.grouped(make_trajectory())
+        with torch.no_grad():
+            gae(td)
+        for agent in range(2):
+            expected_adv, expected_target = hand_gae([(agent + 1) * c for c in COST], 2.0, 0.5)
+            torch.testing.assert_close(td["agents", "cost_advantage"][:, agent], expected_adv)
+            torch.testing.assert_close(td["agents", "cost_value_target"][:, agent], expected_target)
+        reward_gae = make_gae(TensorDictModule(critic.module, in_keys=[("agents", "observation")],
+                                               out_keys=[("agents", "state_value")]))
+        assert reward_gae.tensor_keys.reward == ("agents", "reward")
+        assert reward_gae.tensor_keys.advantage == ("agents", "advantage")
+
+    def test_explicit_keys_with_team_flags(self):
+        nested = TensorDictModule(torch.nn.Linear(1, 1), in_keys=[("agents", "observation")],
+                                  out_keys=[("agents", "c")])
+        gae = make_cost_gae(nested, keys={"value": ("agents", "c"), "done": "done", "terminated": "terminated"})
+        keys = gae.tensor_keys
+        assert (keys.value, keys.reward, keys.done) == (("agents", "c"), ("agents", "cost"), "done")
+
+    def test_top_level_keys_are_unchanged(self):
+        keys = make_gae(make_linear_critic("state_value", 1.0, 0.0)).tensor_keys
+        assert (keys.reward, keys.value, keys.advantage, keys.value_target, keys.done) == (
+            "reward", "state_value", "advantage", "value_target", "done")
+        keys = make_cost_gae(None).tensor_keys
+        assert (keys.reward, keys.value, keys.done, keys.terminated) == ("cost", "cost_value", "done", "terminated")
+
 
 class TestNormalizeAdvantages:
     def test_reward_standardised_cost_only_centred(self):

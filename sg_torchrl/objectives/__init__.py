@@ -3,7 +3,8 @@
 * :class:`Multiplier`, :class:`LagrangeMultiplier`, :class:`PIDLagrangeMultiplier`: the
   multiplier update rules (Adam projected ascent, Ray et al. 2019; PID, Stooke et al. 2020).
 * :func:`make_gae`, :func:`make_cost_gae`, :func:`normalize_advantages`: reward and cost GAE side by
-  side and SafePO's batch normalisation.
+  side and SafePO's batch normalisation; :class:`AdvantageEstimation`, the same inside the
+  first-order losses, which compute missing advantages themselves (TorchRL's convention).
 * :class:`PPOLagLoss`: PPO-Lag; CPPO-PID is ``PPOLagLoss(..., multiplier=PIDLagrangeMultiplier())``
   and PPO is ``PPOLagLoss(..., multiplier=NoMultiplier())``.
 * :class:`PGLoss`, :class:`FOCOPSLoss`, :class:`CUPLoss`: the other first-order SafePO losses.
@@ -21,7 +22,7 @@ from sg_torchrl.objectives.multipliers import (
 )
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
 from sg_torchrl.objectives.first_order import CUPLoss, FOCOPSLoss, PGLoss
-from sg_torchrl.objectives.value import make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.objectives.value import AdvantageEstimation, make_cost_gae, make_gae, normalize_advantages
 from sg_torchrl.objectives.second_order import (
     backtracking_line_search,
     conjugate_gradient,
@@ -56,6 +57,7 @@ __all__ = [
     "FOCOPSLoss",
     "CUPLoss",
     "gaussian_kl",
+    "AdvantageEstimation",
     "make_cost_gae",
     "make_gae",
     "normalize_advantages",

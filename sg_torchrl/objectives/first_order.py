@@ -310,7 +310,9 @@ class CUPLoss(PPOLagLoss):
 
     Input keys (stage two):
         the actor's ``in_keys``, ``"action"``, ``"action_log_prob"``, ``"cost_advantage"``,
-        ``"stage1_loc"``, ``"stage1_scale"`` (remap with :meth:`set_keys`).
+        ``"stage1_loc"``, ``"stage1_scale"`` (remap with :meth:`set_keys`). Without
+        ``"cost_advantage"`` the loss computes it from the input's trajectories, as
+        :class:`PPOLagLoss` does (cost critic, cost GAE, mean-centred).
 
     Output keys (stage two):
         ``loss_objective`` (the only term; ``loss_entropy`` too with an entropy bonus), and detached
@@ -410,6 +412,7 @@ class CUPLoss(PPOLagLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """CUP's projection (stage-two) loss on a batch; see the class docstring for keys."""
+        tensordict = self._with_advantages(tensordict, reward=False)  # computed if missing
         cost_advantage = self._get_required(
             tensordict, self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)"
         )

@@ -18,7 +18,9 @@ mean episode cost. In sg_torchrl the three concerns are separate objects:
   :class:`~sg_torchrl.objectives.PIDLagrangeMultiplier` hold :math:`\\lambda` and its update rule
   (the trainer calls ``multiplier.update(mean_episode_cost)`` once per epoch);
 * :func:`~sg_torchrl.objectives.make_gae`, :func:`~sg_torchrl.objectives.make_cost_gae` and
-  :func:`~sg_torchrl.objectives.normalize_advantages` produce the advantages on the whole batch.
+  :func:`~sg_torchrl.objectives.normalize_advantages` produce the advantages on the whole batch;
+  the loss computes them itself (both, SafePO-normalised) when its input lacks them, as TorchRL's
+  losses do (:class:`~sg_torchrl.objectives.value.AdvantageEstimation`).
 
 **CPPO-PID** (Stooke et al. 2020, "Responsive Safety in Reinforcement Learning by PID Lagrangian
 Methods") is the same loss with the PID multiplier, not a separate class::
@@ -42,10 +44,9 @@ from tensordict.utils import NestedKey
 from torch import distributions as D, nn, Tensor
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.utils import distance_loss
-from torchrl.objectives.value import GAE
 
 from sg_torchrl.objectives.multipliers import Multiplier
-from sg_torchrl.objectives.value import make_cost_gae
+from sg_torchrl.objectives.value import AdvantageEstimation
 
 __all__ = ["PPOLagLoss"]
 
@@ -56,7 +57,7 @@ def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
     return [keys]
 
 
-class PPOLagLoss(ClipPPOLoss):
+class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
     """PPO-Lagrangian loss: clipped PPO on the Lagrangian advantage, plus reward and cost critics.
 
     With :math:`r_t(\\theta) = \\pi_\\theta(a_t|s_t) / \\pi_{\\text{old}}(a_t|s_t)` and
@@ -90,9 +91,15 @@ class PPOLagLoss(ClipPPOLoss):
     losses, no advantage normalisation inside the loss (SafePO normalises once per batch: use
     :func:`~sg_torchrl.objectives.normalize_advantages` before the minibatch loop).
 
-    The loss does **not** run value estimators: both advantages and both value targets must be in
-    the input (compute them on the whole batch with :func:`~sg_torchrl.objectives.make_gae` /
-    :func:`~sg_torchrl.objectives.make_cost_gae`, or :meth:`make_cost_value_estimator`).
+    Advantages follow TorchRL's convention: when the input lacks ``"advantage"`` (or
+    ``"cost_advantage"``), the loss computes it, and its value target, from the input's
+    trajectories with its reward (cost) critic and estimator (GAE 0.99 / 0.95 unless
+    :meth:`make_value_estimator` says otherwise), normalised with SafePO's batch rule; a raw
+    ``env.rollout(...)`` can be passed as is. Minibatch loops compute them once per batch instead
+    (:meth:`estimate_advantages`, or :func:`~sg_torchrl.objectives.make_gae` /
+    :func:`~sg_torchrl.objectives.make_cost_gae` and
+    :func:`~sg_torchrl.objectives.normalize_advantages`), and the loss uses them as given. See
+    :class:`~sg_torchrl.objectives.value.AdvantageEstimation`.
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the policy; must write the action
@@ -124,6 +131,8 @@ class PPOLagLoss(ClipPPOLoss):
         the actor's and both critics' ``in_keys`` (e.g. ``"observation"``), ``"action"``,
         ``"action_log_prob"``, ``"advantage"``, ``"value_target"``, ``"cost_advantage"``,
         ``"cost_value_target"``; ``"state_value"`` / ``"cost_value"`` only with ``clip_value``.
+        Without the advantages: the ``"next"`` entries their estimators read instead (reward,
+        cost, done, terminated, the critics' inputs); ``in_keys`` lists the minibatch inputs.
 
     Output keys:
         ``loss_objective``, ``loss_critic``, ``loss_cost_critic`` (and ``loss_entropy`` with an
@@ -163,9 +172,8 @@ class PPOLagLoss(ClipPPOLoss):
         """Configurable tensordict keys: :class:`~torchrl.objectives.PPOLoss`'s plus the cost ones.
 
         Attributes:
-            cost (NestedKey): the per-step cost signal, under ``"next"``. Not read by the loss
-                itself; used by :meth:`PPOLagLoss.make_cost_value_estimator`. Defaults to
-                ``"cost"``.
+            cost (NestedKey): the per-step cost signal, under ``"next"``; read by the cost value
+                estimator only (:attr:`cost_value_estimator`). Defaults to ``"cost"``.
             cost_value (NestedKey): output key of the cost critic (and the stored rollout cost
                 value used for value clipping). Defaults to ``"cost_value"``.
             cost_advantage (NestedKey): the cost advantage :math:`A^c` (input). Defaults to
@@ -247,15 +255,17 @@ class PPOLagLoss(ClipPPOLoss):
         if cost_critic_coeff is None:
             cost_critic_coeff = float(self.critic_coeff) if self.critic_coeff is not None else 1.0
         self.register_coeff_buffer("cost_critic_coeff", cost_critic_coeff, device=device)
+        self._cost_value_estimator = None  # built on first use, with the reward one
         # in_keys / out_keys were cached by the parent before the cost critic existed.
         self._in_keys = None
         self._out_keys = None
 
     # ------------------------------------------------------------------ keys
     def _set_in_keys(self) -> None:
-        # The parent lists the value-estimation inputs ("next" reward, done, observation); this
-        # loss never runs an estimator, so its inputs are the networks' inputs and the entries
-        # below. Called by the parent constructor before the cost critic is registered.
+        # The parent lists the value-estimation inputs ("next" reward, done, observation); here
+        # in_keys are what a minibatch needs (the trainer selects them): the networks' inputs and
+        # the entries below; the estimators' inputs are only read when advantages are missing.
+        # Called by the parent constructor before the cost critic is registered.
         keys: list[NestedKey] = []
         for name in ("actor_network", "critic_network", "cost_critic_network"):
             module = getattr(self, name, None)
@@ -316,9 +326,9 @@ class PPOLagLoss(ClipPPOLoss):
         value = tensordict.get(key, None)
         if value is None:
             raise KeyError(
-                f"PPOLagLoss did not find {key!r} in the input. It does not run value estimators: "
-                f"compute it on the whole batch first (e.g. with {producer} and "
-                f"normalize_advantages), or remap the key with loss.set_keys(...)."
+                f"PPOLagLoss did not find {key!r} in the input: compute it on the whole batch first "
+                f"(e.g. with {producer}, or loss.estimate_advantages), or remap the key with "
+                f"loss.set_keys(...)."
             )
         return value
 
@@ -478,11 +488,11 @@ class PPOLagLoss(ClipPPOLoss):
         td_out = TensorDict({"loss_objective": loss, **diagnostics})
         with torch.no_grad():
             log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight).detach()
-            flat = log_ratio.squeeze(-1)
+            flat = log_ratio.reshape(-1)  # over every sample, also of an [N, T] rollout
             ess = (2 * flat.logsumexp(0) - (2 * flat).logsumexp(0)).exp()
             ratio = log_ratio.exp()
             td_out.set("kl_approx", kl_approx.detach().mean())
-            td_out.set("ESS", ess / log_weight.shape[0])
+            td_out.set("ESS", ess / flat.numel())
             td_out.set("max_ratio", ratio.max())
             td_out.set("mean_ratio", ratio.mean())
         if self.entropy_bonus:
@@ -548,6 +558,7 @@ class PPOLagLoss(ClipPPOLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
+        tensordict = self._with_advantages(tensordict)
         td_out = self._actor_loss(tensordict, self._combined_advantage(tensordict))
         td_out = self._reduce_losses(td_out, tensordict)
         td_out.update(self.critic_losses(tensordict))
@@ -560,34 +571,3 @@ class PPOLagLoss(ClipPPOLoss):
             tensordict, td_out, "actor_network_params", "target_actor_network_params"
         )
         return td_out
-
-    # ----------------------------------------------------------- estimators
-    def make_cost_value_estimator(
-        self, *, gamma: float = 0.99, lmbda: float = 0.95, **gae_kwargs: Any
-    ) -> GAE:
-        """A cost GAE over this loss's cost critic and keys (``tensor_keys.cost``, ``cost_value``, ...).
-
-        Convenience for :func:`~sg_torchrl.objectives.make_cost_gae` that follows any
-        :meth:`set_keys` remapping (cost, cost value, cost advantage / target, done, terminated).
-        The estimator is returned, not stored: run it on the whole batch before the minibatch
-        loop.
-
-        Keyword Args:
-            gamma (float): discount. Defaults to ``0.99``.
-            lmbda (float): GAE lambda. Defaults to ``0.95``.
-            **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE`.
-
-        Returns:
-            The configured :class:`~torchrl.objectives.value.GAE`.
-        """
-        gae = make_cost_gae(self.cost_critic_network, gamma=gamma, lmbda=lmbda, **gae_kwargs)
-        tk = self.tensor_keys
-        gae.set_keys(
-            reward=tk.cost,
-            value=tk.cost_value,
-            advantage=tk.cost_advantage,
-            value_target=tk.cost_value_target,
-            done=tk.done,
-            terminated=tk.terminated,
-        )
-        return gae

@@ -139,7 +139,9 @@ class TrustRegionLoss(LossModule):
     Input keys (configurable with :meth:`set_keys`): the actor's ``in_keys``, ``"action"``,
     ``"action_log_prob"`` (the actor's own ``log_prob_key`` when it has one), ``"advantage"``,
     optionally ``"cost_advantage"``, and the old policy's ``"loc"`` / ``"scale"``. Advantages may be
-    ``[*B]`` or ``[*B, 1]``.
+    ``[*B]`` or ``[*B, 1]``. The loss holds no critic, so it cannot compute a missing advantage
+    (TorchRL's convention for losses with a critic): a missing ``"advantage"`` raises a ``KeyError``
+    that says how to compute it.
     """
 
     @dataclass
@@ -194,7 +196,15 @@ class TrustRegionLoss(LossModule):
         log_prob = dist.log_prob(tensordict.get(tk.action))
         old_log_prob = _per_sample(tensordict.get(tk.sample_log_prob), log_prob.shape, "action_log_prob")
         ratio = (log_prob - old_log_prob).exp()
-        advantage = _per_sample(tensordict.get(tk.advantage), log_prob.shape, "advantage")
+        advantage = tensordict.get(tk.advantage, None)
+        if advantage is None:
+            raise KeyError(
+                f"TrustRegionLoss did not find {tk.advantage!r} in the input. It has no critics, so "
+                f"unlike the first-order losses it cannot compute advantages: compute them on the "
+                f"whole batch first (PPOLagLoss.estimate_advantages, or make_gae / make_cost_gae and "
+                f"normalize_advantages), or remap the key with loss.set_keys(...)."
+            )
+        advantage = _per_sample(advantage, log_prob.shape, "advantage")
         out = {"loss_objective": -(ratio * advantage).mean()}
         cost_advantage = tensordict.get(tk.cost_advantage, None)
         if cost_advantage is not None:

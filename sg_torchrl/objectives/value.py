@@ -17,18 +17,60 @@ Typical use, once per collected batch and before the minibatch loop::
         reward_gae(batch)
         cost_gae(batch)
     normalize_advantages(batch)
+
+Both factories place their keys beside the critic's output: a critic writing
+``("agents", "cost_value")`` (a multi-agent group) gets ``("agents", "cost")``,
+``("agents", "cost_advantage")``, ... and the group's done flags, TorchRL's multi-agent layout.
+
+:class:`AdvantageEstimation` is the same computation inside a loss: TorchRL's convention that a
+PPO-family loss computes the advantages its input lacks, here for the reward *and* the cost critic.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
-from torchrl.objectives.value import GAE
+from tensordict.utils import NestedKey, unravel_key
+from torchrl.objectives.utils import build_value_estimator, ValueEstimators
+from torchrl.objectives.value import GAE, ValueEstimatorBase
 
-__all__ = ["make_gae", "make_cost_gae", "normalize_advantages"]
+__all__ = ["AdvantageEstimation", "make_gae", "make_cost_gae", "normalize_advantages"]
+
+
+def _keys_beside(
+    value_network: TensorDictModuleBase | None, names: Mapping[str, str]
+) -> dict[str, NestedKey]:
+    """GAE keys for ``names`` (estimator key -> entry name), placed beside the critic's output.
+
+    The value key is the critic's out-key whose last element is ``names["value"]`` (or its only
+    out-key); every other entry goes under the same prefix. A top-level critic therefore gets the
+    plain names, and a critic writing ``("agents", "cost_value")`` gets ``("agents", "cost")``,
+    ``("agents", "cost_advantage")``, ``("agents", "done")``, ...: TorchRL's multi-agent layout,
+    where the per-agent signals and flags live in the group. TorchRL's ``GAE`` validates the value
+    key against the critic's out-keys, so the plain default would fail for a nested critic.
+    """
+    value: NestedKey = names["value"]
+    out_keys = [unravel_key(key) for key in getattr(value_network, "out_keys", None) or []]
+    if out_keys and value not in out_keys:
+        nested = [key for key in out_keys if isinstance(key, tuple) and key[-1] == value]
+        if len(nested) == 1:
+            value = nested[0]
+        elif len(out_keys) == 1:
+            value = out_keys[0]
+    prefix = value[:-1] if isinstance(value, tuple) else ()
+    keys = {name: unravel_key((*prefix, entry)) for name, entry in names.items()}
+    keys["value"] = value
+    return keys
+
+
+#: TorchRL's reward-GAE entries, and the cost GAE's: the same renamed for the cost signal and critic.
+_REWARD_NAMES = {"reward": "reward", "value": "state_value", "advantage": "advantage",
+                 "value_target": "value_target", "done": "done", "terminated": "terminated"}
+_COST_NAMES = {**_REWARD_NAMES, "reward": "cost", "value": "cost_value", "advantage": "cost_advantage",
+               "value_target": "cost_value_target"}
 
 
 def make_gae(
@@ -36,12 +78,15 @@ def make_gae(
     *,
     gamma: float = 0.99,
     lmbda: float = 0.95,
+    keys: Mapping[str, NestedKey] | None = None,
     **gae_kwargs: Any,
 ) -> GAE:
     """Builds the reward GAE with TorchRL's default keys.
 
     Reads ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")`` and the
-    critic's ``"state_value"``; writes ``"advantage"`` and ``"value_target"``.
+    critic's ``"state_value"``; writes ``"advantage"`` and ``"value_target"``. For a critic writing
+    a nested key such as ``("agents", "state_value")`` all of these move into its group
+    (``("agents", "reward")``, ``("agents", "done")``, ...).
 
     Args:
         value_network (TensorDictModuleBase or None): the reward critic, writing ``"state_value"``;
@@ -51,13 +96,18 @@ def make_gae(
     Keyword Args:
         gamma (float): discount factor. Defaults to ``0.99`` (paper value).
         lmbda (float): GAE :math:`\\lambda`. Defaults to ``0.95`` (paper value).
+        keys (mapping, optional): estimator keys to set instead of the defaults (``reward``,
+            ``value``, ``advantage``, ``value_target``, ``done``, ``terminated``), applied in one
+            ``set_keys`` call. Defaults to ``None``.
         **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE` (e.g. ``time_dim``,
             ``vectorized``, ``device``).
 
     Returns:
         A :class:`~torchrl.objectives.value.GAE` module.
     """
-    return GAE(gamma=gamma, lmbda=lmbda, value_network=value_network, **gae_kwargs)
+    gae = GAE(gamma=gamma, lmbda=lmbda, value_network=value_network, **gae_kwargs)
+    gae.set_keys(**{**_keys_beside(value_network, _REWARD_NAMES), **(keys or {})})
+    return gae
 
 
 def make_cost_gae(
@@ -65,6 +115,7 @@ def make_cost_gae(
     *,
     gamma: float = 0.99,
     lmbda: float = 0.95,
+    keys: Mapping[str, NestedKey] | None = None,
     **gae_kwargs: Any,
 ) -> GAE:
     """Builds the cost GAE: a :class:`~torchrl.objectives.value.GAE` over the cost signal.
@@ -72,8 +123,14 @@ def make_cost_gae(
     Configured with ``set_keys(reward="cost", value="cost_value", advantage="cost_advantage",
     value_target="cost_value_target")``: it reads ``("next", "cost")``, the done flags and the cost
     critic's ``"cost_value"``, and writes ``"cost_advantage"`` and ``"cost_value_target"``, so it
-    runs on the same TensorDict as the reward GAE without touching its entries. Remap further with
-    ``.set_keys(...)`` (e.g. multi-agent ``("agents", "cost")``).
+    runs on the same TensorDict as the reward GAE without touching its entries.
+
+    A cost critic writing a nested key, e.g. ``("agents", "cost_value")``, gets every key in its
+    group: it reads ``("next", "agents", "cost")``, ``("next", "agents", "done")`` /
+    ``"terminated"`` and writes ``("agents", "cost_advantage")`` / ``"cost_value_target"`` (one
+    estimate per agent, each its own cost and flags). Other layouts: pass ``keys`` (applied in one
+    ``set_keys`` call, so a nested value key never meets the plain default) or remap further with
+    ``.set_keys(...)``.
 
     SafePO uses the same :math:`\\gamma` and :math:`\\lambda` for cost and reward
     (``lambda_c = 0.95``), which are the defaults here.
@@ -85,19 +142,18 @@ def make_cost_gae(
     Keyword Args:
         gamma (float): cost discount factor. Defaults to ``0.99``.
         lmbda (float): GAE :math:`\\lambda` for the cost. Defaults to ``0.95``.
+        keys (mapping, optional): estimator keys to set instead of the defaults (``reward``,
+            ``value``, ``advantage``, ``value_target``, ``done``, ``terminated``). Defaults to
+            ``None``.
         **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE`.
 
     Returns:
         A :class:`~torchrl.objectives.value.GAE` module with the cost keys.
     """
     gae = GAE(gamma=gamma, lmbda=lmbda, value_network=cost_value_network, **gae_kwargs)
-    gae.set_keys(
-        reward="cost",
-        value="cost_value",
-        advantage="cost_advantage",
-        value_target="cost_value_target",
-    )
+    gae.set_keys(**{**_keys_beside(cost_value_network, _COST_NAMES), **(keys or {})})
     return gae
+
 
 
 @torch.no_grad()
@@ -154,3 +210,160 @@ def _get_required(td: TensorDictBase, key: NestedKey) -> torch.Tensor:
     if value is None:
         raise KeyError(f"normalize_advantages: {key!r} is not in the batch (run the GAE first).")
     return value
+
+
+class AdvantageEstimation:
+    """TorchRL's "a loss computes the advantages it is not given", for a reward and a cost critic.
+
+    TorchRL's :class:`~torchrl.objectives.ClipPPOLoss` runs its value estimator when its input has
+    no advantage, so a raw rollout can go straight into the loss. A safe loss needs two advantages;
+    this mixin, placed before :class:`~torchrl.objectives.ClipPPOLoss` in
+    :class:`~sg_torchrl.objectives.PPOLagLoss` (and so in every first-order safe loss), adds
+
+    * :attr:`cost_value_estimator`, the cost critic's estimator beside TorchRL's
+      :attr:`value_estimator`: same type and hyper-parameters (``make_value_estimator`` builds
+      both; GAE with :math:`\\gamma = 0.99`, :math:`\\lambda = 0.95` by default, the paper's), the
+      loss's cost keys (``set_keys`` reaches it);
+    * :meth:`estimate_advantages`, both advantages and value targets of a whole batch followed by
+      :func:`normalize_advantages`, SafePO's batch rule (reward standardised, cost only centred,
+      over every element): exactly what the trainer computes before its minibatch loop;
+    * :meth:`_with_advantages`, which the loss's ``forward`` calls: a batch holding both
+      advantages (the trainer's minibatches) is used as given; otherwise the missing ones are
+      computed on a shallow copy (the caller's TensorDict is not written to).
+
+    The estimate needs whole trajectories (``("next", "reward")``, ``("next", "cost")``, the done
+    flags, time as the last batch dim): feed the loss a rollout, or compute the advantages once
+    per batch with :meth:`estimate_advantages` before splitting it into minibatches.
+
+    The host class provides the cost keys in ``tensor_keys`` (``cost``, ``cost_value``,
+    ``cost_advantage``, ``cost_value_target``) and the cost critic as ``cost_critic_network``
+    (with ``cost_critic_network_params`` / ``target_cost_critic_network_params`` when functional).
+    """
+
+    #: Whether ``forward`` computes missing advantages. Off for losses fed flattened per-agent
+    #: views (:class:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss`): no time axis is left there.
+    _estimates_missing_advantages: bool = True
+
+    @property
+    def cost_value_estimator(self) -> ValueEstimatorBase:
+        """The cost critic's value estimator (built with the reward one on first use)."""
+        if getattr(self, "_cost_value_estimator", None) is None:
+            reward_estimator = self.value_estimator  # first use builds both (make_value_estimator)
+            if getattr(self, "_cost_value_estimator", None) is None:  # reward one set directly
+                discounts = {name: float(getattr(reward_estimator, name))
+                             for name in ("gamma", "lmbda") if hasattr(reward_estimator, name)}
+                self._cost_value_estimator = self.make_cost_value_estimator(**discounts)
+        return self._cost_value_estimator
+
+    @cost_value_estimator.setter
+    def cost_value_estimator(self, estimator: ValueEstimatorBase) -> None:
+        self._cost_value_estimator = estimator
+
+    def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams: Any):
+        """TorchRL's ``make_value_estimator`` for the reward critic, and the same for the cost critic.
+
+        ``loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.97)`` configures both
+        estimators alike. Given an estimator instance or class (TorchRL's other form), only the
+        reward one is replaced and the cost one becomes a GAE with its ``gamma`` / ``lmbda``.
+        """
+        super().make_value_estimator(value_type, **hyperparams)
+        self._cost_value_estimator = None
+        if value_type is None:
+            value_type = self.default_value_estimator
+        if isinstance(value_type, ValueEstimatorBase) or isinstance(value_type, type):
+            return self
+        value_type, hp = self._prepare_value_estimator_kwargs(value_type, **hyperparams)
+        estimator = build_value_estimator(self, value_type, **hp, value_network=self.cost_critic_network)
+        estimator.set_keys(**self._cost_estimator_keys())
+        self._cost_value_estimator = estimator
+        return self
+
+    def make_cost_value_estimator(
+        self, *, gamma: float = 0.99, lmbda: float = 0.95, **gae_kwargs: Any
+    ) -> GAE:
+        """A cost GAE over this loss's cost critic and keys (``tensor_keys.cost``, ``cost_value``, ...).
+
+        Convenience for :func:`make_cost_gae` that follows any :meth:`set_keys` remapping (cost,
+        cost value, cost advantage / target, done, terminated; nested keys included). The estimator
+        is returned, not stored (:attr:`cost_value_estimator` is the loss's own): run it on the
+        whole batch before the minibatch loop.
+
+        Keyword Args:
+            gamma (float): discount. Defaults to ``0.99``.
+            lmbda (float): GAE lambda. Defaults to ``0.95``.
+            **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE`.
+        """
+        return make_cost_gae(self.cost_critic_network, gamma=gamma, lmbda=lmbda,
+                             keys=self._cost_estimator_keys(), **gae_kwargs)
+
+    def _cost_estimator_keys(self) -> dict[str, NestedKey]:
+        tk = self.tensor_keys
+        return {"reward": tk.cost, "value": tk.cost_value, "advantage": tk.cost_advantage,
+                "value_target": tk.cost_value_target, "done": tk.done, "terminated": tk.terminated}
+
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
+        estimator = getattr(self, "_cost_value_estimator", None)
+        if estimator is not None:
+            estimator.set_keys(**self._cost_estimator_keys())
+        super()._forward_value_estimator_keys(**kwargs)
+
+    def estimate_advantages(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Reward and cost advantages and value targets of a whole batch, in place, SafePO-normalised.
+
+        Runs :attr:`value_estimator` (reward critic) and :attr:`cost_value_estimator` (cost critic)
+        without gradients, then :func:`normalize_advantages`; overwrites existing entries. This is
+        the trainer's per-batch computation, for loops that split the batch into minibatches.
+
+        Returns:
+            ``tensordict``, holding ``advantage``, ``value_target``, ``cost_advantage`` and
+            ``cost_value_target`` (under the loss's keys) and the critics' values.
+
+        Raises:
+            KeyError: if the reward or cost signal (under ``"next"``) is missing.
+        """
+        self._estimate(tensordict, reward=True, cost=True)
+        return tensordict
+
+    def _with_advantages(
+        self, tensordict: TensorDictBase, *, reward: bool = True, cost: bool = True
+    ) -> TensorDictBase:
+        """``tensordict`` if it holds the advantages asked for, else a shallow copy with the missing ones."""
+        if not self._estimates_missing_advantages:
+            return tensordict
+        tk = self.tensor_keys
+        reward = reward and tensordict.get(tk.advantage, None) is None
+        cost = cost and tensordict.get(tk.cost_advantage, None) is None
+        if not (reward or cost):
+            return tensordict
+        tensordict = tensordict.clone(False)
+        self._estimate(tensordict, reward=reward, cost=cost)
+        return tensordict
+
+    @torch.no_grad()
+    def _estimate(self, tensordict: TensorDictBase, *, reward: bool, cost: bool) -> None:
+        tk = self.tensor_keys
+        jobs = []
+        if reward:
+            jobs.append((self.value_estimator, tk.advantage,
+                         self._cached_critic_network_params_detached, self.target_critic_network_params))
+        if cost:
+            params = self.cost_critic_network_params.detach() if self.functional else None
+            jobs.append((self.cost_value_estimator, tk.cost_advantage,
+                         params, self.target_cost_critic_network_params))
+        for estimator, advantage_key, _, _ in jobs:  # check all first: no half-written batch
+            signal = unravel_key(("next", estimator.tensor_keys.reward))
+            if tensordict.get(signal, None) is None:
+                raise KeyError(
+                    f"{type(self).__name__} did not find {advantage_key!r} in the input and cannot "
+                    f"compute it: {signal!r} is missing. It estimates advantages from whole "
+                    f"trajectories (a rollout); otherwise compute them on the whole batch first "
+                    f"(loss.estimate_advantages, or make_gae / make_cost_gae and "
+                    f"normalize_advantages), or remap the keys with loss.set_keys(...)."
+                )
+        for estimator, _, params, target_params in jobs:
+            estimator(tensordict, params=params, target_params=target_params)
+        normalize_advantages(
+            tensordict,
+            reward_key=tk.advantage if reward else None,
+            cost_key=tk.cost_advantage if cost else None,
+        )

@@ -97,6 +97,8 @@ class AgentPPOLoss(PPOLagLoss, MAPPOLoss):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     _surrogate_out_keys = ("clip_fraction", "cost_surrogate")
+    # Fed one agent's flattened view: no trajectories left to estimate advantages on.
+    _estimates_missing_advantages = False
 
     def __init__(
         self,
