@@ -365,9 +365,10 @@ def _check_options(env_id: str, options: dict[str, Any]) -> None:
     accepted = env_options(env_id)
     if accepted is None:  # the constructor takes **kwargs and checks them itself
         return
+    accepted = [*accepted, "seed", "device"]  # what sg_torchrl.make takes besides the env's own options
     unknown = [key for key in options if key not in accepted]
     if unknown:
-        takes = ", ".join([*accepted, "seed", *_RENDER_OPTIONS])
+        takes = ", ".join([*accepted, *_RENDER_OPTIONS])
         raise TypeError(f"make() got an unexpected keyword argument {unknown[0]!r} "
                         f"({env_id} takes {takes}; unknown: {', '.join(map(repr, unknown))})")
 

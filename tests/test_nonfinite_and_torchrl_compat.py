@@ -164,3 +164,6 @@ def test_unknown_option_uses_pythons_wording():
     assert "max_episode_steps" in str(error.value)  # still says what the env takes
     with pytest.raises(TypeError, match="unexpected keyword argument 'bogus'"):
         sg_torchrl.gym.make("SafetyHalfCheetahVelocity-v1", bogus=3, width=64)
+    # What sg_torchrl.make takes besides the env's options, and the façade's render options, still pass.
+    sg_torchrl.gym.make("SafetyPointGoal1Gymnasium-v0", seed=0, device="cpu", max_episode_steps=5, width=32).close()
+
