@@ -1,11 +1,12 @@
 """PPO-Lag from pixels, written out: CNN actor and critics on a Safety-Gymnasium Vision task.
 
 A recipe in the style of TorchRL's sota-implementations, the pixel twin of ``first_order.py``. A
-``...Vision-v0`` id emits what the robot's camera sees, ``"pixels"`` ``(N, 3, 64, 64)`` uint8
-(``--obs-mode rgbd`` adds ``"depth"`` in metres, ``vector+rgb`` / ``vector+rgbd`` keep the flat
-``"observation"`` too). ``make_actor_critics`` reads the env's observation spec and gives each of
-the actor and the two critics its own small CNN encoder (TorchRL's ``ConvNet``) before the usual
-tanh MLP; images stay uint8 in the batch and are scaled inside the networks. Only a flat vector, if
+``...Vision-v0`` id emits what the robot's camera sees, ``"pixels"`` ``(N, 64, 64, 3)`` uint8,
+channels last as TorchRL's raw pixels (``--obs-mode rgbd`` adds ``"depth"`` ``(N, 64, 64, 1)`` in
+metres, ``vector+rgb`` / ``vector+rgbd`` keep the flat ``"observation"`` too).
+``make_actor_critics`` reads the env's observation spec and gives each of the actor and the two
+critics its own small CNN encoder (TorchRL's ``ConvNet``) before the usual tanh MLP; images stay
+uint8 and channels last in the batch and are scaled and turned channels first inside the networks. Only a flat vector, if
 any, gets the running normaliser. Passes over the whole batch without gradient (the critics' values
 for GAE, the KL early stop) run in chunks, so an epoch of frames is never converted to float at once.
 

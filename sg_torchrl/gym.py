@@ -330,9 +330,10 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         obs = {}
         if "observation" in td.keys():
             obs["observation"] = td.get("observation")[0].cpu().numpy().astype(np.float64)
-        obs["vision"] = np.ascontiguousarray(td.get("pixels")[0].permute(1, 2, 0).cpu().numpy())
+        # Channels last in both layouts (TorchRL's raw pixels, Safety-Gymnasium's "vision"): no permute.
+        obs["vision"] = td.get("pixels")[0].cpu().numpy()
         if "depth" in td.keys():
-            obs["depth"] = np.ascontiguousarray(td.get("depth")[0].permute(1, 2, 0).cpu().numpy())
+            obs["depth"] = td.get("depth")[0].cpu().numpy()
         return obs
 
     def _torchrl_step(self, action32: np.ndarray):
@@ -388,7 +389,7 @@ def _observation_space(observation_spec) -> spaces.Space:
     if "observation" in keys:
         entries["observation"] = spaces.Box(-np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]),
                                             dtype=np.float64)
-    channels, height, width = observation_spec["pixels"].shape[1:]
+    height, width, channels = observation_spec["pixels"].shape[1:]
     entries["vision"] = spaces.Box(0, 255, shape=(height, width, channels), dtype=np.uint8)
     if "depth" in keys:
         box = observation_spec["depth"].space

@@ -354,6 +354,6 @@ def test_vision_twins_emit_pixels(backend, task):
     assert "observation" not in env.observation_spec.keys()
     nxt = env.rollout(2, break_when_any_done=False)["next"]
     pixels = nxt["pixels"]
-    assert pixels.shape == (2, 2, 3, 24, 24) and pixels.dtype == torch.uint8
+    assert pixels.shape == (2, 2, 24, 24, 3) and pixels.dtype == torch.uint8
     assert pixels.float().std() > 5  # a picture, not a blank frame
     env.close()

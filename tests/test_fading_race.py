@@ -213,13 +213,13 @@ def test_rendering_one_simulator_never_shows_another_ones_alphas(backend):
 
 def test_vision_twin_draws_the_fading_goal(backend):
     env = make_env("SafetyPointFadingHard0Vision-v0", num_envs=2, image_size=24)
-    assert env.observation_spec["pixels"].shape == (2, 3, 24, 24)
+    assert env.observation_spec["pixels"].shape == (2, 24, 24, 3)
     twin_simulators(env, goal=(0.8, 0.0))
     first = env.vision.observation()["pixels"]
     assert torch.equal(first[0], first[1])
     for k in range(75):
         nxt = idle(env)
-        assert nxt["pixels"].shape == (2, 3, 24, 24) and nxt["pixels"].dtype == torch.uint8
+        assert nxt["pixels"].shape == (2, 24, 24, 3) and nxt["pixels"].dtype == torch.uint8
         if k == 0:
             assert not torch.equal(nxt["pixels"][0], first[0])  # a little fainter (the robot settles too)
     faded = nxt["pixels"]
@@ -339,7 +339,7 @@ def test_scenery_is_solid_but_free_at_level_0():
 def test_race_vision_twin_emits_pixels(backend):
     env = make_env("SafetyPointRace2Vision-v0", num_envs=2, image_size=20)
     out = env.rollout(2)
-    assert out["next", "pixels"].shape == (2, 2, 3, 20, 20) and out["next", "pixels"].dtype == torch.uint8
+    assert out["next", "pixels"].shape == (2, 2, 20, 20, 3) and out["next", "pixels"].dtype == torch.uint8
     assert out["next", "pixels"].float().std() > 5
     env.close()
 
@@ -348,5 +348,5 @@ def test_race_vision_twin_emits_pixels(backend):
 def test_fading_vision_twins_emit_pixels(backend, env_id):
     env = make_env(env_id, num_envs=2, image_size=20)
     out = env.rollout(2)
-    assert out["next", "pixels"].shape == (2, 2, 3, 20, 20) and out["next", "pixels"].dtype == torch.uint8
+    assert out["next", "pixels"].shape == (2, 2, 20, 20, 3) and out["next", "pixels"].dtype == torch.uint8
     env.close()

@@ -6,6 +6,7 @@
   cost are zeroed; the other simulators' transitions are those of a run without the bad action.
 * Stock ``torchrl.envs.GymEnv`` builds our gymnasium ids: it passes ``frameskip`` and drops it only
   when the ``TypeError`` uses Python's wording for an unknown keyword.
+* Stock ``ToTensorImage`` applies to our ``pixels``: they are TorchRL's raw pixels, channels-last uint8.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchrl.envs import GymEnv
+from torchrl.envs import GymEnv, ToTensorImage, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 import sg_torchrl
@@ -167,3 +168,19 @@ def test_unknown_option_uses_pythons_wording():
     # What sg_torchrl.make takes besides the env's options, and the façade's render options, still pass.
     sg_torchrl.gym.make("SafetyPointGoal1Gymnasium-v0", seed=0, device="cpu", max_episode_steps=5, width=32).close()
 
+
+# ---------------------------------------------------------------------------- stock TorchRL ToTensorImage
+def test_stock_to_tensor_image_on_our_pixels(backend):
+    # Our pixels follow TorchRL's raw-pixel convention (channels-last uint8), so the stock transform,
+    # without shape_tolerant or any other option, gives channels-first floats in [0, 1].
+    base = sg_torchrl.make("SafetyPointGoal1Vision-v0", num_envs=2, seed=0, image_size=16)
+    assert base.observation_spec["pixels"].shape == (2, 16, 16, 3)
+    env = TransformedEnv(base, ToTensorImage(in_keys=["pixels"]))
+    spec = env.observation_spec["pixels"]
+    assert spec.shape == (2, 3, 16, 16) and spec.dtype == torch.float32
+    check_env_specs(env, seed=0)
+    rollout = env.rollout(3)
+    for pixels in (rollout["pixels"], rollout["next", "pixels"]):
+        assert pixels.shape == (2, 3, 3, 16, 16) and pixels.dtype == torch.float32
+        assert 0 <= pixels.min() and pixels.max() <= 1 and pixels.std() > 0.01
+    env.close()

@@ -65,9 +65,9 @@ def encoder_parameters(module: torch.nn.Module) -> torch.Tensor:
 
 # ---------------------------------------------------------------------------- no OpenGL needed
 def pixel_spec(n: int = 2, size: int = 64, vector: int | None = None, depth: bool = False) -> Composite:
-    entries = {"pixels": Bounded(0, 255, shape=(n, 3, size, size), dtype=torch.uint8)}
+    entries = {"pixels": Bounded(0, 255, shape=(n, size, size, 3), dtype=torch.uint8)}  # channels last, as emitted
     if depth:
-        entries["depth"] = Bounded(0.0, 42.0, shape=(n, 1, size, size), dtype=torch.float32)
+        entries["depth"] = Bounded(0.0, 42.0, shape=(n, size, size, 1), dtype=torch.float32)
     if vector is not None:
         entries["observation"] = Unbounded(shape=(n, vector))
     entries["cost"] = Unbounded(shape=(n, 1))
@@ -84,13 +84,20 @@ class TestLayoutAndEncoder:
         with pytest.raises(ValueError, match="nothing the networks can read"):
             ObservationLayout.from_spec(Composite(cost=Unbounded(shape=(2, 1)), shape=(2,)))
 
+    def test_layout_rejects_channels_first_images(self):
+        # E.g. a spec after ToTensorImage: float (3, H, W) images the encoder would scale twice.
+        spec = Composite(pixels=Bounded(0.0, 1.0, shape=(2, 3, 64, 64)), shape=(2,))
+        with pytest.raises(ValueError, match="channels-last"):
+            ObservationLayout.from_spec(spec)
+
     def test_encoder_scales_pixels_and_depth_then_appends_the_vector(self):
         torch.manual_seed(0)
         encoder = ObservationEncoder(ObservationLayout(vector_dim=3, image_shape=(64, 64), rgb=True, depth=True))
-        pixels = torch.randint(0, 256, (4, 3, 64, 64), dtype=torch.uint8)
-        depth = torch.rand(4, 1, 64, 64) * 10.0  # half of it beyond DEPTH_RANGE: saturates at 1
+        pixels = torch.randint(0, 256, (4, 64, 64, 3), dtype=torch.uint8)  # channels last, as the envs emit
+        depth = torch.rand(4, 64, 64, 1) * 10.0  # half of it beyond DEPTH_RANGE: saturates at 1
         vector = torch.randn(4, 3)
-        expected_input = torch.cat([pixels.float() / 255.0, depth.clamp(max=DEPTH_RANGE) / DEPTH_RANGE], dim=-3)
+        expected_input = torch.cat([pixels.float() / 255.0, depth.clamp(max=DEPTH_RANGE) / DEPTH_RANGE], dim=-1)
+        expected_input = expected_input.permute(0, 3, 1, 2).contiguous()  # what the ConvNet takes
         originals = pixels.clone(), depth.clone()
         features = encoder(pixels, depth, vector)
         assert features.shape == (4, encoder.out_features) == (4, 32 * 4 * 4 + 3)
@@ -115,7 +122,7 @@ class TestLayoutAndEncoder:
         torch.manual_seed(0)
         layout = ObservationLayout(vector_dim=None, image_shape=(36, 36), rgb=True)
         critic = make_value(layout, [8], "state_value")
-        frames = lambda: torch.randint(0, 256, (2, 5, 3, 36, 36), dtype=torch.uint8)  # noqa: E731
+        frames = lambda: torch.randint(0, 256, (2, 5, 36, 36, 3), dtype=torch.uint8)  # noqa: E731
         batch = TensorDict({"pixels": frames(), "next": {"pixels": frames()}}, [2, 5])
         whole = forward_in_chunks(critic, batch.reshape(-1), ["pixels"], ["state_value"], None)["state_value"]
         write_values(batch, [critic], chunk_size=3)  # 10 samples in chunks of 3, 3, 3, 1

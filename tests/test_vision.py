@@ -116,16 +116,16 @@ def test_every_robot_sees_through_its_camera(backend, robot):
     env = make_env(f"Safety{robot}Goal1Vision-v0", num_envs=2)
     assert "observation" not in env.observation_spec.keys()  # pixels only by default
     spec = env.observation_spec["pixels"]
-    assert spec.shape == (2, 3, 64, 64) and spec.dtype == torch.uint8
+    assert spec.shape == (2, 64, 64, 3) and spec.dtype == torch.uint8  # TorchRL's raw pixels: channels last
     assert spec.space.low.min() == 0 and spec.space.high.max() == 255
     outputs = run(env, random_actions(env, 3, seed=0))
     for td in outputs:
         assert "observation" not in td.keys()
         pixels = td["pixels"]
-        assert pixels.shape == (2, 3, 64, 64) and pixels.dtype == torch.uint8 and pixels.is_contiguous()
+        assert pixels.shape == (2, 64, 64, 3) and pixels.dtype == torch.uint8 and pixels.is_contiguous()
         assert env.observation_spec.is_in(td.select(*env.observation_spec.keys()))
         for image in pixels:  # a picture of the world, not a blank frame
-            assert image.float().std() > 5 and len(image.reshape(3, -1).unique(dim=1).T) > 10
+            assert image.float().std() > 5 and len(image.reshape(-1, 3).unique(dim=0)) > 10
         assert torch.isfinite(td["cost"]).all()
     assert not torch.equal(outputs[0]["pixels"][0], outputs[0]["pixels"][1])  # two layouts, two pictures
     with pytest.raises(ValueError, match="no flat 'observation'"):
@@ -139,7 +139,7 @@ def test_every_vision_id_builds_and_renders(backend):
     for env_id in VISION_IDS:
         env = sg_torchrl.make(env_id, num_envs=1, seed=0, image_size=8)
         nxt = env.rollout(2, break_when_any_done=False)["next"]
-        assert nxt["pixels"].shape == (1, 2, 3, 8, 8) and nxt["pixels"].dtype == torch.uint8, env_id
+        assert nxt["pixels"].shape == (1, 2, 8, 8, 3) and nxt["pixels"].dtype == torch.uint8, env_id
         assert nxt["pixels"].float().std() > 1, env_id
         assert set(nxt["cost_info"].keys()) == set(env.constraint_names), env_id
         assert env.max_episode_steps == registry_entry(env_id).max_episode_steps
@@ -150,14 +150,14 @@ def test_rgbd_and_vector_entries(backend):
     env = make_env(VISION_ID, num_envs=2, obs_mode="vector+rgbd", image_size=24)
     near, far = env.vision.near, env.vision.far
     depth_spec = env.observation_spec["depth"]
-    assert depth_spec.shape == (2, 1, 24, 24) and depth_spec.dtype == torch.float32
+    assert depth_spec.shape == (2, 24, 24, 1) and depth_spec.dtype == torch.float32
     assert depth_spec.space.low.min().item() == pytest.approx(near) and depth_spec.space.high.max().item() == pytest.approx(far)
     assert 0 < near < 0.05 and far > 20  # metres: the model's clipping planes
     assert env.observation_spec["observation"].shape == (2, 60) and env.observation_dim == 60
     for td in run(env, random_actions(env, 2, seed=1)):
-        assert td["pixels"].shape == (2, 3, 24, 24) and td["observation"].shape == (2, 60)
+        assert td["pixels"].shape == (2, 24, 24, 3) and td["observation"].shape == (2, 60)
         depth = td["depth"]
-        assert depth.shape == (2, 1, 24, 24) and depth.dtype == torch.float32
+        assert depth.shape == (2, 24, 24, 1) and depth.dtype == torch.float32
         assert ((depth >= near) & (depth <= far)).all()
         assert (depth < far).float().mean() > 0.5  # the floor fills the lower part of the picture
         assert env.observation_spec.is_in(td.select(*env.observation_spec.keys()))
@@ -174,12 +174,31 @@ def test_check_env_specs(backend):
 
 
 def test_torchrl_image_transforms(backend):
+    # Stock ToTensorImage, no options: channels-last uint8 in, channels-first floats in [0, 1] out.
     base = make_env(VISION_ID, num_envs=2, image_size=16)
-    env = TransformedEnv(base, ToTensorImage(in_keys=["pixels"], shape_tolerant=True))  # channels first already
+    env = TransformedEnv(base, ToTensorImage(in_keys=["pixels"]))
     check_env_specs(env, seed=0)
-    pixels = env.rollout(3)["next", "pixels"]
+    spec = env.observation_spec["pixels"]
+    assert spec.shape == (2, 3, 16, 16) and spec.dtype == torch.float32
+    assert spec.space.low.min() == 0 and spec.space.high.max() == 1
+    rollout = env.rollout(3)
+    pixels = rollout["next", "pixels"]
     assert pixels.shape == (2, 3, 3, 16, 16) and pixels.dtype == torch.float32
     assert 0 <= pixels.min() and pixels.max() <= 1 and pixels.std() > 0.01
+    raw = base.vision.observation()["pixels"]  # the last frames, channels last
+    torch.testing.assert_close(pixels[:, -1], raw.permute(0, 3, 1, 2).float() / 255)
+    env.close()
+
+
+def test_torchrl_image_transforms_with_depth(backend):
+    # Depth is channels last too: the same transform turns it channels first and keeps its metres.
+    base = make_env(VISION_ID, num_envs=2, obs_mode="rgbd", image_size=16)
+    env = TransformedEnv(base, ToTensorImage(in_keys=["pixels", "depth"]))
+    check_env_specs(env, seed=0)
+    assert env.observation_spec["depth"].shape == (2, 1, 16, 16)
+    nxt = env.rollout(2)["next"]
+    assert nxt["pixels"].shape == (2, 2, 3, 16, 16) and nxt["depth"].shape == (2, 2, 1, 16, 16)
+    torch.testing.assert_close(nxt["depth"][:, -1], base.vision.observation()["depth"].permute(0, 3, 1, 2))
     env.close()
 
 
@@ -212,7 +231,7 @@ def test_depth_matches_the_geometry(backend):
 
     # The emitted entry after a still step shows the same (the robot and the vase settle by millimetres).
     nxt = idle(env)
-    assert nxt["depth"][0, 0, 32, 32].item() == pytest.approx(distance, abs=0.02)
+    assert nxt["depth"][0, 32, 32, 0].item() == pytest.approx(distance, abs=0.02)
     env.close()
 
 
@@ -221,7 +240,7 @@ def test_images_are_the_vision_camera_and_change_when_the_robot_moves(backend):
     before = env.reset()["pixels"][0]
     # Exactly what render() draws from the robot's own "vision" camera (same renderer settings).
     drawn = env.render(0, width=48, height=48, camera="vision")
-    assert torch.equal(before, torch.from_numpy(drawn).permute(2, 0, 1))
+    assert torch.equal(before, torch.from_numpy(drawn))  # both channels last
     for _ in range(8):  # drive forward and turn
         nxt = env.step(action_td(env, [[1.0, 1.0]]))["next"]
     after = nxt["pixels"][0]
@@ -273,7 +292,7 @@ def test_partial_reset_draws_only_the_reset_simulators(backend, monkeypatch):
     assert torch.equal(out["pixels"][0], before[0]) and torch.equal(out["pixels"][2], before[2])
     assert not np.array_equal(env.layout[1], layouts[1])  # a new layout ...
     assert not torch.equal(out["pixels"][1], before[1])  # ... and its first frame
-    fresh = torch.from_numpy(env.render(1, width=32, height=32, camera="vision")).permute(2, 0, 1)
+    fresh = torch.from_numpy(env.render(1, width=32, height=32, camera="vision"))
     assert torch.equal(out["pixels"][1], fresh)
     env.close()
 
@@ -336,7 +355,8 @@ def test_facade_dict_observation(backend):
     obs, info = env.reset(seed=0)
     assert obs in space and obs["depth"].shape == (16, 16, 1)
     td = env.torchrl_env.vision.observation()
-    np.testing.assert_array_equal(obs["vision"], td["pixels"][0].permute(1, 2, 0).numpy())  # channels last
+    np.testing.assert_array_equal(obs["vision"], td["pixels"][0].numpy())  # both channels last
+    np.testing.assert_array_equal(obs["depth"], td["depth"][0].numpy())
     obs, reward, cost, terminated, truncated, info = env.step(env.action_space.sample())
     assert obs in space and type(cost) is float
     env.close()

@@ -90,8 +90,8 @@ class ObservationLayout:
     Attributes:
         vector_dim: length of the flat ``"observation"`` vector, ``None`` when the env emits none.
         image_shape: ``(H, W)`` of the ``"pixels"`` / ``"depth"`` images, ``None`` without images.
-        rgb: whether ``"pixels"`` (``uint8`` ``(3, H, W)``) is read.
-        depth: whether ``"depth"`` (``float32`` ``(1, H, W)``, metres) is read.
+        rgb: whether ``"pixels"`` (``uint8`` ``(H, W, 3)``, channels last as the envs emit it) is read.
+        depth: whether ``"depth"`` (``float32`` ``(H, W, 1)``, metres) is read.
     """
 
     vector_dim: int | None
@@ -104,7 +104,12 @@ class ObservationLayout:
         """The layout of an env's ``observation_spec`` (the flat vector, ``pixels``, ``depth``)."""
         keys = set(observation_spec.keys())
         vector_dim = int(observation_spec["observation"].shape[-1]) if "observation" in keys else None
-        shapes = [tuple(observation_spec[key].shape[-2:]) for key in ("pixels", "depth") if key in keys]
+        for key, channels in (("pixels", 3), ("depth", 1)):
+            shape = tuple(observation_spec[key].shape) if key in keys else None
+            if shape is not None and (len(shape) < 3 or shape[-1] != channels):
+                raise ValueError(f"{key!r} has shape {shape}: the encoders read TorchRL's channels-last images "
+                                 f"(..., H, W, {channels}) as the envs emit them (not after ToTensorImage)")
+        shapes = [tuple(observation_spec[key].shape[-3:-1]) for key in ("pixels", "depth") if key in keys]
         if len(set(shapes)) > 1:
             raise ValueError(f"'pixels' and 'depth' differ in size: {shapes}")
         layout = cls(vector_dim, shapes[0] if shapes else None, rgb="pixels" in keys, depth="depth" in keys)
@@ -138,6 +143,9 @@ class ObservationEncoder(nn.Module):
     the slice a call sees is converted to float. RGB and depth are stacked as input channels (3 + 1)
     of one :class:`~torchrl.modules.ConvNet`, whose flattened output is concatenated with the flat
     vector (normalised upstream by the trainer's running normaliser, as in vector-only training).
+    The images come channels last (TorchRL's raw-pixel layout, ``(..., H, W, C)``); the encoder
+    moves the channels first with a view, no copy: the result has PyTorch's ``channels_last`` memory
+    format, which ``Conv2d`` takes as it is.
 
     Args:
         layout: what the env emits; must hold images.
@@ -168,14 +176,16 @@ class ObservationEncoder(nn.Module):
         self.out_features = cnn.channels[-1] * sides[0] * sides[1] + (layout.vector_dim or 0)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        """``inputs`` in :attr:`in_keys` order (``pixels``, ``depth``, ``observation``, those present)."""
+        """``inputs`` in :attr:`in_keys` order (``pixels``, ``depth``, ``observation``, those present);
+        images channels last, ``(..., H, W, C)``."""
         entries = dict(zip(self.in_keys, inputs))
         channels = []
         if "pixels" in entries:
             channels.append(entries["pixels"] / 255.0)  # uint8 -> float32 in one new tensor, input untouched
         if "depth" in entries:
             channels.append(entries["depth"].clamp(0.0, self.depth_range).div_(self.depth_range))
-        features = self.cnn(channels[0] if len(channels) == 1 else torch.cat(channels, dim=-3))
+        images = channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
+        features = self.cnn(images.movedim(-1, -3))  # (..., H, W, C) -> (..., C, H, W), a view
         if "observation" in entries:
             features = torch.cat([features, entries["observation"]], dim=-1)
         return features

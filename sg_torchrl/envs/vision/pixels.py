@@ -3,12 +3,16 @@
 A navigation env built with ``obs_mode`` other than ``"vector"`` (every ``...Vision-v0`` id is)
 emits, besides or instead of the flat ``observation`` vector:
 
-* ``"pixels"``: ``(*B, 3, H, W)`` ``uint8`` RGB, already channels first, as ConvNets take it (for
-  floats in ``[0, 1]`` use ``ToTensorImage(in_keys=["pixels"], shape_tolerant=True)``, which then
-  only scales, or divide by 255);
-* ``"depth"`` (RGB-D modes): ``(*B, 1, H, W)`` ``float32`` metres along the camera's optical axis
+* ``"pixels"``: ``(*B, H, W, 3)`` ``uint8`` RGB, channels last: TorchRL's convention for raw
+  pixels (its gym and DMControl wrappers emit the same), so stock transforms apply unchanged:
+  ``ToTensorImage(in_keys=["pixels"])`` gives ``(*B, 3, H, W)`` floats in ``[0, 1]``, as ConvNets
+  take them (sg_torchrl's own CNN encoders, :mod:`sg_torchrl.train.models`, read the uint8 images
+  and do that inside the network, so batches stay compact);
+* ``"depth"`` (RGB-D modes): ``(*B, H, W, 1)`` ``float32`` metres along the camera's optical axis
   (planar depth, as OpenGL's depth buffer measures it), in ``[near, far]`` of the model's clipping
-  planes; pixels that see nothing read ``far``.
+  planes; pixels that see nothing read ``far``. Channels last like ``pixels``: the same
+  ``ToTensorImage(in_keys=["pixels", "depth"])`` turns both channels first, and leaves the float
+  depth in metres (it scales only integer images).
 
 ``obs_mode`` is one of :data:`OBS_MODES`: ``"vector"`` (the flat vector only, the default of the
 plain ids), ``"rgb"``, ``"rgbd"`` (pixels only: the default of the Vision ids is ``"rgb"``),
@@ -31,8 +35,9 @@ Differences from Safety-Gymnasium's Vision envs, whose ``vision`` image goes thr
 theirs shows the lidar indicator spheres above the agent, these show only the world (the markers
 are a debugging aid, not part of what a camera on the robot would see); theirs has the skybox and
 shadows, here the sky is black and nothing casts shadows (the fast flags); theirs is ``(256, 256,
-3)`` channels last next to the vector keys, here the size is ``image_size`` and the layout
-TorchRL's (the gymnasium façade gives the channels-last ``"vision"`` key back).
+3)`` under the key ``"vision"`` next to the vector keys, here the size is ``image_size`` and the
+key TorchRL's ``"pixels"``, in the same channels-last layout (the gymnasium façade gives the
+``"vision"`` key back).
 """
 
 from __future__ import annotations
@@ -94,7 +99,7 @@ class PixelObserver:
 
     Attributes:
         rgb: ``(N, H, W, 3)`` uint8, the last frame rendered of each simulator (channels last:
-            what OpenGL reads; :meth:`observation` turns it channels first).
+            what OpenGL reads and what :meth:`observation` emits).
         depth: ``(N, H, W)`` float32 metres, or ``None``.
         near, far: the depth range (the model's clipping planes), metres.
     """
@@ -132,10 +137,10 @@ class PixelObserver:
         """The observation-spec entries: ``pixels`` and, with depth, ``depth`` (shapes include ``N``)."""
         size = self.image_size
         specs: dict[str, TensorSpec] = {
-            "pixels": Bounded(low=0, high=255, shape=(num_envs, 3, size, size), dtype=torch.uint8, device=device)
+            "pixels": Bounded(low=0, high=255, shape=(num_envs, size, size, 3), dtype=torch.uint8, device=device)
         }
         if self.depth is not None:
-            specs["depth"] = Bounded(low=self.near, high=self.far, shape=(num_envs, 1, size, size),
+            specs["depth"] = Bounded(low=self.near, high=self.far, shape=(num_envs, size, size, 1),
                                      dtype=torch.float32, device=device)
         return specs
 
@@ -153,10 +158,10 @@ class PixelObserver:
                                  geom_alpha=None if alpha is None else alpha(index))
 
     def observation(self) -> dict[str, torch.Tensor]:
-        """Fresh tensors of the current frames: ``pixels`` ``(N, 3, H, W)`` and ``depth`` ``(N, 1, H, W)``."""
-        entries = {"pixels": torch.from_numpy(self.rgb).permute(0, 3, 1, 2).contiguous()}  # contiguous() copies
+        """Fresh tensors of the current frames: ``pixels`` ``(N, H, W, 3)`` and ``depth`` ``(N, H, W, 1)``."""
+        entries = {"pixels": torch.from_numpy(self.rgb).clone()}  # the buffers are redrawn: emit copies
         if self.depth is not None:
-            entries["depth"] = torch.from_numpy(self.depth).unsqueeze(1).clone()
+            entries["depth"] = torch.from_numpy(self.depth).unsqueeze(-1).clone()
         return entries
 
     def close(self) -> None:
