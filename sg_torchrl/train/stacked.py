@@ -1,0 +1,451 @@
+"""Seed-stacked networks: S independent copies of SafePO's actor and critics, run as one.
+
+A *seed group* trains S independent runs in one process (DESIGN.md, "Many seeds in one process").
+SafePO's networks (:mod:`sg_torchrl.train.models`: tanh MLPs of [64, 64], a Gaussian actor with a
+state-independent log-std, separate reward and cost critics) are so small that a gradient step is
+per-operator overhead; stacking the S copies of each weight along a leading seed dimension turns S
+steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one.
+
+Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
+``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
+:func:`~sg_torchrl.train.models.make_actor_critics` builds after ``torch.manual_seed(seed)``, so a
+seed starts from the same initialisation as in the single-seed trainer, and
+:meth:`StackedActorCritic.export_seed` / :meth:`StackedActorCritic.copy_seed_to` give a seed back as
+those modules (checkpoints, evaluation, equivalence tests).
+
+**Flat parameter groups.** The parameters of the actor (mean MLP and log-std) live as views in one
+seed-major buffer :attr:`StackedActorCritic.flat_actor` of shape ``(S, P_actor)``, those of both
+critics in :attr:`StackedActorCritic.flat_critics` ``(S, P_critics)``, and each buffer's ``.grad``
+is a second buffer that the parameters' ``.grad`` views alias. Backward accumulates straight into
+the flat gradients, so the per-seed gradient clip and the masked Adam of
+:mod:`sg_torchrl.train.fused` act on two tensors instead of nineteen, and a seed is a row. The
+parameters' strides therefore have a gap between seeds; build the module on its device and dtype
+(``.to()`` works, and rebuilds the buffers, which an optimiser over the old ones no longer sees).
+
+Only flat-vector observations are supported (images need stacked convolutions: not built yet).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+
+import torch
+from tensordict.nn import AddStateIndependentNormalScale
+from torch import Tensor, nn
+from torchrl.data import TensorSpec
+from torchrl.modules import MLP
+
+__all__ = ["StackedActorCritic", "StackedMLP", "gaussian_log_prob", "quiet_layout_warning"]
+
+_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def gaussian_log_prob(action: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
+    """Log-density of a diagonal Gaussian, summed over the last (action) dimension.
+
+    The same expression as ``torch.distributions.Normal.log_prob`` summed by ``Independent`` (the
+    trainer's ``IndependentNormal``), so values agree with the single-seed loss to the last bit
+    where the inputs do; ``scale`` may broadcast (e.g. ``(S, 1, A)`` against ``(S, B, A)``).
+    """
+    var = scale**2
+    return (-((action - loc) ** 2) / (2 * var) - scale.log() - _LOG_SQRT_2PI).sum(-1)
+
+
+def _linear_layers(mlp: nn.Module) -> list[nn.Linear]:
+    """The ``Linear`` layers of a tanh MLP (``Linear``, ``Tanh``, ..., ``Linear``), checked."""
+    children = list(mlp.children()) if isinstance(mlp, nn.Sequential) else []
+    shapes_ok = len(children) % 2 == 1 and all(
+        isinstance(child, nn.Linear if i % 2 == 0 else nn.Tanh) for i, child in enumerate(children)
+    )
+    if not shapes_ok or not all(child.bias is not None for child in children[::2]):
+        raise TypeError(f"expected a tanh MLP (Linear, Tanh, ..., Linear, with biases), got {mlp}")
+    return children[::2]
+
+
+class StackedMLP(nn.Module):
+    """S independent tanh MLPs whose layers are stacked along a leading seed dimension.
+
+    Layer ``i`` is ``weights[i]`` of shape ``(S, in_i, out_i)`` (the transpose of ``nn.Linear``'s
+    ``(out, in)``, so the forward pass is ``baddbmm(bias, x, weight)`` without a transpose) and
+    ``biases[i]`` of shape ``(S, 1, out_i)``; tanh between layers, none after the last, as
+    torchrl's ``MLP(activation_class=nn.Tanh)``. Build it with :meth:`from_modules`; the
+    constructor leaves zeros.
+
+    Args:
+        num_seeds: S.
+        in_features, out_features: input and output sizes.
+        hidden_sizes: widths of the hidden layers.
+        device, dtype: where the parameters live.
+    """
+
+    def __init__(
+        self,
+        num_seeds: int,
+        in_features: int,
+        out_features: int,
+        hidden_sizes: Sequence[int],
+        *,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if num_seeds < 1:
+            raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
+        sizes = [int(in_features), *map(int, hidden_sizes), int(out_features)]
+        options = dict(device=device, dtype=dtype)
+        self.weights = nn.ParameterList(
+            [nn.Parameter(torch.zeros(num_seeds, a, b, **options)) for a, b in zip(sizes[:-1], sizes[1:])]
+        )
+        self.biases = nn.ParameterList([nn.Parameter(torch.zeros(num_seeds, 1, b, **options)) for b in sizes[1:]])
+        self.num_seeds = int(num_seeds)
+        self.sizes = tuple(sizes)
+
+    @property
+    def hidden_sizes(self) -> tuple[int, ...]:
+        return self.sizes[1:-1]
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``x`` of shape ``(S, B, in)`` to ``(S, B, out)``; seed ``s`` only sees its own weights."""
+        last = len(self.weights) - 1
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(bias, x, weight)
+            if i < last:
+                x = torch.tanh(x)
+        return x
+
+    @classmethod
+    def from_modules(
+        cls, modules: Sequence[nn.Module], *, device: torch.device | str | None = None
+    ) -> StackedMLP:
+        """Stack S tanh MLPs of one shape (e.g. torchrl ``MLP``\\ s), copying each one's weights."""
+        if not modules:
+            raise ValueError("from_modules needs at least one module")
+        layers = [_linear_layers(module) for module in modules]
+        shapes = {tuple((lin.in_features, lin.out_features) for lin in seed) for seed in layers}
+        if len(shapes) != 1:
+            raise ValueError(f"the modules differ in shape: {sorted(shapes)}")
+        first = layers[0]
+        sizes = [first[0].in_features, *(lin.out_features for lin in first)]
+        weight = first[0].weight
+        stacked = cls(len(modules), sizes[0], sizes[-1], sizes[1:-1], device=device or weight.device,
+                      dtype=weight.dtype)
+        for seed, module in enumerate(modules):
+            stacked.load_seed(seed, module)
+        return stacked
+
+    @torch.no_grad()
+    def load_seed(self, seed: int, module: nn.Module) -> None:
+        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
+        layers = _linear_layers(module)
+        if len(layers) != len(self.weights):
+            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
+        for linear, weight, bias in zip(layers, self.weights, self.biases):
+            weight[seed].copy_(linear.weight.detach().T)
+            bias[seed, 0].copy_(linear.bias.detach())
+
+    @torch.no_grad()
+    def copy_seed_to(self, seed: int, module: nn.Module) -> nn.Module:
+        """Write seed ``seed``'s weights into a single tanh MLP of this shape; returns it."""
+        layers = _linear_layers(module)
+        if len(layers) != len(self.weights):
+            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
+        for linear, weight, bias in zip(layers, self.weights, self.biases):
+            linear.weight.copy_(weight[seed].T)
+            linear.bias.copy_(bias[seed, 0])
+        return module
+
+    def export(self, seed: int) -> MLP:
+        """Seed ``seed`` as a fresh torchrl ``MLP`` (what ``make_network`` builds), with its weights."""
+        weight = self.weights[0]
+        mlp = MLP(in_features=self.sizes[0], out_features=self.sizes[-1], num_cells=list(self.hidden_sizes),
+                  activation_class=nn.Tanh, device=weight.device)
+        return self.copy_seed_to(seed, mlp.to(weight.dtype))
+
+    def seed_state_dict(self, seed: int) -> dict[str, Tensor]:
+        """Seed ``seed``'s weights under the keys of a single torchrl ``MLP``'s ``state_dict``."""
+        return self.export(seed).state_dict()
+
+
+def _find(module: nn.Module, kind: type) -> nn.Module:
+    found = [m for m in module.modules() if isinstance(m, kind)]
+    if len(found) != 1:
+        raise TypeError(f"expected exactly one {kind.__name__} in {type(module).__name__}, found {len(found)} "
+                        f"(stacked networks support flat-vector observations only)")
+    return found[0]
+
+
+def _actor_parts(actor: nn.Module) -> tuple[nn.Module, AddStateIndependentNormalScale]:
+    """The mean MLP and the log-std module of an actor built by ``make_actor``."""
+    scale = _find(actor, AddStateIndependentNormalScale)
+    if scale.scale_mapping != "exp":
+        raise ValueError(f"stacked actors use scale = exp(log_std); this actor maps with {scale.scale_mapping!r}")
+    return _find(actor, MLP), scale
+
+
+@contextmanager
+def quiet_layout_warning() -> Iterator[None]:
+    """Silence autograd's one-time note that a parameter's gradient does not follow its layout.
+
+    The flat buffers give every parameter a gap between seeds, and autograd's "gradient layout
+    contract" then asks for contiguous gradients; accumulating into the strided views is correct
+    (only a possible slow-down is warned about, which the flat optimiser step more than repays).
+    The warning fires once per process; wrap the first backward pass in this.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="grad and param do not obey the gradient layout contract")
+        yield
+
+
+class StackedActorCritic(nn.Module):
+    """S seeds' Gaussian actors and reward and cost critics, stacked and flattened into two groups.
+
+    The actor is ``actor_mean`` (a :class:`StackedMLP`) plus ``log_std`` of shape ``(S, A)``, with
+    ``scale = exp(log_std).clamp_min(scale_lb)`` as torchrl's ``AddStateIndependentNormalScale``
+    computes it; ``critic`` and ``cost_critic`` are :class:`StackedMLP`\\ s with one output. Inputs
+    are seed-major: ``obs`` of shape ``(S, B, obs_dim)``.
+
+    Args:
+        num_seeds: S.
+        obs_dim, action_dim: sizes of the flat observation and of the action.
+        hidden_sizes: hidden widths of all three networks.
+        scale_lb: lower bound of the action standard deviation (torchrl's default ``1e-4``).
+        device, dtype: where the parameters live.
+
+    Attributes:
+        flat_actor: ``(S, P_actor)`` buffer holding every actor parameter (its ``.grad`` holds their
+            gradients).
+        flat_critics: ``(S, P_critics)`` buffer of both critics (reward critic first).
+    """
+
+    def __init__(
+        self,
+        num_seeds: int,
+        obs_dim: int,
+        action_dim: int,
+        hidden_sizes: Sequence[int],
+        *,
+        scale_lb: float = 1e-4,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        options = dict(device=device, dtype=dtype)
+        self.actor_mean = StackedMLP(num_seeds, obs_dim, action_dim, hidden_sizes, **options)
+        self.log_std = nn.Parameter(torch.zeros(num_seeds, action_dim, **options))
+        self.critic = StackedMLP(num_seeds, obs_dim, 1, hidden_sizes, **options)
+        self.cost_critic = StackedMLP(num_seeds, obs_dim, 1, hidden_sizes, **options)
+        self.scale_lb = float(scale_lb)
+        self._flatten()
+
+    # ------------------------------------------------------------------ shape
+    @property
+    def num_seeds(self) -> int:
+        return self.actor_mean.num_seeds
+
+    @property
+    def obs_dim(self) -> int:
+        return self.actor_mean.sizes[0]
+
+    @property
+    def action_dim(self) -> int:
+        return self.actor_mean.sizes[-1]
+
+    @property
+    def hidden_sizes(self) -> tuple[int, ...]:
+        return self.actor_mean.hidden_sizes
+
+    # ------------------------------------------------------------------ flat groups
+    def actor_parameters(self) -> list[nn.Parameter]:
+        """The actor's parameters in flat-buffer order: mean MLP layer by layer, then ``log_std``."""
+        return [*_mlp_params(self.actor_mean), self.log_std]
+
+    def critic_parameters(self) -> list[nn.Parameter]:
+        """Both critics' parameters in flat-buffer order (reward critic first)."""
+        return [*_mlp_params(self.critic), *_mlp_params(self.cost_critic)]
+
+    @property
+    def flat_groups(self) -> tuple[Tensor, Tensor]:
+        """``(flat_actor, flat_critics)``: the optimiser's two tensors."""
+        return self.flat_actor, self.flat_critics
+
+    @property
+    def reward_critic_width(self) -> int:
+        """Columns of :attr:`flat_critics` that hold the reward critic (the cost critic's follow)."""
+        return sum(p[0].numel() for p in _mlp_params(self.critic))
+
+    def _flatten(self) -> None:
+        """Move every parameter into its group's flat buffer (as a view) and alias the gradients."""
+        self.flat_actor = self._flatten_group(
+            [(self.actor_mean, name) for name in _mlp_names(self.actor_mean)] + [(self, "log_std")]
+        )
+        self.flat_critics = self._flatten_group(
+            [(net, name) for net in (self.critic, self.cost_critic) for name in _mlp_names(net)]
+        )
+
+    @staticmethod
+    def _flatten_group(slots: list[tuple[nn.Module, str]]) -> Tensor:
+        params = [_get(module, name) for module, name in slots]
+        first = params[0]
+        seeds = first.shape[0]
+        widths = [p[0].numel() for p in params]
+        flat = torch.empty(seeds, sum(widths), device=first.device, dtype=first.dtype)
+        flat.grad = torch.zeros_like(flat)
+        offset = 0
+        for (module, name), param, width in zip(slots, params, widths):
+            view = flat[:, offset : offset + width].view(param.shape)
+            view.copy_(param.detach())
+            new = nn.Parameter(view, requires_grad=param.requires_grad)
+            new.grad = flat.grad[:, offset : offset + width].view(param.shape)
+            _set(module, name, new)
+            offset += width
+        return flat
+
+    def _apply(self, fn, recurse: bool = True):
+        # .to() / .double() convert each parameter on its own, which would cut them from the flat
+        # buffers: convert, then rebuild the buffers around the converted values.
+        super()._apply(fn, recurse)
+        self._flatten()
+        return self
+
+    def zero_grad_(self) -> None:
+        """Zero both flat gradient buffers (two ops; the parameters' ``.grad`` views follow)."""
+        self.flat_actor.grad.zero_()
+        self.flat_critics.grad.zero_()
+
+    @torch.no_grad()
+    def critic_squared_norms(self) -> tuple[Tensor, Tensor]:
+        """Per seed, the sum of squares of the reward critic's and of the cost critic's parameters, ``(S,)`` each."""
+        width = self.reward_critic_width
+        flat = self.flat_critics
+        return flat[:, :width].pow(2).sum(1), flat[:, width:].pow(2).sum(1)
+
+    # ------------------------------------------------------------------ networks
+    def scale(self) -> Tensor:
+        """The action standard deviation, ``(S, 1, A)`` (broadcasts over the batch)."""
+        return self.log_std.exp().clamp_min(self.scale_lb).unsqueeze(1)
+
+    def dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """``(loc, scale)`` of each seed's policy: ``loc`` ``(S, B, A)``, ``scale`` ``(S, 1, A)``."""
+        return self.actor_mean(obs), self.scale()
+
+    def log_prob(self, obs: Tensor, action: Tensor) -> Tensor:
+        """Log-probability of ``action`` ``(S, B, A)`` under each seed's policy, ``(S, B)``."""
+        loc, scale = self.dist_params(obs)
+        return gaussian_log_prob(action, loc, scale)
+
+    def values(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """Reward and cost values of ``obs``, ``(S, B)`` each."""
+        return self.critic(obs).squeeze(-1), self.cost_critic(obs).squeeze(-1)
+
+    @torch.no_grad()
+    def sample(
+        self, obs: Tensor, generators: Sequence[torch.Generator], *, deterministic: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Actions for ``obs`` ``(S, B, obs_dim)``, seed ``s``'s noise drawn from ``generators[s]``.
+
+        Each seed draws ``randn(B, A)`` from its own generator, so its random stream (and, for the
+        same weights and observations, its actions) is the same whatever the group size.
+
+        Returns:
+            ``(action, log_prob, loc, scale)``: ``(S, B, A)``, ``(S, B)``, ``(S, B, A)``,
+            ``(S, B, A)`` (``scale`` expanded, as the collector stores it). ``deterministic``
+            returns the mean and draws nothing.
+        """
+        if len(generators) != self.num_seeds:
+            raise ValueError(f"expected {self.num_seeds} generators (one per seed), got {len(generators)}")
+        loc, scale = self.dist_params(obs)
+        scale = scale.expand_as(loc)
+        if deterministic:
+            action = loc
+        else:
+            batch, dim = loc.shape[1:]
+            noise = torch.stack([torch.randn(batch, dim, generator=g, device=loc.device, dtype=loc.dtype)
+                                 for g in generators])
+            action = loc + scale * noise
+        return action, gaussian_log_prob(action, loc, scale), loc, scale
+
+    # ------------------------------------------------------------------ single-seed modules
+    @classmethod
+    def from_single(
+        cls, networks: Sequence[tuple[nn.Module, nn.Module, nn.Module]], *, device: torch.device | str | None = None
+    ) -> StackedActorCritic:
+        """Stack the ``(actor, critic, cost_critic)`` of S single-seed runs (``make_actor_critics``'s output).
+
+        Seed ``s`` of the result holds copies of ``networks[s]``'s weights, so building each triple
+        after ``torch.manual_seed(seed_s)`` gives every seed its single-seed initialisation.
+        """
+        if not networks:
+            raise ValueError("from_single needs at least one (actor, critic, cost_critic)")
+        mean0, scale0 = _actor_parts(networks[0][0])
+        layers = _linear_layers(mean0)
+        weight = layers[0].weight
+        hidden = [lin.out_features for lin in layers[:-1]]
+        stacked = cls(len(networks), layers[0].in_features, layers[-1].out_features, hidden,
+                      scale_lb=float(scale0.scale_lb), device=device or weight.device, dtype=weight.dtype)
+        for seed, triple in enumerate(networks):
+            stacked.load_seed(seed, *triple)
+        return stacked
+
+    @torch.no_grad()
+    def load_seed(self, seed: int, actor: nn.Module, critic: nn.Module, cost_critic: nn.Module) -> None:
+        """Copy single-seed modules (as ``make_actor_critics`` builds them) into seed ``seed``."""
+        mean, scale = _actor_parts(actor)
+        if float(scale.scale_lb) != self.scale_lb:
+            raise ValueError(f"scale lower bound {scale.scale_lb} differs from the group's {self.scale_lb}")
+        self.actor_mean.load_seed(seed, mean)
+        self.log_std[seed].copy_(scale.state_independent_scale.detach())
+        self.critic.load_seed(seed, _find(critic, MLP))
+        self.cost_critic.load_seed(seed, _find(cost_critic, MLP))
+
+    @torch.no_grad()
+    def copy_seed_to(self, seed: int, actor: nn.Module, critic: nn.Module, cost_critic: nn.Module) -> None:
+        """Write seed ``seed``'s weights into single-seed modules (e.g. for evaluation or a checkpoint)."""
+        mean, scale = _actor_parts(actor)
+        self.actor_mean.copy_seed_to(seed, mean)
+        scale.state_independent_scale.copy_(self.log_std[seed])
+        self.critic.copy_seed_to(seed, _find(critic, MLP))
+        self.cost_critic.copy_seed_to(seed, _find(cost_critic, MLP))
+
+    def export_seed(self, seed: int, action_spec: TensorSpec) -> tuple[nn.Module, nn.Module, nn.Module]:
+        """Seed ``seed`` as fresh single-seed ``(actor, critic, cost_critic)`` from ``make_actor_critics``.
+
+        The modules are built without touching the global RNG state (their random initialisation is
+        overwritten at once).
+        """
+        from sg_torchrl.train.models import make_actor_critics
+
+        with torch.random.fork_rng(devices=[]):
+            triple = make_actor_critics(self.obs_dim, action_spec, list(self.hidden_sizes))
+        weight = self.flat_actor
+        triple = tuple(module.to(weight.device).to(weight.dtype) for module in triple)
+        self.copy_seed_to(seed, *triple)
+        return triple
+
+
+def _mlp_names(mlp: StackedMLP) -> list[str]:
+    names = []
+    for i in range(len(mlp.weights)):
+        names += [f"weights.{i}", f"biases.{i}"]
+    return names
+
+
+def _mlp_params(mlp: StackedMLP) -> list[nn.Parameter]:
+    return [_get(mlp, name) for name in _mlp_names(mlp)]
+
+
+def _get(module: nn.Module, name: str) -> nn.Parameter:
+    return module.get_parameter(name)
+
+
+def _set(module: nn.Module, name: str, param: nn.Parameter) -> None:
+    *path, leaf = name.split(".")
+    owner = module
+    for part in path:
+        owner = getattr(owner, part)
+    if isinstance(owner, nn.ParameterList):
+        owner[int(leaf)] = param
+    else:
+        setattr(owner, leaf, param)
