@@ -20,6 +20,7 @@ TINY = ["--env-id", "SafetyHalfCheetahVelocity-v1", "--total-steps", "4000", "--
         ("first_order.py", ["--algo", "focops", "--update-iters", "2"]),
         ("first_order.py", ["--algo", "ppo_lag", "--update-iters", "2", "--compile"]),
         ("second_order.py", ["--algo", "cpo", "--critic-iters", "2"]),
+        ("torchrl_ppo_lag.py", ["--update-iters", "2"]),  # TorchRL's PPO recipe with PPOLagLoss
     ],
 )
 def test_recipe_runs(script, args):
