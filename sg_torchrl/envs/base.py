@@ -50,6 +50,18 @@ CostMode = Literal["indicator", "raw"]
 _FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
 
 
+def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> None:
+    """Raise ``TypeError`` for a complex-valued action, naming its dtype.
+
+    Casting it to the float64 control would keep the real part and drop the imaginary one with only a
+    numpy ``ComplexWarning``: a policy bug that should stop the step, not steer the robot.
+    """
+    complex_valued = action.is_complex() if isinstance(action, torch.Tensor) else np.iscomplexobj(action)
+    if complex_valued:
+        raise TypeError(f"{type(env).__name__}: action has complex dtype {action.dtype}; actions must be real "
+                        f"(a floating-point tensor)")
+
+
 class SafeEnv(EnvBase, abc.ABC):
     """Batched constrained-MDP environment emitting ``reward`` and ``cost``.
 
@@ -334,6 +346,7 @@ class SafeEnv(EnvBase, abc.ABC):
                 f"{type(self).__name__}: action has shape {tuple(action.shape)}, expected {expected} "
                 f"(num_envs={self.num_envs}, action_dim={self.action_dim})"
             )
+        reject_complex_action(self, action)
         array = action.detach().cpu().numpy().astype(np.float64)
         if not np.isfinite(array).all():
             bad = np.flatnonzero(~np.isfinite(array).all(axis=1)).tolist()

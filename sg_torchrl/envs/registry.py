@@ -3,21 +3,44 @@
 Ids are Safety-Gymnasium's, unchanged, so results and configs carry over. The table is
 explicit (no class names derived from id strings), which lets the registry-wide tests iterate
 it and lets an unknown id get a helpful error listing the closest valid ids.
+
+This module imports neither torch nor MuJoCo: the table is declared from plain data (robots, tasks,
+levels, episode lengths; ``tests/test_validation.py`` checks it against the env modules), constructors
+are named as ``"module:Class"`` and imported by the first :func:`make` that needs them, and option types
+come from :mod:`sg_torchrl.envs.options`. So ``sg-train`` can check an env id and its options (and
+refuse a typo with the closest ids) in about a second, before loading the simulation stack.
 """
 
 from __future__ import annotations
 
 import difflib
-import inspect
+import importlib
+import numbers
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+from sg_torchrl.envs.options import (
+    CONSTRUCTOR_OPTIONS,
+    EnvOptionTypeError,
+    InvalidEnvOptionError,
+    Option,
+    UnknownEnvOptionError,
+    check_options,
+    command_line_options,
+    signature_options,
+)
 
-from sg_torchrl.envs.base import SafeEnv
+if TYPE_CHECKING:
+    import torch
 
-__all__ = ["EnvEntry", "env_options", "MULTI_AGENT_FAMILIES", "VISION_FAMILY", "UnknownEnvError", "make", "list_envs", "register", "registry_entry"]
+    from sg_torchrl.envs.base import SafeEnv
+
+__all__ = [
+    "EnvEntry", "EnvOptionTypeError", "InvalidEnvOptionError", "MULTI_AGENT_FAMILIES", "UnknownEnvError",
+    "UnknownEnvOptionError", "VISION_FAMILY", "command_line_env_options", "env_option_types", "env_options",
+    "list_envs", "make", "register", "registry_entry", "validate_env_options",
+]
 
 #: The family of the ``...Vision-v0`` ids: navigation tasks observed through the robot's camera.
 VISION_FAMILY = "vision"
@@ -29,11 +52,44 @@ MULTI_AGENT_FAMILIES = frozenset({"multi_agent_velocity", "multi_agent_navigatio
 MULTI_AGENT_NAVIGATION_ROBOTS = ("Point", "Ant")
 
 
-class UnknownEnvError(KeyError):
-    """Raised by :func:`make` for an id that is not registered."""
+class UnknownEnvError(KeyError, ValueError):
+    """Raised by :func:`make` (and ``sg-train``'s config check) for an id that is not registered.
+
+    A ``KeyError`` (a missing key of the table) for code that catches that, and a ``ValueError`` (a bad
+    value of ``env_id``) so that configuration checks report it like every other bad value.
+    """
 
     def __str__(self) -> str:  # KeyError would quote the whole message
         return str(self.args[0])
+
+
+class _Importable:
+    """Descriptor of :attr:`EnvEntry.constructor`: holds a callable, or ``"module:Name"`` imported on first read.
+
+    The registry names its constructors by path so that listing ids and checking options never imports
+    the simulation stack; reading ``entry.constructor`` gives the class itself.
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.slot = f"_{name}"
+
+    def __get__(self, entry: Any, owner: type | None = None) -> Callable[..., Any]:
+        if entry is None:  # a dataclass asking for the field's default: there is none
+            raise AttributeError(self.slot)
+        target = entry.__dict__[self.slot]
+        if isinstance(target, str):
+            module, _, name = target.partition(":")
+            target = getattr(importlib.import_module(module), name)
+            entry.__dict__[self.slot] = target
+        return target
+
+    def __set__(self, entry: Any, value: Callable[..., Any] | str) -> None:
+        entry.__dict__[self.slot] = value
+
+    def path(self, entry: Any) -> str:
+        """``"module:Name"`` of the entry's constructor, without importing it."""
+        target = entry.__dict__[self.slot]
+        return target if isinstance(target, str) else f"{target.__module__}:{target.__qualname__}"
 
 
 @dataclass(frozen=True)
@@ -42,7 +98,8 @@ class EnvEntry:
 
     Args:
         env_id: Safety-Gymnasium id, e.g. ``"SafetyHalfCheetahVelocity-v1"``.
-        constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options.
+        constructor: builds the env; receives ``num_envs``, ``device``, ``seed`` and options. A callable,
+            or its path ``"module:Name"`` (imported when first read).
         family: ``"velocity"``, ``"navigation"``, ``"vision"`` (navigation seen through the robot's
             camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``, ``"dexhands"`` (two
             Shadow Hands, :mod:`sg_torchrl.dexhands`), ``"multi_agent_dexhands"`` (the same, one agent per hand).
@@ -55,7 +112,7 @@ class EnvEntry:
     """
 
     env_id: str
-    constructor: Callable[..., SafeEnv]
+    constructor: Callable[..., SafeEnv] = _Importable()
     family: str
     robot: str
     task: str
@@ -68,6 +125,11 @@ class EnvEntry:
     def multi_agent(self) -> bool:
         """The env emits TorchRL's multi-agent layout (see :data:`MULTI_AGENT_FAMILIES`)."""
         return self.family in MULTI_AGENT_FAMILIES
+
+    @property
+    def constructor_path(self) -> str:
+        """``"module:Class"`` of :attr:`constructor`, without importing it."""
+        return EnvEntry.__dict__["constructor"].path(self)
 
 
 _REGISTRY: dict[str, EnvEntry] = {}
@@ -84,8 +146,8 @@ def registry_entry(env_id: str) -> EnvEntry:
     """The :class:`EnvEntry` for ``env_id``; unknown ids raise :class:`UnknownEnvError`."""
     try:
         return _REGISTRY[env_id]
-    except KeyError:
-        close = difflib.get_close_matches(env_id, list(_REGISTRY), n=3, cutoff=0.5)
+    except (KeyError, TypeError):  # TypeError: an unhashable "id"
+        close = difflib.get_close_matches(env_id, list(_REGISTRY), n=3, cutoff=0.5) if isinstance(env_id, str) else []
         hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
         raise UnknownEnvError(
             f"unknown env id {env_id!r}.{hint} `sg_torchrl.list_envs()` lists the {len(_REGISTRY)} registered ids."
@@ -113,9 +175,15 @@ def make(
         env_id: a Safety-Gymnasium id (see :func:`list_envs`).
         num_envs: simulators stepped by the returned env (its ``batch_size`` is ``[num_envs]``).
         device: device of the emitted TensorDicts.
-        seed: seed of the per-simulator generators (``None``: fresh OS entropy).
+        seed: seed of the per-simulator generators, an int >= 0 (``None``: fresh OS entropy).
         **options: task options, e.g. ``cost_mode="raw"``, ``max_episode_steps=500``, or for the
-            navigation ids ``obs_mode="vector+rgbd"``, ``image_size=256`` (pixel observations).
+            navigation ids ``obs_mode="vector+rgbd"``, ``image_size=256`` (pixel observations); see
+            :func:`env_option_types`.
+
+    Every argument is checked before anything is built: an unknown id raises :class:`UnknownEnvError`
+    (naming the closest ids), a bad option, ``num_envs``, ``seed`` or ``device``
+    :class:`InvalidEnvOptionError` (a ``ValueError``; :class:`EnvOptionTypeError`, also a ``TypeError``,
+    for a wrong type) naming it and the id.
 
     Example:
         >>> env = make("SafetyHalfCheetahVelocity-v1", num_envs=8, seed=0)
@@ -124,49 +192,135 @@ def make(
         torch.Size([8, 10, 1])
     """
     entry = registry_entry(env_id)
-    accepted = env_options(env_id)
-    unknown = sorted(set(options) - set(accepted)) if accepted is not None else []
-    if unknown:
-        raise TypeError(
-            f"{env_id}: unknown option(s) {', '.join(map(repr, unknown))}; it takes {', '.join(accepted)}"
-        )
+    if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral):
+        raise EnvOptionTypeError(f"{env_id}: num_envs must be an integer, got {num_envs!r} ({type(num_envs).__name__})")
+    if num_envs < 1:
+        raise InvalidEnvOptionError(f"{env_id}: num_envs must be >= 1, got {num_envs}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise EnvOptionTypeError(f"{env_id}: seed must be an integer or None, got {seed!r} ({type(seed).__name__})")
+    if seed is not None and seed < 0:
+        raise InvalidEnvOptionError(f"{env_id}: seed must be >= 0 (or None), got {seed}")
+    options = validate_env_options(env_id, options)
+    _check_device(env_id, device)
     kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **entry.options, **options}
-    return entry.constructor(num_envs=num_envs, device=device, seed=seed, **kwargs)
+    return entry.constructor(num_envs=int(num_envs), device=device, seed=None if seed is None else int(seed), **kwargs)
+
+
+def _check_device(env_id: str, device: Any) -> None:
+    """Refuse a device torch cannot parse or this machine lacks (torch's own error is a bare AssertionError)."""
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as error:
+        raise InvalidEnvOptionError(f"{env_id}: device {device!r} is not a torch device ({error})") from None
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InvalidEnvOptionError(
+                f"{env_id}: device {device!r} needs CUDA, which is not available here "
+                f"(torch.cuda.is_available() is False); use device='cpu'"
+            )
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            raise InvalidEnvOptionError(
+                f"{env_id}: device {device!r} does not exist; this machine has {torch.cuda.device_count()} "
+                "CUDA device(s)"
+            )
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise InvalidEnvOptionError(f"{env_id}: device {device!r} needs Apple's MPS, which is not available here")
+
+
+def env_option_types(env_id: str) -> tuple[dict[str, Option], bool]:
+    """The options ``env_id`` takes (name -> :class:`~sg_torchrl.envs.options.Option`, in signature order)
+    and whether it also takes arbitrary keywords (a constructor with ``**kwargs``, which checks them itself).
+
+    They are the constructor's keyword parameters less ``num_envs``, ``device``, ``seed`` and the ones
+    the registry entry fixes (robot, task, level, ...). Built-in constructors are looked up in
+    :data:`~sg_torchrl.envs.options.CONSTRUCTOR_OPTIONS` (no import); others read from their signature.
+    """
+    entry = registry_entry(env_id)
+    known = CONSTRUCTOR_OPTIONS.get(entry.constructor_path)
+    if known is not None:
+        return {name: option for name, option in known.items() if name not in entry.kwargs}, False
+    return signature_options(entry.constructor, set(entry.kwargs))
 
 
 def env_options(env_id: str) -> list[str] | None:
     """The keyword options :func:`make` accepts for ``env_id`` (besides ``num_envs``, ``device``, ``seed``).
 
-    They are the constructor's keyword parameters less the ones the registry entry fixes (robot,
-    task, level, ...): e.g. ``cost_mode``, ``max_episode_steps``, ``velocity_threshold``. ``None``
-    when the constructor takes arbitrary keywords (``**kwargs``): then it checks them itself.
+    E.g. ``cost_mode``, ``max_episode_steps``, ``velocity_threshold`` (see :func:`env_option_types`).
+    ``None`` when the constructor takes arbitrary keywords (``**kwargs``): then it checks them itself.
     """
-    entry = registry_entry(env_id)
-    fixed = {"self", "num_envs", "device", "seed", *entry.kwargs}
-    # A class's own __init__: EnvBase's metaclass hides it behind ``__call__(*args, **kwargs)``.
-    constructor = entry.constructor.__init__ if isinstance(entry.constructor, type) else entry.constructor
-    parameters = inspect.signature(constructor).parameters.values()
-    if any(p.kind is p.VAR_KEYWORD for p in parameters):
-        return None
-    return [p.name for p in parameters if p.name not in fixed and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    types, open_ended = env_option_types(env_id)
+    return None if open_ended else list(types)
+
+
+def validate_env_options(env_id: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` for ``env_id`` checked against the constructor's annotations; returns the checked options.
+
+    The one check of env options, used by :func:`make` and by ``sg-train``'s config: unknown names raise
+    :class:`UnknownEnvOptionError`, wrong types :class:`EnvOptionTypeError` (a bool must be ``True`` /
+    ``False``, an int not a bool or string, ...), bad values :class:`InvalidEnvOptionError` (NaN or inf, a
+    ``Literal`` value not among the choices, a count below 1); each message names the option and ``env_id``.
+    An unknown ``env_id`` raises :class:`UnknownEnvError`.
+    """
+    types, open_ended = env_option_types(env_id)
+    return check_options(env_id, types, options, open_ended)
+
+
+def command_line_env_options(env_id: str, options: dict[str, Any]) -> dict[str, Any]:
+    """Options read from a command line (values parsed as JSON) with the words true/false/yes/no/1/0 of
+    bool-typed options turned into bools (``compass=False`` is the string ``"False"`` to JSON); other
+    values unchanged. Checking them is :func:`validate_env_options`'s job; an unknown id changes nothing."""
+    if env_id not in _REGISTRY:
+        return dict(options)
+    return command_line_options(env_option_types(env_id)[0], options)
+
+
+# ---------------------------------------------------------------------------------------------- the table
+# Plain data, so that listing ids needs no simulation code; tests/test_validation.py checks every value
+# against the env modules (velocity ROBOTS, navigation TASKS, multi-agent SCENARIOS, dexhands TASKS).
+
+_VELOCITY = "sg_torchrl.envs.velocity.env:VelocityEnv"
+_NAVIGATION = "sg_torchrl.envs.navigation.env:NavigationEnv"
+_MULTI_AGENT_VELOCITY = "sg_torchrl.envs.multi_agent.env:MultiAgentVelocityEnv"
+_MULTI_AGENT_NAVIGATION = "sg_torchrl.envs.multi_agent.navigation:MultiAgentNavigationEnv"
+_SHADOW_HAND = "sg_torchrl.dexhands.env:ShadowHandEnv"
+_MULTI_AGENT_SHADOW_HAND = "sg_torchrl.dexhands.multi_agent:MultiAgentShadowHandEnv"
+
+#: Velocity robots (gymnasium's MuJoCo assets) in ``sg_torchrl.envs.velocity.ROBOTS`` order, and the task
+#: versions each has (0: Safety-Gymnasium's v0 thresholds, 1: v1's).
+VELOCITY_ROBOTS = ("HalfCheetah", "Hopper", "Walker2d", "Swimmer", "Ant", "Humanoid")
+VELOCITY_VERSIONS = (0, 1)
+#: Navigation robots in ``sg_torchrl.envs.navigation.ROBOTS`` order.
+NAVIGATION_ROBOTS = ("Point", "Car", "Racecar", "Doggo", "Ant")
+#: Navigation tasks (``sg_torchrl.envs.navigation.TASKS`` order): number of levels (0, 1, ...) and episode length.
+NAVIGATION_TASKS = {
+    "Goal": (3, 1000), "Button": (3, 1000), "Push": (3, 1000), "Circle": (3, 500), "Run": (1, 500),
+    "FadingEasy": (3, 1000), "FadingHard": (3, 1000), "Race": (3, 500), "BuildingGoal": (3, 1000),
+    "BuildingButton": (3, 1000), "BuildingPush": (3, 1000), "FormulaOne": (3, 500),
+}
+#: Multi-agent navigation tasks (``MULTI_AGENT_TASKS``): levels and episode length.
+MULTI_AGENT_NAVIGATION_TASKS = {"MultiGoal": (3, 1000)}
+#: MaMuJoCo scenarios (``sg_torchrl.envs.multi_agent.SCENARIOS`` order): robot -> agent partitions.
+MULTI_AGENT_VELOCITY_PARTITIONS = {
+    "HalfCheetah": ("2x3", "6x1"), "Ant": ("2x4", "4x2"), "Hopper": ("3x1",), "Humanoid": ("9|8",),
+    "Swimmer": ("2x1",), "Walker2d": ("2x3",),
+}
+#: Two-hand tasks (``sg_torchrl.dexhands.TASKS``): episode length (Isaac Gym's ``episodeLength``), and the
+#: safety variants (``SAFETY_VARIANTS``).
+HAND_TASKS = {"HandOver": 75, "CatchOver2Underarm": 75}
+HAND_SAFETY_VARIANTS = ("SafeJoint", "SafeFinger")
+#: The Vision ids' image side (``sg_torchrl.envs.vision.DEFAULT_IMAGE_SIZE``).
+VISION_IMAGE_SIZE = 64
 
 
 def _register_velocity() -> None:
-    from sg_torchrl.envs.velocity import ROBOTS, VelocityEnv
-
-    for robot in ROBOTS.values():
-        for version in sorted(robot.thresholds):
-            register(
-                EnvEntry(
-                    env_id=f"Safety{robot.name}Velocity-v{version}",
-                    constructor=VelocityEnv,
-                    family="velocity",
-                    robot=robot.name,
-                    task="Velocity",
-                    max_episode_steps=1000,
-                    kwargs={"robot": robot.name, "version": version},
-                )
-            )
+    for robot in VELOCITY_ROBOTS:
+        for version in VELOCITY_VERSIONS:
+            register(EnvEntry(
+                env_id=f"Safety{robot}Velocity-v{version}", constructor=_VELOCITY, family="velocity", robot=robot,
+                task="Velocity", max_episode_steps=1000, kwargs={"robot": robot, "version": version},
+            ))
 
 
 def _register_navigation() -> None:
@@ -176,69 +330,39 @@ def _register_navigation() -> None:
     the robot's ``vision`` camera: ``obs_mode="rgb"`` at 64 x 64 by default (Safety-Gymnasium's
     Vision envs render 256 x 256 next to the vector: ``obs_mode="vector+rgb"``, ``image_size=256``).
     """
-    from sg_torchrl.envs.navigation import ROBOTS, TASKS, NavigationEnv
-    from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE
-
-    for task, levels in TASKS.items():
-        for level, factory in sorted(levels.items()):
-            steps = factory().max_episode_steps
-            for robot in ROBOTS:
+    for task, (levels, steps) in NAVIGATION_TASKS.items():
+        for level in range(levels):
+            for robot in NAVIGATION_ROBOTS:
                 for suffix, family, options in (
                     ("", "navigation", {}),
-                    ("Vision", VISION_FAMILY, {"obs_mode": "rgb", "image_size": DEFAULT_IMAGE_SIZE}),
+                    ("Vision", VISION_FAMILY, {"obs_mode": "rgb", "image_size": VISION_IMAGE_SIZE}),
                 ):
-                    register(
-                        EnvEntry(
-                            env_id=f"Safety{robot}{task}{level}{suffix}-v0",
-                            constructor=NavigationEnv,
-                            family=family,
-                            robot=robot,
-                            task=task,
-                            level=level,
-                            max_episode_steps=steps,
-                            kwargs={"robot": robot, "task": task, "level": level},
-                            options=options,
-                        )
-                    )
+                    register(EnvEntry(
+                        env_id=f"Safety{robot}{task}{level}{suffix}-v0", constructor=_NAVIGATION, family=family,
+                        robot=robot, task=task, level=level, max_episode_steps=steps,
+                        kwargs={"robot": robot, "task": task, "level": level}, options=options,
+                    ))
 
 
 def _register_multi_agent_velocity() -> None:
-    from sg_torchrl.envs.multi_agent import SCENARIOS, MultiAgentVelocityEnv
-
-    for scenario in SCENARIOS.values():
-        for conf in scenario.partitions:
-            register(
-                EnvEntry(
-                    env_id=f"Safety{conf}{scenario.robot}Velocity-v0",
-                    constructor=MultiAgentVelocityEnv,
-                    family="multi_agent_velocity",
-                    robot=scenario.robot,
-                    task="Velocity",
-                    max_episode_steps=1000,
-                    kwargs={"scenario": scenario.robot, "agent_conf": conf},
-                )
-            )
+    for robot, partitions in MULTI_AGENT_VELOCITY_PARTITIONS.items():
+        for conf in partitions:
+            register(EnvEntry(
+                env_id=f"Safety{conf}{robot}Velocity-v0", constructor=_MULTI_AGENT_VELOCITY,
+                family="multi_agent_velocity", robot=robot, task="Velocity", max_episode_steps=1000,
+                kwargs={"scenario": robot, "agent_conf": conf},
+            ))
 
 
 def _register_multi_agent_navigation() -> None:
-    from sg_torchrl.envs.multi_agent import MultiAgentNavigationEnv
-    from sg_torchrl.envs.navigation import MULTI_AGENT_TASKS
-
-    for task, levels in MULTI_AGENT_TASKS.items():
-        for level, factory in sorted(levels.items()):
+    for task, (levels, steps) in MULTI_AGENT_NAVIGATION_TASKS.items():
+        for level in range(levels):
             for robot in MULTI_AGENT_NAVIGATION_ROBOTS:
-                register(
-                    EnvEntry(
-                        env_id=f"Safety{robot}{task}{level}-v0",
-                        constructor=MultiAgentNavigationEnv,
-                        family="multi_agent_navigation",
-                        robot=robot,
-                        task=task,
-                        level=level,
-                        max_episode_steps=factory().max_episode_steps,
-                        kwargs={"robot": robot, "task": task, "level": level},
-                    )
-                )
+                register(EnvEntry(
+                    env_id=f"Safety{robot}{task}{level}-v0", constructor=_MULTI_AGENT_NAVIGATION,
+                    family="multi_agent_navigation", robot=robot, task=task, level=level, max_episode_steps=steps,
+                    kwargs={"robot": robot, "task": task, "level": level},
+                ))
 
 
 def _register_dexhands() -> None:
@@ -250,24 +374,15 @@ def _register_dexhands() -> None:
     algorithm decides); here the multi-agent form, one agent per hand, is ``MultiAgent`` + the id.
     See :mod:`sg_torchrl.dexhands`.
     """
-    from sg_torchrl.dexhands import SAFETY_VARIANTS, TASKS, MultiAgentShadowHandEnv, ShadowHandEnv
-
-    for task in TASKS.values():
-        for safety in SAFETY_VARIANTS:
-            env_id = f"ShadowHand{task.name.removeprefix('Hand')}{safety}-v0"
-            for prefix, constructor, family in (("", ShadowHandEnv, "dexhands"),
-                                                ("MultiAgent", MultiAgentShadowHandEnv, "multi_agent_dexhands")):
-                register(
-                    EnvEntry(
-                        env_id=prefix + env_id,
-                        constructor=constructor,
-                        family=family,
-                        robot="ShadowHand",
-                        task=task.name,
-                        max_episode_steps=task.max_episode_steps,
-                        kwargs={"task": task.name, "safety": safety},
-                    )
-                )
+    for task, steps in HAND_TASKS.items():
+        for safety in HAND_SAFETY_VARIANTS:
+            env_id = f"ShadowHand{task.removeprefix('Hand')}{safety}-v0"
+            for prefix, constructor, family in (("", _SHADOW_HAND, "dexhands"),
+                                                ("MultiAgent", _MULTI_AGENT_SHADOW_HAND, "multi_agent_dexhands")):
+                register(EnvEntry(
+                    env_id=prefix + env_id, constructor=constructor, family=family, robot="ShadowHand", task=task,
+                    max_episode_steps=steps, kwargs={"task": task, "safety": safety},
+                ))
 
 
 _register_velocity()

@@ -42,6 +42,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
+from sg_torchrl.envs.base import reject_complex_action
+
 __all__ = ["GROUP", "AgentGroupMixin", "JointVectorAgentsMixin", "agent_column", "root_column"]
 
 #: Name of the agents' group sub-TensorDict (TorchRL's MARL convention).
@@ -200,6 +202,7 @@ class AgentGroupMixin(abc.ABC):
     def _validated_action(self, action: torch.Tensor | None) -> np.ndarray:
         if action is None:
             raise KeyError(f"the input TensorDict has no {(GROUP, 'action')!r} entry")
+        reject_complex_action(self, action)
         return self.robot_control(action)
 
     # ------------------------------------------------------------------ TorchRL hooks
