@@ -163,6 +163,23 @@ def test_make_value_estimator_configures_both_estimators(rollout):
     torch.testing.assert_close(mine["advantage"], reference["advantage"])
 
 
+def test_other_estimator_types_and_instances(rollout):
+    (actor, critic, cost_critic), data = rollout
+    from torchrl.objectives.value import GAE, TDLambdaEstimator
+
+    loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier())
+    loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.9, lmbda=0.5)
+    assert isinstance(loss.cost_value_estimator, TDLambdaEstimator)
+    assert float(loss.cost_value_estimator.gamma) == pytest.approx(0.9)
+    assert loss.cost_value_estimator.tensor_keys.reward == "cost"
+    assert torch.isfinite(loss(data.clone())["loss_cost_critic"])
+    # an estimator instance replaces the reward one; the cost one is a GAE with its discounts
+    loss.make_value_estimator(GAE(gamma=0.8, lmbda=0.7, value_network=critic))
+    cost_estimator = loss.cost_value_estimator
+    assert isinstance(cost_estimator, GAE) and cost_estimator.tensor_keys.value == "cost_value"
+    assert (float(cost_estimator.gamma), float(cost_estimator.lmbda)) == pytest.approx((0.8, 0.7))
+
+
 def test_set_keys_reaches_the_cost_estimator(rollout):
     (actor, critic, cost_critic), data = rollout
     loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier())

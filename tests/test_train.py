@@ -94,7 +94,7 @@ class TestConfig:
 
     @pytest.mark.parametrize(
         "options, message",
-        [({"lidar": "natural"}, "'lidar' unknown to SafetyHalfCheetahVelocity-v1"), ({"seed": 3}, "use --seed")],
+        [({"lidar": "natural"}, r"HalfCheetahVelocity-v1: unknown option\(s\) 'lidar'"), ({"seed": 3}, "use --seed")],
     )
     def test_bad_env_options_are_clear_errors(self, options, message):
         with pytest.raises(ValueError, match=message):

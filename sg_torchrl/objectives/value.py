@@ -246,18 +246,18 @@ class AdvantageEstimation:
 
     @property
     def cost_value_estimator(self) -> ValueEstimatorBase:
-        """The cost critic's value estimator (built with the reward one on first use)."""
+        """The cost critic's value estimator (built with the reward one on first use).
+
+        Read-only: configure it with :meth:`make_value_estimator` (an ``nn.Module`` assigned to an
+        attribute of a module bypasses property setters, TorchRL's ``value_estimator`` included).
+        """
         if getattr(self, "_cost_value_estimator", None) is None:
             reward_estimator = self.value_estimator  # first use builds both (make_value_estimator)
-            if getattr(self, "_cost_value_estimator", None) is None:  # reward one set directly
+            if getattr(self, "_cost_value_estimator", None) is None:  # an instance was given
                 discounts = {name: float(getattr(reward_estimator, name))
                              for name in ("gamma", "lmbda") if hasattr(reward_estimator, name)}
                 self._cost_value_estimator = self.make_cost_value_estimator(**discounts)
         return self._cost_value_estimator
-
-    @cost_value_estimator.setter
-    def cost_value_estimator(self, estimator: ValueEstimatorBase) -> None:
-        self._cost_value_estimator = estimator
 
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams: Any):
         """TorchRL's ``make_value_estimator`` for the reward critic, and the same for the cost critic.

@@ -4,17 +4,46 @@ Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every opt
 single-agent algorithms run in :class:`Trainer`, the four multi-agent ones (``--algo mappo``,
 ``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`.
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
+
+Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
+parses and checks the whole command line first, so a bad flag or option fails in about a second. The
+trainers and the algorithm tables (:data:`_HEAVY`) are imported by their
+first use (PEP 562), or by :func:`_import_trainers` once ``main`` has a valid config.
 """
 
 from __future__ import annotations
 
+import importlib
 import sys
+from typing import Any
 
-from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import PRESETS, TrainConfig, parse_args
 from sg_torchrl.train.interrupt import TrainingInterrupted
-from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTrainer
-from sg_torchrl.train.trainer import EpochTrainer, Trainer
+
+#: Names exported from modules that load torch: name -> its module. The functions of this module use
+#: them as globals, which :func:`_import_trainers` binds.
+_HEAVY = {
+    "ALGORITHMS": "sg_torchrl.train.algorithms",
+    "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
+    "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
+    "EpochTrainer": "sg_torchrl.train.trainer",
+    "Trainer": "sg_torchrl.train.trainer",
+}
+
+
+def _import_trainers() -> None:
+    """Import the :data:`_HEAVY` names into this module's globals (torch, TorchRL, MuJoCo: seconds)."""
+    for name, module in _HEAVY.items():
+        if name not in globals():
+            globals()[name] = getattr(importlib.import_module(module), name)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HEAVY:
+        _import_trainers()
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "MultiAgentTrainer", "TrainConfig", "Trainer",
@@ -24,11 +53,13 @@ __all__ = [
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
     """:class:`MultiAgentTrainer` for the multi-agent algorithms, :class:`Trainer` for the rest."""
+    _import_trainers()
     return MultiAgentTrainer if cfg.multi_agent else Trainer
 
 
 def algorithm_title(algo: str) -> str:
     """Display name of an ``--algo`` value (``"mappo_lag"`` -> ``"MAPPO-Lag"``)."""
+    _import_trainers()
     table = MULTI_AGENT_ALGORITHMS if algo in MULTI_AGENT_ALGORITHMS else ALGORITHMS
     return table[algo].title
 
@@ -53,7 +84,11 @@ def _resolve_resume(cfg: TrainConfig, argv: list[str]) -> TrainConfig:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
-        cfg = _resolve_resume(parse_args(argv), argv)
+        cfg = parse_args(argv)  # the whole command line is checked here, before any heavy import
+        _import_trainers()
+        cfg = _resolve_resume(cfg, argv)
+    except SystemExit as stop:  # argparse: --help (0), or a bad flag (2) with its "sg-train: error:" line
+        return stop.code if isinstance(stop.code, int) else 2
     except (ValueError, FileNotFoundError) as error:
         print(f"sg-train: error: {error}", file=sys.stderr)
         return 2

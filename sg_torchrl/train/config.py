@@ -42,6 +42,8 @@ from pathlib import Path
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from sg_torchrl.validation import describe, fits, parse_bool
+
 __all__ = [
     "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER", "TrainConfig", "PRESETS",
     "parse_args",
@@ -191,12 +193,16 @@ class TrainConfig:
         names = ALGORITHM_NAMES + MULTI_AGENT_ALGORITHM_NAMES
         if self.algo not in names:
             raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(names)}")
+        self._validate_types()
         self._validate_env_kind()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
-                    "cg_iters", "line_search_steps")
+                    "cg_iters", "line_search_steps", "threads")
         for name in positive:
             if getattr(self, name) is not None and getattr(self, name) < 1:  # None: unused by this algorithm
                 raise ValueError(f"config: {name} must be >= 1, got {getattr(self, name)}")
+        for name in ("seed", "eval_episodes"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"config: {name} must be >= 0, got {getattr(self, name)}")
         if not self.second_order and not self.actor_lr > 0:
             raise ValueError(f"config: actor_lr must be > 0, got {self.actor_lr}")
         if not 0.0 < self.step_fraction < 1.0:
@@ -217,6 +223,13 @@ class TrainConfig:
             raise ValueError(
                 f"config: total_steps ({self.total_steps}) is less than one epoch ({self.steps_per_epoch})"
             )
+        if self.total_steps % self.steps_per_epoch:  # training runs whole epochs: the rest would be dropped
+            lower = self.total_steps - self.total_steps % self.steps_per_epoch
+            raise ValueError(
+                f"config: total_steps ({self.total_steps}) is not a multiple of steps_per_epoch "
+                f"({self.steps_per_epoch}); training runs whole epochs and would stop at {lower}: give total_steps "
+                f"{lower} or {lower + self.steps_per_epoch}"
+            )
         if self.cg_damping < 0 or (self.multiplier_upper_bound is not None and self.multiplier_upper_bound < 0):
             raise ValueError("config: cg_damping and multiplier_upper_bound must be >= 0")
         if self.hidden_sizes and min(self.hidden_sizes) < 1:
@@ -229,9 +242,22 @@ class TrainConfig:
         self._validate_env_options()
         self._validate_observation_mode()
 
+    def _validate_types(self) -> None:
+        """Every field holds a value of its annotated type, strictly (:mod:`sg_torchrl.validation`): a bool
+        field ``True`` / ``False`` (not the truthy string ``"no"``), an int field an integer (not a bool), a
+        float field a finite number (a NaN limit or rate compares false with everything and silently
+        disables what it bounds). String fields take any value: paths may be ``pathlib.Path``."""
+        hints = get_type_hints(TrainConfig)
+        for f in dataclasses.fields(self):
+            hint, value = hints[f.name], getattr(self, f.name)
+            if hint not in (str, str | None) and not fits(hint, value):
+                raise ValueError(f"config: {f.name} must be {describe(hint)}, got {value!r}")
+
     def _validate_env_options(self) -> None:
-        """``env_options`` must be options the env id takes (``sg_torchrl.envs.registry.env_options``)."""
-        from sg_torchrl.envs.registry import env_options
+        """``env_options`` must be options the env id takes, of the types its constructor annotates: the
+        check ``sg_torchrl.make`` runs (``sg_torchrl.envs.registry.validate_env_options``), run here so
+        that a bad option fails before anything is built."""
+        from sg_torchrl.envs.registry import validate_env_options
 
         reserved = sorted(set(self.env_options) & {"num_envs", "device", "seed"})
         if reserved:
@@ -239,33 +265,22 @@ class TrainConfig:
                 f"config: env_options cannot set {', '.join(reserved)}; use --{reserved[0].replace('_', '-')}"
             )
         try:
-            accepted = env_options(self.env_id)
-        except KeyError:
-            return  # an unknown id fails with its own message (the closest ids) when the env is built
-        unknown = sorted(set(self.env_options) - set(accepted)) if accepted is not None else []
-        if unknown:
-            raise ValueError(
-                f"config: env_options {', '.join(map(repr, unknown))} unknown to {self.env_id}; it takes "
-                f"{', '.join(accepted)}"
-            )
+            validate_env_options(self.env_id, self.env_options)
+        except ValueError as error:  # InvalidEnvOptionError, naming the option and the env id
+            raise ValueError(f"config: env_options: {error}") from None
 
     def _validate_observation_mode(self) -> None:
         """Pixel observations (a Vision id, or ``obs_mode`` with ``rgb`` / ``rgbd``) train through CNN
         encoders (:mod:`sg_torchrl.train.models`), whose convolutions need images of at least
         ``DEFAULT_CNN.min_image_size`` (36) pixels a side; say so here rather than deep in the first
-        forward pass. Bad ``obs_mode`` / ``image_size`` values are left to the env's own messages."""
+        forward pass. ``obs_mode`` and ``image_size`` are valid values here (:meth:`_validate_env_options`)."""
         from sg_torchrl.envs.registry import registry_entry
-        from sg_torchrl.envs.vision import OBS_MODES, ObservationContent
 
-        try:
-            defaults = registry_entry(self.env_id).options
-        except KeyError:
-            return  # an unknown id fails with its own message (the closest ids) when the env is built
-        options = {**defaults, **self.env_options}
+        options = {**registry_entry(self.env_id).options, **self.env_options}
         obs_mode, image_size = options.get("obs_mode", "vector"), options.get("image_size")
-        if obs_mode not in OBS_MODES or not ObservationContent.parse(obs_mode).pixels:
+        if obs_mode == "vector":  # every other mode holds images
             return
-        from sg_torchrl.train.models import DEFAULT_CNN
+        from sg_torchrl.train.models import DEFAULT_CNN  # loads torch: only for pixel observations
 
         smallest = DEFAULT_CNN.min_image_size
         if isinstance(image_size, int) and not isinstance(image_size, bool) and 0 < image_size < smallest:
@@ -276,16 +291,16 @@ class TrainConfig:
             )
 
     def _validate_env_kind(self) -> None:
-        """A multi-agent algorithm needs a multi-agent env id and a single-agent one a single-agent id.
-
-        Unknown ids pass here: building the env reports them with the closest registered ids.
+        """``env_id`` is registered (else :class:`~sg_torchrl.envs.UnknownEnvError`, a ``ValueError`` naming
+        the closest ids, before anything is built); a multi-agent algorithm needs a multi-agent env id and
+        a single-agent one a single-agent id.
         """
-        from sg_torchrl.envs import registry_entry
+        from sg_torchrl.envs import UnknownEnvError, registry_entry
 
         try:
             env_multi_agent = registry_entry(self.env_id).multi_agent
-        except KeyError:
-            return
+        except UnknownEnvError as error:
+            raise UnknownEnvError(f"config: env_id: {error}") from None
         if env_multi_agent == self.multi_agent:
             return
         if self.multi_agent:
@@ -381,10 +396,8 @@ def _flag_type(hint: Any):
     if len(optional) == 1:  # ``X | None``: parse as X
         hint = optional[0]
     origin = get_origin(hint)
-    if hint is bool:
-        return lambda text: {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}[
-            text.lower()
-        ]
+    if hint is bool:  # strictly one of true/false/1/0/yes/no; argparse names the flag in its error
+        return _command_line_bool
     if origin is Literal:
         return str
     if origin is list:
@@ -393,6 +406,13 @@ def _flag_type(hint: Any):
         return parse_env_option
     args = [a for a in get_args(hint) if a is not type(None)]
     return args[0] if args else hint
+
+
+def _command_line_bool(text: str) -> bool:
+    try:
+        return parse_bool(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -424,8 +444,21 @@ def parse_args(argv: list[str] | None = None) -> TrainConfig:
     values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
     values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
     if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag
-        values["env_options"] = dict(values["env_options"])
+        values["env_options"] = _command_line_env_options(values, dict(values["env_options"]))
     return TrainConfig(**values)
+
+
+def _command_line_env_options(values: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+    """``--env-options`` values (read as JSON) with the words true/false/1/0/yes/no of the env's bool
+    options turned into bools: JSON reads ``compass=False`` as the string ``"False"``, which as a bool is
+    true. The env id is the flag's, else the algorithm's default; a resumed run without ``--env-id`` keeps
+    the strings, which the config check then refuses (never reads as true)."""
+    from sg_torchrl.envs.registry import command_line_env_options
+
+    env_id = values.get("env_id")
+    if env_id is None and not values.get("resume"):
+        env_id = ALGORITHM_DEFAULTS.get(values.get("algo", TrainConfig.algo), {}).get("env_id")
+    return command_line_env_options(env_id, options) if env_id else options
 
 
 def parse_env_option(text: str) -> tuple[str, Any]:
