@@ -117,6 +117,17 @@ class TestMake:
             "velocity_threshold": None, "warp_options": None}
 
 
+def test_constructors_built_directly_refuse_a_string_compass_and_a_nan_threshold():
+    # Without sg_torchrl.make's check in front: the envs themselves.
+    from sg_torchrl.envs.navigation import NavigationEnv
+    from sg_torchrl.envs.velocity import VelocityEnv
+
+    with pytest.raises(TypeError, match="compass must be True or False, got 'no'"):
+        NavigationEnv(compass="no")
+    with pytest.raises(ValueError, match="velocity_threshold must be a finite number, got nan"):
+        VelocityEnv("Hopper", velocity_threshold=math.nan)
+
+
 class TestComplexActions:
     def test_single_agent(self):
         env = sg_torchrl.make(CHEETAH, num_envs=2, seed=0)

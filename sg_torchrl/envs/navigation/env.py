@@ -112,6 +112,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             obj.for_robot(self.robot)  # before the world (and its cache key) is built
         if lidar not in ("pseudo", "natural"):
             raise ValueError(f"lidar must be 'pseudo' or 'natural', got {lidar!r}")
+        if not isinstance(compass, bool):  # a string such as "no" is truthy: it would turn the compass on
+            raise TypeError(f"compass must be True or False, got {compass!r}")
         model = compiled_model(  # natural lidar re-assigns geom groups: its own model
             (*self.robot.spec_key(), *self.task.key, *((("agents", count),) if count > 1 else ()),
              *(("natural_lidar",) if lidar == "natural" else ())),

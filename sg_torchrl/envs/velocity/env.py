@@ -76,6 +76,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self.robot = spec
         self.version = version
         self.velocity_threshold = float(spec.thresholds[version] if velocity_threshold is None else velocity_threshold)
+        if not np.isfinite(self.velocity_threshold):  # NaN compares false with every speed: the cost never fires
+            raise ValueError(f"velocity_threshold must be a finite number, got {velocity_threshold!r}")
         position_field = {"qpos": (), "torso": ("xpos",), "mass_center": ("xipos",)}[spec.position_source]
         self.physics = make_physics(
             backend,
