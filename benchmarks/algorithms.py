@@ -78,6 +78,11 @@ def command(args: argparse.Namespace, env_id: str, algo: str, seed: int) -> list
 def run_all(args: argparse.Namespace) -> None:
     """Run every missing cell, ``--jobs`` processes at a time; resume cells that have a checkpoint.
 
+    A cell without a checkpoint (or every cell with ``--force``) starts over with ``--overwrite``:
+    sg-train refuses a run directory that already holds a run unless told so, and such a cell's
+    directory holds at most what a run killed before its first checkpoint logged (or, with
+    ``--force``, the results to be replaced).
+
     Ctrl-C (or ``SIGTERM``) starts no further cell and asks the running ones to stop after their
     epoch under way, checkpointed (``sg-train``'s own handling, :mod:`sg_torchrl.train.interrupt`);
     running the benchmark again continues them. The cells run in their own sessions, so a Ctrl-C
@@ -100,6 +105,8 @@ def run_all(args: argparse.Namespace) -> None:
                 cmd = command(args, env_id, algo, seed)
                 if (directory / "checkpoint.pt").exists() and not args.force:
                     cmd += ["--resume", str(directory)]
+                else:  # a new cell, --force, or one killed before its first checkpoint: start it over
+                    cmd += ["--overwrite"]
                 directory.mkdir(parents=True, exist_ok=True)
                 log = open(directory / "stdout.log", "a")
                 print(f"[start] {label} -> {directory}", flush=True)

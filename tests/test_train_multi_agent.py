@@ -112,7 +112,7 @@ class TestTraining:
         observation, state = trainer.obs_norms
         assert observation.mean.shape == (2, trainer.base_env.observation_dim) and state.mean.shape == (17,)
         assert observation.count.item() == state.count.item() == pytest.approx(100, abs=1e-3)
-        raw = MultiAgentTrainer(tiny_config(tmp_path, algo="mappo", normalize_obs=False))
+        raw = MultiAgentTrainer(tiny_config(tmp_path / "raw", algo="mappo", normalize_obs=False))
         assert raw.obs_norms == [] and raw.env is raw.base_env
 
     def test_resume_continues_exactly(self, tmp_path):

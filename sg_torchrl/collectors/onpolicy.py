@@ -82,7 +82,12 @@ class RolloutCollector:
 
     # ------------------------------------------------------------------ checkpointing
     def state_dict(self) -> dict[str, Any]:
-        """The carry, the frame count and, for sg_torchrl envs, the exact simulator state."""
+        """The carry, the frame count and, for sg_torchrl envs, the exact simulator state.
+
+        The carry is a TensorDict and the simulator state holds numpy arrays and bit-generator
+        states; ``sg-train`` checkpoints encode both as tensors and plain data
+        (:mod:`sg_torchrl.train.checkpoint`), so they load with ``torch.load(weights_only=True)``.
+        """
         base = _base_env(self.env)
         return {
             "carry": self._carry.clone(),

@@ -7,23 +7,29 @@ Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``-
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
 parses and checks the whole command line first, so a bad flag or option fails in about a second. The
-trainers and the algorithm tables (:data:`_HEAVY`) are imported by their
+trainers, the algorithm tables and the checkpoint helpers (:data:`_HEAVY`) are imported by their
 first use (PEP 562), or by :func:`_import_trainers` once ``main`` has a valid config.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import os
 import sys
 from typing import Any
 
-from sg_torchrl.train.config import PRESETS, TrainConfig, parse_args
+from sg_torchrl.train.config import PRESETS, TrainConfig, command_line_values
 from sg_torchrl.train.interrupt import TrainingInterrupted
 
 #: Names exported from modules that load torch: name -> its module. The functions of this module use
 #: them as globals, which :func:`_import_trainers` binds.
 _HEAVY = {
     "ALGORITHMS": "sg_torchrl.train.algorithms",
+    "CheckpointError": "sg_torchrl.train.checkpoint",
+    "RunDirectoryError": "sg_torchrl.train.checkpoint",
+    "check_new_run_dir": "sg_torchrl.train.checkpoint",
+    "resume_run_dir": "sg_torchrl.train.checkpoint",
     "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
     "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
     "EpochTrainer": "sg_torchrl.train.trainer",
@@ -65,36 +71,83 @@ def algorithm_title(algo: str) -> str:
 
 
 def train(cfg: TrainConfig) -> dict[str, float]:
-    """Run (or continue, when ``cfg.resume`` is set) one experiment; returns the final metrics."""
+    """Run (or continue, when ``cfg.resume`` is set) one experiment; returns the final metrics.
+
+    Raises:
+        RunDirectoryError: a new run in a directory that already holds one, without ``cfg.overwrite``
+            (checked before anything is built).
+        CheckpointError: ``cfg.resume`` names a checkpoint that is damaged or not ours.
+    """
     cls = trainer_class(cfg)
-    checkpoint = cls.load_checkpoint(cfg.resume) if cfg.resume else None
+    if cfg.resume:
+        checkpoint = cls.load_checkpoint(cfg.resume)
+    else:
+        check_new_run_dir(cfg.run_dir, cfg.overwrite)
+        checkpoint = None
     return cls(cfg, checkpoint).run()
 
 
-def _resolve_resume(cfg: TrainConfig, argv: list[str]) -> TrainConfig:
-    """On ``--resume``, the saved config wins except for the flags given on this command line."""
-    if not cfg.resume:
-        return cfg
-    saved = EpochTrainer.load_checkpoint(cfg.resume)["config"]
-    given = {arg[2:].split("=")[0].replace("-", "_") for arg in argv if arg.startswith("--")}
-    values = {**saved, **{k: v for k, v in cfg.to_dict().items() if k in given}, "resume": cfg.resume}
-    return TrainConfig(**values)
+def _resolve_resume(argv: list[str]) -> TrainConfig:
+    """The config of an ``sg-train`` command line.
+
+    Without ``--resume``: the preset and flags over the defaults. With ``--resume DIR`` (or a
+    checkpoint file in DIR): the checkpoint's saved config with the flags given on this command line
+    over it, validated merged (so ``--total-steps 3000`` extends a run of 1000-step epochs), and
+    ``output_dir`` / ``run_name`` pointing at DIR whatever the saved config says: a copied run
+    continues in the copy and leaves the original alone.
+
+    Raises:
+        ValueError: an invalid merged config, or flags a resumed run cannot take (``--preset``,
+            ``--overwrite``, ``--output-dir`` / ``--run-name``: it stays in its directory).
+        FileNotFoundError: no checkpoint at the ``--resume`` path.
+        CheckpointError: a damaged or foreign checkpoint.
+    """
+    values = command_line_values(argv)
+    resume = values.get("resume")
+    if not resume:
+        values.pop("preset", None)
+        return TrainConfig(**values)
+    if "preset" in values:
+        raise ValueError(f"--preset sets up a new run; a resumed run keeps its saved config (give the flags to "
+                         f"change instead: --resume {resume} --total-steps ...)")
+    if values.get("overwrite"):
+        raise ValueError("--resume continues a run and --overwrite starts one over; give one of them")
+    saved = dict(EpochTrainer.load_checkpoint(resume)["config"])
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(saved) - known)
+    if unknown:
+        raise CheckpointError(f"the config saved in {resume} has fields this sg_torchrl does not know "
+                              f"({', '.join(unknown)}): written by another version")
+    merged = TrainConfig(**{**saved, **values, "resume": str(resume), "overwrite": False})
+    run_dir = resume_run_dir(resume)
+    moved = [name for name in ("output_dir", "run_name") if name in values]
+    if moved and os.path.abspath(merged.run_dir) != str(run_dir):  # flags that name the run's own directory are fine
+        flags = " / ".join("--" + name.replace("_", "-") for name in moved)
+        raise ValueError(f"a resumed run continues in its own directory ({run_dir}); {flags} cannot move it to "
+                         f"{merged.run_dir} (copy the run directory and resume the copy instead)")
+    return dataclasses.replace(merged, output_dir=str(run_dir.parent), run_name=run_dir.name)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
-        cfg = parse_args(argv)  # the whole command line is checked here, before any heavy import
+        if command_line_values(argv).get("resume"):  # reading a checkpoint needs torch anyway
+            _import_trainers()
+        cfg = _resolve_resume(argv)  # a new run's config is checked whole here, before any heavy import
         _import_trainers()
-        cfg = _resolve_resume(cfg, argv)
+        if not cfg.resume:
+            check_new_run_dir(cfg.run_dir, cfg.overwrite)  # before anything is built
     except SystemExit as stop:  # argparse: --help (0), or a bad flag (2) with its "sg-train: error:" line
         return stop.code if isinstance(stop.code, int) else 2
-    except (ValueError, FileNotFoundError) as error:
+    except (ValueError, FileNotFoundError) as error:  # CheckpointError and RunDirectoryError included
         print(f"sg-train: error: {error}", file=sys.stderr)
         return 2
     run_dir = cfg.run_dir
     try:
         metrics = train(cfg)
+    except (CheckpointError, RunDirectoryError) as error:  # the files changed since the checks above
+        print(f"sg-train: error: {error}", file=sys.stderr)
+        return 2
     except TrainingInterrupted as stop:
         print(f"sg-train: {stop}\n  continue with: sg-train --resume {run_dir}", file=sys.stderr)
         return stop.exit_code

@@ -164,8 +164,18 @@ class TrainConfig:
     output_dir: str = _opt("runs", "root folder of run directories")
     run_name: str | None = _opt(None, "run directory name (default: <env>/<algo>/seed-<seed>)")
     wandb: Literal["offline", "online", "disabled"] = _opt("offline", "wandb mode; offline needs no account")
-    checkpoint_every: int = _opt(10, "epochs between checkpoints (the last epoch is always saved)")
-    resume: str | None = _opt(None, "checkpoint file or run directory to continue")
+    checkpoint_every: int = _opt(
+        10, "epochs between checkpoints; the first epoch a process trains and the last epoch are always saved")
+    checkpoint_minutes: float = _opt(
+        1.0, "also checkpoint after an epoch that ends this many minutes or more after the last checkpoint (0: "
+        "every epoch); a SIGKILL loses at most the epoch under way and the epochs finished since the last "
+        "checkpoint, which all ended within this many minutes of it")
+    resume: str | None = _opt(
+        None, "checkpoint file or run directory to continue; the run continues in that directory, whatever its "
+        "saved config's output_dir / run_name, with the saved config and the flags given here")
+    overwrite: bool = _opt(
+        False, "start over in a run directory that already holds a run (removes its checkpoint and logs); "
+        "without it a new run refuses such a directory", bare_flag=True)
     progress: bool = _opt(True, "show a progress bar")
     threads: int = _opt(1, "torch threads (1 is fastest for small MLPs on few cores)")
     compile: bool = _opt(
@@ -241,6 +251,16 @@ class TrainConfig:
             )
         self._validate_env_options()
         self._validate_observation_mode()
+        self._validate_checkpointing()
+
+    def _validate_checkpointing(self) -> None:
+        """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""
+        if not (isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1):
+            raise ValueError(f"config: checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")
+        if not (isinstance(self.checkpoint_minutes, (int, float)) and 0 <= self.checkpoint_minutes < float("inf")):
+            raise ValueError(f"config: checkpoint_minutes must be a number >= 0, got {self.checkpoint_minutes!r}")
+        if self.resume and self.overwrite:
+            raise ValueError("config: resume continues a run and overwrite starts one over; give one of them")
 
     def _validate_types(self) -> None:
         """Every field holds a value of its annotated type, strictly (:mod:`sg_torchrl.validation`): a bool
@@ -434,18 +454,27 @@ def build_parser() -> argparse.ArgumentParser:
             kwargs["nargs"] = "+"
         if get_origin(hint) is dict:
             kwargs["metavar"] = "KEY=VALUE"
+        if f.metadata.get("bare_flag"):  # ``--overwrite`` alone means true
+            kwargs.update(nargs="?", const=True, metavar="BOOL")
         parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
     return parser
 
 
-def parse_args(argv: list[str] | None = None) -> TrainConfig:
-    """Build a :class:`TrainConfig` from a preset and command-line overrides."""
+def command_line_values(argv: list[str] | None = None) -> dict[str, Any]:
+    """The field values a command line gives: its ``--preset``'s, then its flags' (unset fields absent).
+
+    Nothing is validated against the defaults here: a resumed run (``--resume``) validates these
+    merged over its saved config (:func:`sg_torchrl.train._resolve_resume`), a new run as they are.
+    ``"preset"`` holds the preset's name when one was given.
+    """
     namespace = build_parser().parse_args(argv)
     values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
     values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
     if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag
         values["env_options"] = _command_line_env_options(values, dict(values["env_options"]))
-    return TrainConfig(**values)
+    if namespace.preset:
+        values["preset"] = namespace.preset
+    return values
 
 
 def _command_line_env_options(values: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
@@ -459,6 +488,13 @@ def _command_line_env_options(values: dict[str, Any], options: dict[str, Any]) -
     if env_id is None and not values.get("resume"):
         env_id = ALGORITHM_DEFAULTS.get(values.get("algo", TrainConfig.algo), {}).get("env_id")
     return command_line_env_options(env_id, options) if env_id else options
+
+
+def parse_args(argv: list[str] | None = None) -> TrainConfig:
+    """Build a :class:`TrainConfig` from a preset and command-line overrides."""
+    values = command_line_values(argv)
+    values.pop("preset", None)
+    return TrainConfig(**values)
 
 
 def parse_env_option(text: str) -> tuple[str, Any]:

@@ -29,7 +29,16 @@ class RunLogger:
         config: stored with the wandb run.
         resume_epoch: the epoch a resumed run continues from (its checkpoint's). ``progress.csv``
             keeps its rows up to that epoch and drops later ones, which an interrupted run logged
-            after its last checkpoint and is about to log again; ``None`` starts a new file.
+            after its last checkpoint and is about to log again; ``None`` starts a new file, and
+            refuses to replace an existing one (the trainer clears a run directory only when told to
+            start over, :func:`sg_torchrl.train.checkpoint.check_new_run_dir`).
+        resume_row: the metrics of epoch ``resume_epoch`` saved with the checkpoint. The trainer
+            checkpoints an epoch before logging it, so a process killed in between left a checkpoint
+            whose row ``progress.csv`` lacks: it is appended here (to ``progress.csv`` only; the
+            TorchRL loggers' files miss that epoch).
+
+    Raises:
+        FileExistsError: a new run (no ``resume_epoch``) over an existing ``progress.csv``.
     """
 
     def __init__(
@@ -40,10 +49,13 @@ class RunLogger:
         wandb_mode: str = "offline",
         config: dict[str, Any] | None = None,
         resume_epoch: int | None = None,
+        resume_row: dict[str, float] | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.progress_path = self.run_dir / "progress.csv"
+        if resume_epoch is None and self.progress_path.exists():
+            raise FileExistsError(f"{self.progress_path} exists: a new run does not overwrite another run's log")
         self.backends: list[Logger] = [CSVLogger(exp_name=exp_name, log_dir=str(self.run_dir / "csv"))]
         if importlib.util.find_spec("tensorboard") is not None:
             from torchrl.record.loggers import TensorboardLogger
@@ -52,23 +64,29 @@ class RunLogger:
         if wandb_mode != "disabled":
             self.backends.append(self._wandb(exp_name, wandb_mode, config))
         self._columns: list[str] | None = None
-        if resume_epoch is not None and self.progress_path.exists():
-            self._truncate_progress(resume_epoch)
-        elif self.progress_path.exists():
-            self.progress_path.unlink()
+        if resume_epoch is not None:
+            logged = self._truncate_progress(resume_epoch) if self.progress_path.exists() else None
+            if resume_row is not None and logged != resume_epoch and resume_row.get("Train/Epoch") == resume_epoch:
+                self._append_progress(resume_row)
 
-    def _truncate_progress(self, last_epoch: int) -> None:
-        """Keep the header and the rows of epochs ``<= last_epoch`` of ``progress.csv`` (drop the rest)."""
+    def _truncate_progress(self, last_epoch: int) -> float | None:
+        """Keep the header and the rows of epochs ``<= last_epoch`` of ``progress.csv`` (drop the rest).
+
+        Returns the epoch of the last row kept (None when none is).
+        """
         with self.progress_path.open(newline="") as handle:
             rows = list(csv.reader(handle))
         if not rows:
-            return
+            return None
         self._columns = rows[0]
         epoch = self._columns.index("Train/Epoch") if "Train/Epoch" in self._columns else None
+        if epoch is None:
+            return None
         # Rows without an epoch are a finished run's final summary: the resumed run writes its own.
-        kept = [row for row in rows[1:] if epoch is None or (row[epoch] != "" and float(row[epoch]) <= last_epoch)]
+        kept = [row for row in rows[1:] if row[epoch] != "" and float(row[epoch]) <= last_epoch]
         with self.progress_path.open("w", newline="") as handle:
             csv.writer(handle).writerows([self._columns, *kept])
+        return float(kept[-1][epoch]) if kept else None
 
     def _wandb(self, exp_name: str, mode: str, config: dict[str, Any] | None) -> Logger:
         from torchrl.record.loggers import WandbLogger

@@ -25,7 +25,9 @@ observations, but to networks whose first layer is a LayerNorm of the input; our
 observations' scale (Safety9|8HumanoidVelocity-v0: initial action means up to about 40, so the
 control cost swamps the reward). ``--normalize-obs false`` feeds raw observations. Checkpoints hold the networks, the round's optimisers, multipliers, value
 normalisers and generator, the observation normalisers, the simulators, the collector's carry,
-the episode statistics and the torch RNG, so ``--resume`` continues bit-identically.
+the episode statistics and the torch RNG, so ``--resume`` continues bit-identically; they are
+written and verified by :class:`~sg_torchrl.train.trainer.EpochTrainer` in the weights-only format of
+:mod:`sg_torchrl.train.checkpoint`, on the same schedule as single-agent runs.
 """
 
 from __future__ import annotations

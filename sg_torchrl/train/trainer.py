@@ -21,7 +21,24 @@ converted to float at once.
 
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
 observation normaliser, simulator states and generators, the collector's carry, episode
-statistics, torch RNG states), so ``--resume`` continues bit-identically.
+statistics, torch RNG states), so ``--resume`` continues bit-identically. They are written in
+:mod:`sg_torchrl.train.checkpoint`'s format (a sha256-checked header, a payload of tensors and plain
+data that loads with ``weights_only=True``): loading one never runs code, and a damaged one is refused.
+
+When checkpoints are written (:class:`CheckpointSchedule`): after the first epoch a process trains,
+every ``checkpoint_every`` epochs, once ``checkpoint_minutes`` of wall time have passed since the
+last one, after the run's last epoch, and on a stop request. A scheduled checkpoint is written
+before the epoch's row reaches ``progress.csv``, so a row there always has its checkpoint or a
+later one on disk when it was a checkpoint epoch. **The most a SIGKILL (or a power cut) can lose**
+is the epoch under way plus the epochs finished since the last checkpoint, which are fewer than
+``checkpoint_every`` (10) and all ended less than ``checkpoint_minutes`` (1) after that checkpoint:
+with the paper's epochs (minutes each on a CPU) only the epoch under way. Once a process has
+finished its first epoch there is always a checkpoint to resume. A checkpoint costs milliseconds
+(a few hundred kB to a few MB).
+
+A new run refuses a run directory that already holds a run (a checkpoint, ``progress.csv`` or
+``summary.json``) unless ``cfg.overwrite`` asks to start over (which removes the old run's files):
+re-running a command never deletes results silently.
 
 :class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
 metrics, the progress bar, logging, checkpoint files, the final summary and plot);
@@ -48,7 +65,9 @@ import sg_torchrl
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.train import checkpoint as checkpoint_files
 from sg_torchrl.train.algorithms import ALGORITHMS
+from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, CheckpointError
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.interrupt import StopRequests, TrainingInterrupted
@@ -57,9 +76,7 @@ from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts, write_values
 
-__all__ = ["CHECKPOINT_NAME", "EpochTrainer", "Trainer"]
-
-CHECKPOINT_NAME = "checkpoint.pt"
+__all__ = ["CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer"]
 
 
 @contextlib.contextmanager
@@ -75,6 +92,29 @@ def _without_distribution_validation() -> Iterator[None]:
         yield
     finally:
         torch.distributions.Distribution.set_default_validate_args(previous)
+
+
+class CheckpointSchedule:
+    """Which finished epochs of one :meth:`EpochTrainer.run` call are checkpointed.
+
+    The first epoch the call trains (so a killed run always has something to resume, whether new or
+    resumed), every ``every``-th epoch, the call's ``last_epoch``, and any epoch that ends
+    ``minutes`` or more of wall time after the last checkpoint (0: every epoch).
+    """
+
+    def __init__(self, every: int, minutes: float, last_epoch: int) -> None:
+        self.every, self.seconds, self.last_epoch = every, minutes * 60.0, last_epoch
+        self._saved_at: float | None = None  # time.monotonic() of this call's last checkpoint
+        #: Epoch of the last checkpoint written during this call (None before the first).
+        self.saved_epoch: int | None = None
+
+    def due(self, epoch: int) -> bool:
+        if self._saved_at is None or epoch % self.every == 0 or epoch == self.last_epoch:
+            return True
+        return time.monotonic() - self._saved_at >= self.seconds
+
+    def saved(self, epoch: int) -> None:
+        self._saved_at, self.saved_epoch = time.monotonic(), epoch
 
 
 class EpochTrainer(abc.ABC):
@@ -108,15 +148,30 @@ class EpochTrainer(abc.ABC):
         self.total_steps = 0
         self.train_seconds = 0.0
         self._last_mean_cost = 0.0
+        self._last_row: dict[str, float] | None = None  # the last epoch's metrics (kept in checkpoints)
+        self._schedule: CheckpointSchedule | None = None  # set while :meth:`run` runs
 
     def _start(self, checkpoint: dict[str, Any] | None) -> None:
-        """Restore ``checkpoint`` (when given) and open the run's logger; the last step of ``__init__``."""
+        """Restore ``checkpoint`` (when given) and open the run's logger; the last step of ``__init__``.
+
+        Without a checkpoint this is a new run: a run directory that already holds a run is refused
+        (:class:`~sg_torchrl.train.checkpoint.RunDirectoryError`) unless ``cfg.overwrite``, which
+        removes the old run's files first.
+
+        Raises:
+            RunDirectoryError: a new run over an existing one without ``cfg.overwrite``.
+        """
         cfg = self.cfg
         if checkpoint is not None:
             self._restore(checkpoint)
+        else:
+            checkpoint_files.check_new_run_dir(cfg.run_dir, cfg.overwrite)
+            if checkpoint_files.existing_run_files(cfg.run_dir):  # cfg.overwrite: start over
+                checkpoint_files.clear_run_dir(cfg.run_dir)
         self.logger = RunLogger(
             cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
             config=cfg.to_dict(), resume_epoch=self.epoch if checkpoint is not None else None,
+            resume_row=None if checkpoint is None else checkpoint.get("progress_row"),
         )
 
     @property
@@ -143,8 +198,10 @@ class EpochTrainer(abc.ABC):
 
     # ------------------------------------------------------------------ epochs
     def run(self, max_epochs: int | None = None) -> dict[str, float]:
-        """Train until the budget is spent (or ``max_epochs`` more epochs), then checkpoint.
+        """Train until the budget is spent (or ``max_epochs`` more epochs), checkpointing on the way.
 
+        Checkpoints follow :class:`CheckpointSchedule` (the first epoch of the call, every
+        ``cfg.checkpoint_every`` epochs, every ``cfg.checkpoint_minutes``, the last epoch).
         Returns the last epoch's metrics, plus the evaluation summary when the run finished.
 
         Raises:
@@ -158,28 +215,42 @@ class EpochTrainer(abc.ABC):
         metrics: dict[str, float] = {}
         bar = tqdm(total=cfg.epochs * cfg.steps_per_epoch, initial=self.total_steps, unit="step",
                    disable=not cfg.progress, desc=f"{self.title} {cfg.env_id}", dynamic_ncols=True)
+        schedule = self._schedule = CheckpointSchedule(cfg.checkpoint_every, cfg.checkpoint_minutes, last_epoch)
         try:
             with StopRequests() as stop:
                 while self.epoch < last_epoch:
-                    metrics = self.train_epoch()
+                    metrics = self.train_epoch()  # checkpoints (when due) before it logs the epoch
                     bar.update(cfg.steps_per_epoch)
                     bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}",
                                     EpCost=f"{metrics['Metrics/EpCost']:.1f}",
                                     lam=f"{metrics['Train/LagrangeMultiplier']:.3f}")
                     if stop.requested:
-                        raise TrainingInterrupted(stop.signum, self.epoch, self.save_checkpoint())
-                    if self.epoch % cfg.checkpoint_every == 0 or self.epoch == last_epoch:
-                        self.save_checkpoint()
+                        saved = schedule.saved_epoch == self.epoch
+                        raise TrainingInterrupted(stop.signum, self.epoch,
+                                                  self.checkpoint_path if saved else self.save_checkpoint())
             if self.epoch >= cfg.epochs:
                 metrics.update(self.finish())
         finally:
+            self._schedule = None
             bar.close()
         return metrics
 
     def train_epoch(self) -> dict[str, float]:
-        """One epoch: collect, update (multiplier and networks), log."""
+        """One epoch: collect, update (multiplier and networks), checkpoint when due (in :meth:`run`), log.
+
+        The checkpoint comes before the log, so ``progress.csv`` never shows a checkpoint epoch that
+        is not on disk yet; the checkpoint carries the epoch's row, which a resumed run writes to
+        ``progress.csv`` if the process died between the two.
+        """
         with _without_distribution_validation():
-            return self._train_epoch()
+            metrics = self._train_epoch()
+        self._last_row = metrics
+        schedule = self._schedule
+        if schedule is not None and schedule.due(self.epoch):
+            self.save_checkpoint()
+            schedule.saved(self.epoch)
+        self.logger.log(metrics, step=self.total_steps)
+        return metrics
 
     def _train_epoch(self) -> dict[str, float]:
         start = time.perf_counter()
@@ -212,7 +283,6 @@ class EpochTrainer(abc.ABC):
             "Time/Total": self.train_seconds,
             "Time/FPS": batch.numel() / epoch_time,
         }
-        self.logger.log(metrics, step=self.total_steps)
         return metrics
 
     def finish(self) -> dict[str, float]:
@@ -241,33 +311,40 @@ class EpochTrainer(abc.ABC):
         return self.cfg.run_dir / CHECKPOINT_NAME
 
     def save_checkpoint(self, path: Path | None = None) -> Path:
+        """Write everything that influences the future to ``path`` (default ``<run dir>/checkpoint.pt``).
+
+        Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`).
+        """
         path = path or self.checkpoint_path
+        path.parent.mkdir(parents=True, exist_ok=True)
         state = {
             "config": self.cfg.to_dict(),
             "epoch": self.epoch,
             "total_steps": self.total_steps,
             "train_seconds": self.train_seconds,
             "last_mean_cost": self._last_mean_cost,
+            # The epoch's progress.csv row: written by a resumed run if the process died before logging it.
+            "progress_row": None if self._last_row is None else {k: float(v) for k, v in self._last_row.items()},
             **self._algorithm_state(),
             "collector": self.collector.state_dict(),
             "stats": self.stats.state_dict(),
             "torch_rng": torch.get_rng_state(),
         }
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
-        return path
+        return checkpoint_files.save_checkpoint(state, path)
 
     @staticmethod
     def load_checkpoint(path: str | Path) -> dict[str, Any]:
-        """Read a checkpoint file, or ``<run dir>/checkpoint.pt`` when given a run directory."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / CHECKPOINT_NAME
-        if not path.exists():
-            raise FileNotFoundError(f"no checkpoint at {path}")
-        # Our own file: it holds numpy simulator states, which weights_only loading rejects.
-        return torch.load(path, weights_only=False)
+        """Read a checkpoint file, or ``<run dir>/checkpoint.pt`` when given a run directory.
+
+        The file is verified (header, length, sha256) and unpickled with ``weights_only=True``, so
+        it cannot run code.
+
+        Raises:
+            FileNotFoundError: no checkpoint there.
+            CheckpointError: an empty, truncated, corrupted, foreign or unsafe file (the message
+                names the file and the problem).
+        """
+        return checkpoint_files.load_checkpoint(path)
 
     def _restore(self, state: dict[str, Any]) -> None:
         self.epoch = state["epoch"]
