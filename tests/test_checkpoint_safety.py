@@ -35,7 +35,8 @@ from sg_torchrl.train.trainer import CheckpointSchedule  # noqa: E402
 from trainer_checks import tiny_config  # noqa: E402
 
 
-def cli_args(output_dir: Path, run_name: str = "run", *, total_steps: int = 400, steps_per_epoch: int = 200) -> list[str]:
+def cli_args(output_dir: Path, run_name: str = "run", *, total_steps: int = 400,
+             steps_per_epoch: int = 200) -> list[str]:
     """``sg-train`` flags of a run of ``total_steps / steps_per_epoch`` tiny HalfCheetah epochs."""
     return ["--env-id", "SafetyHalfCheetahVelocity-v1", "--num-envs", "2", "--steps-per-epoch", str(steps_per_epoch),
             "--total-steps", str(total_steps), "--update-iters", "1", "--eval-episodes", "0", "--wandb", "disabled",
@@ -217,6 +218,46 @@ def test_resume_flags_that_would_move_the_run_are_refused(run_copy, tmp_path, ca
     assert main(["--resume", str(run_copy), "--overwrite"]) == 2
     assert main(["--resume", str(run_copy), "--preset", "smoke"]) == 2
     assert not (tmp_path / "elsewhere").exists()
+    # Flags that name the run's own directory are fine (the benchmark runner passes --output-dir).
+    assert main(["--resume", str(run_copy), "--output-dir", str(tmp_path), "--run-name", "copy",
+                 "--total-steps", "600"]) == 0
+    assert load_checkpoint(run_copy)["epoch"] == 3
+
+
+def test_the_benchmark_runner_resumes_or_starts_cells_over(finished_run, tmp_path, monkeypatch):
+    import argparse
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "algorithms.py"
+    spec = importlib.util.spec_from_file_location("benchmark_algorithms_runner", script)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    env_id = "SafetyHalfCheetahVelocity-v1"
+    shutil.copytree(finished_run, bench.run_dir(str(tmp_path), env_id, "ppo", 0))  # checkpointed, unfinished
+    (bench.run_dir(str(tmp_path), env_id, "ppo", 0) / "summary.json").unlink()
+    killed = bench.run_dir(str(tmp_path), env_id, "ppo", 1)  # killed before its first checkpoint
+    killed.mkdir(parents=True)
+    (killed / "progress.csv").write_text("Train/Epoch\n")
+    commands = []
+
+    class Done:
+        returncode = 0
+
+        def __init__(self, cmd, **_):
+            commands.append(cmd)
+
+        def poll(self):
+            return 0
+
+    monkeypatch.setattr(bench.subprocess, "Popen", Done)
+    monkeypatch.setattr(bench.time, "sleep", lambda _: None)
+    args = argparse.Namespace(envs=[env_id], algos=["ppo"], seeds=[0, 1, 2], seed_major=False, jobs=1,
+                              output_dir=str(tmp_path), force=False, total_steps=400, wandb="disabled", extra=[])
+    bench.run_all(args)
+    resumed, killed_cell, new_cell = commands
+    assert resumed[-2:] == ["--resume", str(bench.run_dir(str(tmp_path), env_id, "ppo", 0))]
+    for cmd in (killed_cell, new_cell):
+        assert cmd[-1] == "--overwrite" and "--resume" not in cmd
 
 
 def test_resume_validates_new_options_against_the_saved_config(tmp_path):

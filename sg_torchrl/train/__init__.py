@@ -112,6 +112,7 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
                          f"change instead: --resume {resume} --total-steps ...)")
     if values.get("overwrite"):
         raise ValueError("--resume continues a run and --overwrite starts one over; give one of them")
+    _import_trainers()  # reading a checkpoint needs torch
     saved = dict(EpochTrainer.load_checkpoint(resume)["config"])
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(saved) - known)
