@@ -132,8 +132,6 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
-        if command_line_values(argv).get("resume"):  # reading a checkpoint needs torch anyway
-            _import_trainers()
         cfg = _resolve_resume(argv)  # a new run's config is checked whole here, before any heavy import
         _import_trainers()
         if not cfg.resume:
