@@ -176,6 +176,9 @@ def test_parameters_are_views_of_the_flat_buffers(group):
         model.flat_actor.add_(1.0)
     torch.testing.assert_close(model.log_std, torch.ones_like(model.log_std) + torch.stack(
         [t[0].module[0].module[1].state_independent_scale for t in group[0]]))
+    model.flat_critics.grad.fill_(1.0)
+    model.zero_grad()  # in place: set_to_none would cut the parameters from the flat gradients
+    assert all(p.grad is not None for p in model.parameters()) and not model.flat_critics.grad.any()
     double = StackedActorCritic.from_single(group[0]).double()
     assert double.flat_critics.dtype == torch.float64
     assert double.critic.weights[0].untyped_storage().data_ptr() == double.flat_critics.untyped_storage().data_ptr()

@@ -50,12 +50,15 @@ def _masked_adam_(
     beta2: float,
     eps: float,
     max_grad_norm: float | None,
+    decompose_lerp: bool = False,
 ) -> Tensor | None:
     """Clip (optionally) and take one masked Adam step; the arithmetic of :class:`SeedMaskedAdam`.
 
     ``groups``: per parameter group ``(params, grads, exp_avgs, exp_avg_sqs, step, lr)``, with
     ``step`` the group's per-seed step counts (``(S,)`` float64) and ``lr`` a float64 tensor, ``()``
-    or ``(S,)``. A pure function of tensors, so ``torch.compile`` can fuse it.
+    or ``(S,)``. A pure function of tensors, so ``torch.compile`` can fuse it (``decompose_lerp``
+    writes the masked first-moment ``lerp`` as sub, mul, add, which inductor fuses and does not
+    otherwise; the same formula as ``lerp`` for weights below 0.5, up to a fused multiply-add).
     """
     norms = None
     if max_grad_norm is not None:
@@ -86,7 +89,13 @@ def _masked_adam_(
             keep = mask.to(dtype)
             # Inactive seeds: lerp weight 0, decay 1 and a zero square leave both moments as they are.
             masked_grads = torch._foreach_mul(grads, _seed_view(keep, shapes))
-            torch._foreach_lerp_(exp_avgs, grads, _seed_view(keep * (1 - beta1), shapes))
+            weights = _seed_view(keep * (1 - beta1), shapes)
+            if decompose_lerp:  # inductor has no lowering of lerp with per-tensor weights; this fuses
+                step_to_grad = torch._foreach_sub(grads, exp_avgs)
+                torch._foreach_mul_(step_to_grad, weights)
+                torch._foreach_add_(exp_avgs, step_to_grad)
+            else:
+                torch._foreach_lerp_(exp_avgs, grads, weights)
             torch._foreach_mul_(exp_avg_sqs, _seed_view((1 - keep) + keep * beta2, shapes))
             torch._foreach_addcmul_(exp_avg_sqs, grads, masked_grads, value=1 - beta2)
         denom = torch._foreach_sqrt(exp_avg_sqs)
@@ -189,7 +198,8 @@ class SeedMaskedAdam:
                            self._lr_tensor(index)))
         beta1, beta2 = self.betas
         try:
-            return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm)
+            return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm,
+                                self._update is not _masked_adam_)
         except Exception as error:  # noqa: BLE001 -- compiling failed: say so once, go on eagerly
             if self._update is _masked_adam_:
                 raise

@@ -38,6 +38,8 @@ from torch import Tensor, nn
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP
 
+from sg_torchrl.train.models import make_actor_critics
+
 __all__ = ["StackedActorCritic", "StackedMLP", "gaussian_log_prob", "quiet_layout_warning"]
 
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
@@ -315,6 +317,14 @@ class StackedActorCritic(nn.Module):
         self.flat_actor.grad.zero_()
         self.flat_critics.grad.zero_()
 
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Zero the gradients in place, whatever ``set_to_none`` says.
+
+        Setting a parameter's ``.grad`` to ``None`` would cut it from the flat gradient buffer (the
+        next backward would store a fresh tensor that the optimiser never reads).
+        """
+        self.zero_grad_()
+
     @torch.no_grad()
     def critic_squared_norms(self) -> tuple[Tensor, Tensor]:
         """Per seed, the sum of squares of the reward critic's and of the cost critic's parameters, ``(S,)`` each."""
@@ -415,8 +425,6 @@ class StackedActorCritic(nn.Module):
         The modules are built without touching the global RNG state (their random initialisation is
         overwritten at once).
         """
-        from sg_torchrl.train.models import make_actor_critics
-
         with torch.random.fork_rng(devices=[]):
             triple = make_actor_critics(self.obs_dim, action_spec, list(self.hidden_sizes))
         weight = self.flat_actor
