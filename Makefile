@@ -26,8 +26,11 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install --quiet -e '.[test,warp]'
 	touch $(STAMP)
 
+# `make run` is the demo: each call starts it afresh in runs/make-run (--overwrite says so explicitly;
+# sg-train itself never replaces a run unasked). Continue an interrupted one with
+# `.venv/bin/sg-train --resume runs/make-run`.
 run: $(STAMP)
-	$(PY) -m sg_torchrl.train --preset make-run
+	$(PY) -m sg_torchrl.train --preset make-run --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest -q
