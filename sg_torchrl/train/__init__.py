@@ -7,8 +7,8 @@ Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``-
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
 parses and checks the whole command line first, so a bad flag or option fails in about a second. The
-trainers, the algorithm tables and the checkpoint helpers (:data:`_HEAVY`) are imported by their
-first use (PEP 562), or by :func:`_import_trainers` once ``main`` has a valid config.
+trainers and the algorithm tables (:data:`_HEAVY`) are imported by their
+first use (PEP 562); the functions below import what they need inside, once the command line is valid.
 """
 
 from __future__ import annotations
@@ -17,19 +17,17 @@ import dataclasses
 import importlib
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sg_torchrl.train.config import PRESETS, TrainConfig, command_line_values
 from sg_torchrl.train.interrupt import TrainingInterrupted
 
-#: Names exported from modules that load torch: name -> its module. The functions of this module use
-#: them as globals, which :func:`_import_trainers` binds.
+if TYPE_CHECKING:
+    from sg_torchrl.train.trainer import EpochTrainer
+
+#: Names exported from modules that load torch: name -> its module, imported on first access (PEP 562).
 _HEAVY = {
     "ALGORITHMS": "sg_torchrl.train.algorithms",
-    "CheckpointError": "sg_torchrl.train.checkpoint",
-    "RunDirectoryError": "sg_torchrl.train.checkpoint",
-    "check_new_run_dir": "sg_torchrl.train.checkpoint",
-    "resume_run_dir": "sg_torchrl.train.checkpoint",
     "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
     "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
     "EpochTrainer": "sg_torchrl.train.trainer",
@@ -37,17 +35,10 @@ _HEAVY = {
 }
 
 
-def _import_trainers() -> None:
-    """Import the :data:`_HEAVY` names into this module's globals (torch, TorchRL, MuJoCo: seconds)."""
-    for name, module in _HEAVY.items():
-        if name not in globals():
-            globals()[name] = getattr(importlib.import_module(module), name)
-
-
 def __getattr__(name: str) -> Any:
     if name in _HEAVY:
-        _import_trainers()
-        return globals()[name]
+        value = globals()[name] = getattr(importlib.import_module(_HEAVY[name]), name)
+        return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
@@ -59,13 +50,17 @@ __all__ = [
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
     """:class:`MultiAgentTrainer` for the multi-agent algorithms, :class:`Trainer` for the rest."""
-    _import_trainers()
+    from sg_torchrl.train.multi_agent import MultiAgentTrainer
+    from sg_torchrl.train.trainer import Trainer
+
     return MultiAgentTrainer if cfg.multi_agent else Trainer
 
 
 def algorithm_title(algo: str) -> str:
     """Display name of an ``--algo`` value (``"mappo_lag"`` -> ``"MAPPO-Lag"``)."""
-    _import_trainers()
+    from sg_torchrl.train.algorithms import ALGORITHMS
+    from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS
+
     table = MULTI_AGENT_ALGORITHMS if algo in MULTI_AGENT_ALGORITHMS else ALGORITHMS
     return table[algo].title
 
@@ -78,6 +73,8 @@ def train(cfg: TrainConfig) -> dict[str, float]:
             (checked before anything is built).
         CheckpointError: ``cfg.resume`` names a checkpoint that is damaged or not ours.
     """
+    from sg_torchrl.train.checkpoint import check_new_run_dir
+
     cls = trainer_class(cfg)
     if cfg.resume:
         checkpoint = cls.load_checkpoint(cfg.resume)
@@ -112,7 +109,9 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
                          f"change instead: --resume {resume} --total-steps ...)")
     if values.get("overwrite"):
         raise ValueError("--resume continues a run and --overwrite starts one over; give one of them")
-    _import_trainers()  # reading a checkpoint needs torch
+    from sg_torchrl.train.checkpoint import CheckpointError, resume_run_dir  # reading a checkpoint needs torch
+    from sg_torchrl.train.trainer import EpochTrainer
+
     saved = dict(EpochTrainer.load_checkpoint(resume)["config"])
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(saved) - known)
@@ -133,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         cfg = _resolve_resume(argv)  # a new run's config is checked whole here, before any heavy import
-        _import_trainers()
+        from sg_torchrl.train.checkpoint import CheckpointError, RunDirectoryError, check_new_run_dir
+
         if not cfg.resume:
             check_new_run_dir(cfg.run_dir, cfg.overwrite)  # before anything is built
     except SystemExit as stop:  # argparse: --help (0), or a bad flag (2) with its "sg-train: error:" line
