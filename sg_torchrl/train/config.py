@@ -300,7 +300,7 @@ class TrainConfig:
         obs_mode, image_size = options.get("obs_mode", "vector"), options.get("image_size")
         if obs_mode == "vector":  # every other mode holds images
             return
-        from sg_torchrl.train.models import DEFAULT_CNN  # loads torch: only for pixel observations
+        from sg_torchrl.train.cnn import DEFAULT_CNN
 
         smallest = DEFAULT_CNN.min_image_size
         if isinstance(image_size, int) and not isinstance(image_size, bool) and 0 < image_size < smallest:
