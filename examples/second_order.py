@@ -93,7 +93,7 @@ def main() -> None:
 
         # The actor: one trust-region step on the whole batch.
         advantage = multiplier.combine(data["advantage"], data["cost_advantage"])
-        info = policy_step.step(data, advantage, data["cost_advantage"], mean_cost - args.cost_limit)
+        info = policy_step.step(data, advantage, data["cost_advantage"], multiplier.violation(mean_cost))
 
         # The critics: minibatch regression to the GAE targets.
         for _ in range(args.critic_iters):

@@ -297,3 +297,17 @@ class TestPIDLagrangeMultiplier:
         with pytest.raises(ValueError, match="mean_episode_cost must be finite"):
             m.update(bad)
         assert int(m.num_updates) == 0
+
+
+@pytest.mark.parametrize("make", [
+    lambda: NoMultiplier(cost_limit=25.0),
+    lambda: LagrangeMultiplier(cost_limit=25.0),
+    lambda: PIDLagrangeMultiplier(cost_limit=25.0),
+])
+def test_violation_is_cost_minus_the_limit_the_multiplier_holds(make):
+    """The cost limit lives in the multiplier: the trainer and CPO / MACPO read J_c - d from it."""
+    multiplier = make()
+    assert multiplier.violation(30.0) == pytest.approx(5.0)
+    assert multiplier.violation(torch.tensor(10.0)) == pytest.approx(-15.0)
+    with pytest.raises(ValueError):
+        multiplier.violation(float("nan"))

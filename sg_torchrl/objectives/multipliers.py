@@ -123,6 +123,15 @@ class Multiplier(nn.Module, abc.ABC):
             ValueError: if ``mean_episode_cost`` is not a finite scalar.
         """
 
+    def violation(self, mean_episode_cost: float | Tensor) -> float:
+        """:math:`J_c - d`: how far the measured mean episode cost is above the limit (negative below it).
+
+        The one place the cost limit is subtracted: the multipliers' own updates, the trainer (which
+        hands it to CPO / PCPO's step) and MACPO's constraint value all ask the multiplier, so the
+        limit lives in this module alone.
+        """
+        return _as_finite_float(mean_episode_cost, "mean_episode_cost") - float(self.cost_limit)
+
     def forward(self) -> Tensor:
         """Returns :attr:`value`, so the module can be called like any other."""
         return self.value
@@ -271,8 +280,7 @@ class LagrangeMultiplier(Multiplier):
         Returns:
             The new multiplier value :math:`\\mathrm{relu}(\\tilde\\lambda)` (detached scalar tensor).
         """
-        jc = _as_finite_float(mean_episode_cost, "mean_episode_cost")
-        violation = jc - float(self.cost_limit)
+        violation = self.violation(mean_episode_cost)
         # d/d(lambda) of -lambda * violation, in the parameter's dtype (as autograd would give it).
         grad = torch.tensor(-violation, dtype=self.lambda_raw.dtype, device=self.lambda_raw.device)
         beta1, beta2 = self.betas
@@ -425,7 +433,7 @@ class PIDLagrangeMultiplier(Multiplier):
             The new multiplier value (detached ``float64`` scalar tensor).
         """
         jc = _as_finite_float(mean_episode_cost, "mean_episode_cost")
-        delta = jc - float(self.cost_limit)
+        delta = self.violation(jc)
 
         integral = max(0.0, float(self.integral) + self.ki * delta)
         if self.diff_norm:

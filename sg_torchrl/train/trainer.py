@@ -433,7 +433,7 @@ class Trainer(EpochTrainer):
         raw_reward_adv = data["advantage"].mean().item()
         raw_cost_adv = data["cost_advantage"].mean().item()
         normalize_advantages(data)
-        info = self.policy_update(data, self._last_mean_cost - self.cfg.cost_limit)
+        info = self.policy_update(data, self.multiplier.violation(self._last_mean_cost))
         return {**info, "Value/RewardAdv": raw_reward_adv, "Value/CostAdv": raw_cost_adv}
 
     def _evaluate(self) -> dict[str, float]:

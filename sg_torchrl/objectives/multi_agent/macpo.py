@@ -168,13 +168,13 @@ class MACPOUpdate(MultiAgentUpdate):
     def _loss_weighted(self) -> bool:
         return False  # the losses only train the critics here; the factor enters through the step
 
-    def cost_violation(self, episode_cost: float) -> float:
-        """:math:`c = (J_c - d)(1 - \\gamma)`."""
-        return (episode_cost - self.cost_limit) * (1.0 - self.gamma)
+    def cost_violation(self, agent: int, episode_cost: float) -> float:
+        """:math:`c = (J_c - d)(1 - \\gamma)`, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
+        return self.multipliers[agent].violation(episode_cost) * (1.0 - self.gamma)
 
     def _update_agent(self, agent: int, view: TensorDictBase, factor: Tensor, episode_cost: float) -> dict[str, float]:
         weight = factor.unsqueeze(-1)
-        c = self.cost_violation(episode_cost)
+        c = self.cost_violation(agent, episode_cost)
         metrics = dict(self.steps[agent].step(view, weight * view.get("advantage"), weight * view.get("cost_advantage"), c))
         with torch.no_grad():
             ratio = (self._log_prob(agent, view) - view.get("action_log_prob")).exp().mean()

@@ -80,9 +80,8 @@ class MAPPOLagMultiplier(Multiplier):
         Returns:
             The new multiplier (detached ``float64`` scalar).
         """
-        jc = _as_finite_float(mean_episode_cost, "mean_episode_cost")
         surrogate = _as_finite_float(cost_surrogate, "cost_surrogate")
-        delta = -((jc - float(self.cost_limit)) * (1.0 - self.gamma) + surrogate)
+        delta = -(self.violation(mean_episode_cost) * (1.0 - self.gamma) + surrogate)
         self.multiplier.fill_(max(0.0, float(self.multiplier) - self.lr * delta))
         return self.value
 

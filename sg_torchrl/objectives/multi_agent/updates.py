@@ -127,7 +127,6 @@ class MultiAgentUpdate(abc.ABC):
             raise ValueError(f"need one multiplier per agent ({n}), got {len(multipliers)}.")
         self.networks = networks
         self.n_agents = n
-        self.cost_limit = float(cost_limit)
         self.gamma = float(gamma)
         self.max_grad_norm = float(max_grad_norm)
         self.group = group
