@@ -88,7 +88,10 @@ __all__ = [
     "TrustRegionLoss",
     "TrustRegionStep",
     "cpo_direction",
+    "cpo_proposal",
+    "natural_proposal",
     "pcpo_direction",
+    "pcpo_proposal",
 ]
 
 _EPS = 1e-8  # SafePO's guard in the CPO / PCPO divisions by s and lambda
@@ -399,6 +402,37 @@ class Proposal:
     metrics: dict[str, float] = field(default_factory=dict)
 
 
+def natural_proposal(lin: Linearisation, cost_violation: float, delta: float) -> Proposal:
+    """The natural step :math:`\\sqrt{2\\delta/q}\\, x` with TRPO's tests (NPG applies it without any).
+
+    The per-step proposal of :class:`NaturalPolicyStep` and :class:`TRPOStep` as a function of the
+    linearisation, so that seed-group steps (:mod:`sg_torchrl.train.stacked_trust_region`) apply it
+    seed by seed; ``cost_violation`` is unused.
+    """
+    return Proposal(direction=natural_step_size(lin.q, delta) * lin.x)
+
+
+def cpo_proposal(lin: Linearisation, cost_violation: float, delta: float, *, safepo_dual: bool = False) -> Proposal:
+    """:func:`cpo_direction` with CPO's acceptance tests: the proposal of :class:`CPOStep`.
+
+    The cost surrogate may grow by at most :math:`\\max(-c, 0)`; the reward surrogate must not
+    decrease in cases 2-4 (feasible policy). Logs the case and the optimal duals.
+    """
+    sol = cpo_direction(lin, cost_violation, delta, safepo_dual=safepo_dual)
+    return Proposal(
+        direction=sol.direction,
+        require_improvement=sol.case >= 2,
+        cost_tolerance=max(-cost_violation, 0.0),
+        metrics={"Misc/CPOCase": float(sol.case), "Misc/Lambda_star": sol.lam, "Misc/Nu_star": sol.nu},
+    )
+
+
+def pcpo_proposal(lin: Linearisation, cost_violation: float, delta: float, *, use_hx: bool = False) -> Proposal:
+    """:func:`pcpo_direction` with CPO's cost test and no reward test: the proposal of :class:`PCPOStep`."""
+    direction = pcpo_direction(lin, cost_violation, delta, use_hx=use_hx)
+    return Proposal(direction=direction, require_improvement=False, cost_tolerance=max(-cost_violation, 0.0))
+
+
 class TrustRegionStep(abc.ABC):
     """Common body of the trust-region policy steps; subclasses only propose a direction.
 
@@ -582,7 +616,7 @@ class NaturalPolicyStep(TrustRegionStep):
     """
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return Proposal(direction=natural_step_size(lin.q, self.target_kl) * lin.x)
+        return natural_proposal(lin, cost_violation, self.target_kl)
 
 
 class TRPOStep(NaturalPolicyStep):
@@ -621,13 +655,7 @@ class CPOStep(TrustRegionStep):
         self.safepo_dual = bool(safepo_dual)
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        sol = cpo_direction(lin, cost_violation, self.target_kl, safepo_dual=self.safepo_dual)
-        return Proposal(
-            direction=sol.direction,
-            require_improvement=sol.case >= 2,
-            cost_tolerance=max(-cost_violation, 0.0),
-            metrics={"Misc/CPOCase": float(sol.case), "Misc/Lambda_star": sol.lam, "Misc/Nu_star": sol.nu},
-        )
+        return cpo_proposal(lin, cost_violation, self.target_kl, safepo_dual=self.safepo_dual)
 
 
 class PCPOStep(TrustRegionStep):
@@ -651,5 +679,4 @@ class PCPOStep(TrustRegionStep):
         self.use_hx_direction = bool(use_hx_direction)
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        direction = pcpo_direction(lin, cost_violation, self.target_kl, use_hx=self.use_hx_direction)
-        return Proposal(direction=direction, require_improvement=False, cost_tolerance=max(-cost_violation, 0.0))
+        return pcpo_proposal(lin, cost_violation, self.target_kl, use_hx=self.use_hx_direction)
