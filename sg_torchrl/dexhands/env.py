@@ -110,7 +110,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         *,
         num_envs: int = 1,
         device: torch.device | str = "cpu",
-        seed: int | None = None,
+        seed: int | list[int] | None = None,
         cost_mode: CostMode = "indicator",
         cost_source: CostSource = "joints",
         max_episode_steps: int = 75,

@@ -12,7 +12,9 @@ class owns everything tasks share:
 * partial resets through the ``"_reset"`` mask, the episode step counter and time-limit
   truncation;
 * seeding with one generator per simulator (``SeedSequence(seed).spawn``), so simulator ``i`` with
-  seed ``s`` produces the same trajectory whatever ``N`` is;
+  seed ``s`` produces the same trajectory whatever ``N`` is; a list of seeds splits the simulators
+  into equal contiguous blocks, block ``k`` seeded as an env of its own with ``seeds[k]`` (the
+  simulators of a seed group, :func:`block_seeds`);
 * action validation (shape, finiteness) with errors that name the problem, clipping to the
   action bounds as the reference does, and isolation of a diverged simulator or one whose reward
   or cost is not finite (it is reset and reported ``truncated``, the rest of the batch carries on).
@@ -34,6 +36,7 @@ Subclasses implement the numpy hooks ``_reset_sims``, ``_advance``, ``_observe``
 from __future__ import annotations
 
 import abc
+import numbers
 from collections.abc import Sequence
 from typing import Literal
 
@@ -43,7 +46,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-__all__ = ["SafeEnv", "CostMode"]
+__all__ = ["SafeEnv", "CostMode", "block_seeds"]
 
 CostMode = Literal["indicator", "raw"]
 
@@ -62,6 +65,28 @@ def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> Non
                         f"(a floating-point tensor)")
 
 
+def block_seeds(seed: int | Sequence[int] | None, num_envs: int) -> list[np.random.SeedSequence]:
+    """The seed sequences of ``num_envs`` simulators seeded by ``seed``, one per simulator.
+
+    An int (or ``None``: OS entropy) gives ``SeedSequence(seed).spawn(num_envs)``: simulator ``i``
+    depends only on ``(seed, i)``. A sequence of ``K`` seeds splits the simulators into ``K`` equal
+    contiguous blocks and gives block ``k`` the children of ``seeds[k]`` an env of
+    ``num_envs // K`` simulators would give its own, so block ``k`` replays that env exactly (a
+    seed group trains ``K`` runs in one batched env this way).
+
+    Raises:
+        ValueError: an empty sequence, or one whose length does not divide ``num_envs``.
+    """
+    if seed is None or isinstance(seed, numbers.Integral):
+        return np.random.SeedSequence(seed).spawn(num_envs)
+    seeds = [int(s) for s in seed]
+    if not seeds or num_envs % len(seeds):
+        raise ValueError(f"{len(seeds)} seeds cannot split {num_envs} simulators into equal blocks "
+                         f"(num_envs must be a positive multiple of the number of seeds)")
+    block = num_envs // len(seeds)
+    return [child for s in seeds for child in np.random.SeedSequence(s).spawn(block)]
+
+
 class SafeEnv(EnvBase, abc.ABC):
     """Batched constrained-MDP environment emitting ``reward`` and ``cost``.
 
@@ -78,7 +103,10 @@ class SafeEnv(EnvBase, abc.ABC):
             per-constraint cost and their sum become 1.0 if positive else 0.0, so ``cost`` is in
             {0, 1} and two simultaneous violations still cost 1. ``"raw"``: the continuous values.
         device: device of the emitted tensors (simulation runs on the CPU).
-        seed: seed for the per-simulator generators; ``None`` draws one from the OS.
+        seed: seed for the per-simulator generators; ``None`` draws one from the OS. A sequence of
+            ``K`` seeds (``K`` dividing ``num_envs``) seeds ``K`` equal contiguous blocks of simulators,
+            block ``k`` exactly as an env of ``num_envs // K`` simulators with seed ``seeds[k]``: one
+            batched env for the ``K`` runs of a seed group (:func:`block_seeds`).
 
     Keys emitted after a step (``td["next"]``): ``observation`` ``(N, obs_dim)`` float32,
     ``reward`` and ``cost`` ``(N, 1)`` float32, ``("cost_info", name)`` ``(N, 1)`` float32,
@@ -102,7 +130,7 @@ class SafeEnv(EnvBase, abc.ABC):
         frame_skip: int = 1,
         cost_mode: CostMode = "indicator",
         device: torch.device | str = "cpu",
-        seed: int | None = None,
+        seed: int | Sequence[int] | None = None,
     ) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -226,10 +254,9 @@ class SafeEnv(EnvBase, abc.ABC):
         return ~(per_sim <= _FLOAT32_MAX)
 
     # ------------------------------------------------------------------ TorchRL API
-    def _set_seed(self, seed: int | None) -> None:
-        sequence = np.random.SeedSequence(seed)
+    def _set_seed(self, seed: int | Sequence[int] | None) -> None:
         # Child i depends only on (seed, i): simulator i replays identically whatever N is.
-        self._rngs = [np.random.default_rng(child) for child in sequence.spawn(self.num_envs)]
+        self._rngs = [np.random.default_rng(child) for child in block_seeds(seed, self.num_envs)]
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)

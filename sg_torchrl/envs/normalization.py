@@ -8,6 +8,13 @@ statistics are buffers, so checkpoints restore them; :meth:`~RunningObservationN
 stepped observations (reset observations are normalised but not counted) (SafePO kept updating
 during evaluation, a quirk we do not reproduce).
 
+**Per-seed statistics.** A seed group (``sg-train --seeds``) steps the simulators of S runs in one
+batched env, seed ``s``'s simulators as the ``s``-th of S equal contiguous blocks of the batch
+(:func:`sg_torchrl.envs.base.block_seeds`). With ``groups=S`` the normaliser keeps one row of
+statistics per block: block ``s`` of every batch updates row ``s`` only, by the same rule, and is
+normalised by it, so a seed's observations are normalised exactly as its single-seed run's (the
+reductions run per block, in the same order, with bit-identical results).
+
 Freezing is a flag of its own, not ``nn.Module.training``: TorchRL puts every transform in eval
 mode when it is attached to a ``TransformedEnv`` (or appended to a ``Compose``), so a
 ``training``-gated update would never run (TorchRL's own ``VecNorm`` has ``freeze()`` for the same
@@ -26,13 +33,17 @@ __all__ = ["RunningObservationNorm"]
 
 
 class RunningObservationNorm(Transform):
-    """Normalise ``in_keys`` by running statistics over every batch dimension.
+    """Normalise ``in_keys`` by running statistics over every batch dimension (or per block of simulators).
 
     Args:
         shape: the trailing feature shape of the normalised entry (e.g. ``(17,)``).
         in_keys: entries to normalise in place (default ``["observation"]``).
         epsilon: added to the variance before the square root.
         initial_count: pseudo-count of the initial (mean 0, variance 1) statistics.
+        groups: ``None`` (default): one set of statistics over the whole batch. ``G``: ``G`` sets,
+            one per equal contiguous block of the leading (simulator) dimension: block ``g`` of a
+            batch updates and is normalised by row ``g`` of :attr:`mean`, :attr:`var` and
+            :attr:`count` (shapes ``(G, *shape)``, ``(G, *shape)``, ``(G,)``).
 
     Attributes:
         frozen: when ``True``, stepping normalises without updating the statistics.
@@ -45,12 +56,18 @@ class RunningObservationNorm(Transform):
         *,
         epsilon: float = 1e-8,
         initial_count: float = 1e-4,
+        groups: int | None = None,
     ) -> None:
         super().__init__(in_keys=list(in_keys), out_keys=list(in_keys))
+        if groups is not None and (isinstance(groups, bool) or not isinstance(groups, int) or groups < 1):
+            raise ValueError(f"groups must be None or a positive integer, got {groups!r}")
         self.epsilon = epsilon
-        self.register_buffer("mean", torch.zeros(*shape, dtype=torch.float64))
-        self.register_buffer("var", torch.ones(*shape, dtype=torch.float64))
-        self.register_buffer("count", torch.tensor(initial_count, dtype=torch.float64))
+        self.shape = tuple(int(size) for size in shape)
+        self.groups = groups
+        rows = () if groups is None else (groups,)
+        self.register_buffer("mean", torch.zeros(*rows, *self.shape, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(*rows, *self.shape, dtype=torch.float64))
+        self.register_buffer("count", torch.full(rows, initial_count, dtype=torch.float64))
         self.frozen = False
 
     def freeze(self) -> RunningObservationNorm:
@@ -65,23 +82,57 @@ class RunningObservationNorm(Transform):
 
     def frozen_copy(self) -> RunningObservationNorm:
         """A frozen, detached copy with the same statistics (for an evaluation env)."""
-        copy = RunningObservationNorm(self.mean.shape, in_keys=self.in_keys, epsilon=self.epsilon)
+        copy = RunningObservationNorm(self.shape, in_keys=self.in_keys, epsilon=self.epsilon, groups=self.groups)
         copy.load_state_dict(self.state_dict())
         return copy.freeze()
 
+    def group_copy(self, group: int) -> RunningObservationNorm:
+        """Row ``group``'s statistics as a detached, ungrouped normaliser (a seed's own, as its single run has it)."""
+        self._check_grouped()
+        copy = RunningObservationNorm(self.shape, in_keys=self.in_keys, epsilon=self.epsilon)
+        copy.load_state_dict(self.group_state_dict(group))
+        copy.frozen = self.frozen
+        return copy
+
+    def group_state_dict(self, group: int) -> dict[str, torch.Tensor]:
+        """Row ``group``'s statistics under an ungrouped normaliser's ``state_dict`` keys (copies)."""
+        self._check_grouped()
+        return {"mean": self.mean[group].clone(), "var": self.var[group].clone(), "count": self.count[group].clone()}
+
+    @torch.no_grad()
+    def load_group_state_dict(self, group: int, state: dict[str, torch.Tensor]) -> None:
+        """Set row ``group`` from an ungrouped normaliser's ``state_dict`` (or :meth:`group_state_dict`)."""
+        self._check_grouped()
+        for name in ("mean", "var", "count"):
+            getattr(self, name)[group].copy_(state[name])
+
+    def _check_grouped(self) -> None:
+        if self.groups is None:
+            raise ValueError("this normaliser keeps one set of statistics (groups=None)")
+
+    def _blocks(self, batch: torch.Tensor) -> torch.Tensor:
+        """``batch`` (leading simulator dim first) as ``(G, -1, *shape)`` in float64: block ``g`` on row ``g``."""
+        if batch.shape[0] % self.groups:
+            raise ValueError(f"a batch of {batch.shape[0]} does not split into {self.groups} equal blocks")
+        return batch.reshape(self.groups, -1, *self.shape).to(torch.float64)
+
     @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
-        """Merge the moments of ``batch`` (any leading dims) into the running statistics."""
-        flat = batch.reshape(-1, *self.mean.shape).to(torch.float64)
-        batch_count = flat.shape[0]
-        batch_mean = flat.mean(0)
-        batch_var = flat.var(0, unbiased=False)
+        """Merge the moments of ``batch`` (any leading dims; per block with ``groups``) into the statistics."""
+        if self.groups is None:
+            flat, dim, count = batch.reshape(-1, *self.shape).to(torch.float64), 0, self.count
+        else:
+            flat, dim = self._blocks(batch), 1
+            count = self.count.view(-1, *([1] * len(self.shape)))
+        batch_count = flat.shape[dim]
+        batch_mean = flat.mean(dim)
+        batch_var = flat.var(dim, unbiased=False)
         delta = batch_mean - self.mean
-        total = self.count + batch_count
+        total = count + batch_count
         self.mean += delta * batch_count / total
-        m2 = self.var * self.count + batch_var * batch_count + delta.square() * self.count * batch_count / total
+        m2 = self.var * count + batch_var * batch_count + delta.square() * count * batch_count / total
         self.var.copy_(m2 / total)
-        self.count.copy_(total)
+        self.count += batch_count
 
     def _step(self, tensordict, next_tensordict):
         # Statistics learn from stepped observations only: on a partial reset the reset
@@ -92,8 +143,12 @@ class RunningObservationNorm(Transform):
         return self._call(next_tensordict)
 
     def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
-        normalised = (obs.to(torch.float64) - self.mean) / torch.sqrt(self.var + self.epsilon)
-        return normalised.to(obs.dtype)
+        if self.groups is None:
+            normalised = (obs.to(torch.float64) - self.mean) / torch.sqrt(self.var + self.epsilon)
+            return normalised.to(obs.dtype)
+        mean, var = self.mean.unsqueeze(1), self.var.unsqueeze(1)
+        normalised = (self._blocks(obs) - mean) / torch.sqrt(var + self.epsilon)
+        return normalised.reshape(obs.shape).to(obs.dtype)
 
     def _reset(self, tensordict, tensordict_reset):
         return self._call(tensordict_reset)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import numbers
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -166,7 +166,7 @@ def make(
     env_id: str,
     num_envs: int = 1,
     device: torch.device | str = "cpu",
-    seed: int | None = None,
+    seed: int | Sequence[int] | None = None,
     **options: Any,
 ) -> SafeEnv:
     """Build the env registered as ``env_id`` with ``num_envs`` simulators in one process.
@@ -175,7 +175,11 @@ def make(
         env_id: a Safety-Gymnasium id (see :func:`list_envs`).
         num_envs: simulators stepped by the returned env (its ``batch_size`` is ``[num_envs]``).
         device: device of the emitted TensorDicts.
-        seed: seed of the per-simulator generators, an int >= 0 (``None``: fresh OS entropy).
+        seed: seed of the per-simulator generators, an int >= 0 (``None``: fresh OS entropy); or a
+            list of ``K`` seeds whose length divides ``num_envs``: the simulators split into ``K``
+            equal contiguous blocks, block ``k`` seeded exactly as
+            ``make(env_id, num_envs // K, seed=seeds[k])`` (same trajectories for the same actions),
+            which is how a seed group (``sg-train --seeds``) steps its runs' simulators in one env.
         **options: task options, e.g. ``cost_mode="raw"``, ``max_episode_steps=500``, or for the
             navigation ids ``obs_mode="vector+rgbd"``, ``image_size=256`` (pixel observations); see
             :func:`env_option_types`.
@@ -196,14 +200,30 @@ def make(
         raise EnvOptionTypeError(f"{env_id}: num_envs must be an integer, got {num_envs!r} ({type(num_envs).__name__})")
     if num_envs < 1:
         raise InvalidEnvOptionError(f"{env_id}: num_envs must be >= 1, got {num_envs}")
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
-        raise EnvOptionTypeError(f"{env_id}: seed must be an integer or None, got {seed!r} ({type(seed).__name__})")
-    if seed is not None and seed < 0:
-        raise InvalidEnvOptionError(f"{env_id}: seed must be >= 0 (or None), got {seed}")
+    seed = _checked_seed(env_id, seed, int(num_envs))
     options = validate_env_options(env_id, options)
     _check_device(env_id, device)
     kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **entry.options, **options}
-    return entry.constructor(num_envs=int(num_envs), device=device, seed=None if seed is None else int(seed), **kwargs)
+    return entry.constructor(num_envs=int(num_envs), device=device, seed=seed, **kwargs)
+
+
+def _checked_seed(env_id: str, seed: Any, num_envs: int) -> int | list[int] | None:
+    """``seed`` as :func:`make` hands it on (an int, a list of ints or ``None``), or an error naming it."""
+    if seed is None:
+        return None
+    if isinstance(seed, (list, tuple)):
+        if not seed or num_envs % len(seed):
+            raise InvalidEnvOptionError(
+                f"{env_id}: a list of {len(seed)} seeds splits the simulators into equal blocks, so num_envs "
+                f"({num_envs}) must be a positive multiple of its length")
+        return [_checked_seed(env_id, value, num_envs) if not isinstance(value, (list, tuple)) else
+                _checked_seed(env_id, str(value), num_envs) for value in seed]  # a nested list: refused below
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise EnvOptionTypeError(
+            f"{env_id}: seed must be an integer, a list of integers or None, got {seed!r} ({type(seed).__name__})")
+    if seed < 0:
+        raise InvalidEnvOptionError(f"{env_id}: seed must be >= 0 (or None), got {seed}")
+    return int(seed)
 
 
 def _check_device(env_id: str, device: Any) -> None:

@@ -74,7 +74,7 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         agent_obsk: int = 1,
         num_envs: int = 1,
         device: torch.device | str = "cpu",
-        seed: int | None = None,
+        seed: int | list[int] | None = None,
         cost_mode: CostMode = "indicator",
         max_episode_steps: int = 1000,
         velocity_threshold: float | None = None,

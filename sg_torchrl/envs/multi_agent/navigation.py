@@ -79,7 +79,7 @@ class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
         agent_view: AgentView = "joint",
         num_envs: int = 1,
         device: torch.device | str = "cpu",
-        seed: int | None = None,
+        seed: int | list[int] | None = None,
         cost_mode: CostMode = "indicator",
         max_episode_steps: int | None = None,
         lidar: LidarMode = "pseudo",

@@ -87,7 +87,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         *,
         num_envs: int = 1,
         device: torch.device | str = "cpu",
-        seed: int | None = None,
+        seed: int | list[int] | None = None,
         cost_mode: CostMode = "indicator",
         max_episode_steps: int | None = None,
         lidar: LidarMode = "pseudo",
