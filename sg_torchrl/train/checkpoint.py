@@ -36,7 +36,9 @@ the old checkpoint): a crash while saving leaves the previous checkpoint intact.
 **Run directories.** :func:`check_new_run_dir` refuses to start a new run in a directory that
 already holds one (a checkpoint, ``progress.csv`` or ``summary.json``) unless asked to start over
 (``--overwrite``), and :func:`clear_run_dir` then removes exactly the files and folders a run
-writes, nothing else. :func:`resume_run_dir` says where a resumed run continues: the directory given
+writes, nothing else. A seed group's directory (``sg-train --seeds``) holds its own checkpoint and
+config plus one run directory per seed, ``seed-XXX/`` (:data:`SEED_DIR_PATTERN`): both functions
+look into those too. :func:`resume_run_dir` says where a resumed run continues: the directory given
 to ``--resume`` (or the folder of the checkpoint file given), whatever the saved config says, so a
 copied run continues in the copy.
 """
@@ -58,8 +60,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 __all__ = [
-    "CHECKPOINT_NAME", "CheckpointError", "RUN_FILES", "RunDirectoryError", "check_new_run_dir", "checkpoint_file",
-    "clear_run_dir", "decode_state", "encode_state", "existing_run_files", "load_checkpoint", "resume_run_dir",
+    "CHECKPOINT_NAME", "CheckpointError", "RUN_FILES", "RunDirectoryError", "SEED_DIR_PATTERN", "check_new_run_dir",
+    "checkpoint_file", "clear_run_dir", "decode_state", "encode_state", "existing_run_files", "load_checkpoint", "resume_run_dir",
     "save_checkpoint",
 ]
 
@@ -68,6 +70,8 @@ CHECKPOINT_NAME = "checkpoint.pt"
 #: What a run writes into its directory; a new run with ``--overwrite`` removes these, and nothing else.
 RUN_FILES = (CHECKPOINT_NAME, CHECKPOINT_NAME + ".tmp", "config.json", "progress.csv", "summary.json", "curves.png",
              "csv", "tb", "wandb")
+#: The per-seed run directories inside a seed group's directory (``seed-000``, ``seed-001``, ...).
+SEED_DIR_PATTERN = "seed-[0-9]*"
 #: The files whose presence means a directory already holds a run.
 _RUN_MARKERS = (CHECKPOINT_NAME, "progress.csv", "summary.json")
 
@@ -258,10 +262,19 @@ def _verified_payload(path: Path, data: bytes) -> bytes:
 
 
 # ---------------------------------------------------------------------- run directories
+def _seed_dirs(run_dir: Path) -> list[Path]:
+    """The ``seed-XXX`` run directories of a seed group's directory (none in a single run's)."""
+    return sorted(path for path in run_dir.glob(SEED_DIR_PATTERN) if path.is_dir() and not path.is_symlink())
+
+
 def existing_run_files(run_dir: str | Path) -> list[str]:
-    """The names among ``checkpoint.pt``, ``progress.csv``, ``summary.json`` present in ``run_dir``."""
+    """The names among ``checkpoint.pt``, ``progress.csv``, ``summary.json`` present in ``run_dir``,
+    and in its ``seed-XXX/`` directories (as ``seed-000/progress.csv``) when it is a seed group's."""
     run_dir = Path(run_dir)
-    return [name for name in _RUN_MARKERS if (run_dir / name).exists()]
+    found = [name for name in _RUN_MARKERS if (run_dir / name).exists()]
+    for seed_dir in _seed_dirs(run_dir):
+        found += [f"{seed_dir.name}/{name}" for name in _RUN_MARKERS if (seed_dir / name).exists()]
+    return found
 
 
 def check_new_run_dir(run_dir: str | Path, overwrite: bool = False) -> None:
@@ -279,9 +292,17 @@ def check_new_run_dir(run_dir: str | Path, overwrite: bool = False) -> None:
 
 
 def clear_run_dir(run_dir: str | Path) -> list[str]:
-    """Remove what a run writes (:data:`RUN_FILES`) from ``run_dir``; returns the names removed."""
+    """Remove what a run writes (:data:`RUN_FILES`) from ``run_dir``; returns the names removed.
+
+    In a seed group's directory, also from each ``seed-XXX/`` run directory, which is then removed
+    when nothing else is left in it.
+    """
     run_dir = Path(run_dir)
     removed = []
+    for seed_dir in _seed_dirs(run_dir):
+        removed += [f"{seed_dir.name}/{name}" for name in clear_run_dir(seed_dir)]
+        if not any(seed_dir.iterdir()):
+            seed_dir.rmdir()
     for name in RUN_FILES:
         target = run_dir / name
         if target.is_dir() and not target.is_symlink():

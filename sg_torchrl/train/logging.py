@@ -94,9 +94,11 @@ class RunLogger:
         # torchrl's offline=True sets WANDB_MODE=dryrun, which wandb 0.31 rejects; pass mode instead.
         os.environ.pop("WANDB_MODE", None)
         os.environ.setdefault("WANDB_SILENT", "true")
+        # reinit="create_new": a seed group logs its S runs from one process, each to its own wandb run
+        # (wandb's default would hand the second logger the first run back).
         return WandbLogger(
             exp_name=exp_name, offline=False, save_dir=str(self.run_dir), project="sg_torchrl", mode=mode,
-            config=config,
+            config=config, reinit="create_new",
         )
 
     def log(self, metrics: dict[str, float], step: int) -> None:

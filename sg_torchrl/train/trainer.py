@@ -43,7 +43,10 @@ re-running a command never deletes results silently.
 :class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
 metrics, the progress bar, logging, checkpoint files, the final summary and plot);
 :class:`Trainer` (single agent) and :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer`
-supply the networks, the update and the evaluation.
+supply the networks, the update and the evaluation. A seed group
+(:class:`~sg_torchrl.train.seed_group.GroupTrainer`) runs S runs in one loop: it keeps the loop and
+the checkpoint schedule, and hands each seed's row, logger and summary to the same helpers
+(:func:`finished_episode_cost`, :func:`epoch_row`, :func:`open_run_logger`, :func:`write_run_summary`).
 """
 
 from __future__ import annotations
@@ -76,7 +79,10 @@ from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts, write_values
 
-__all__ = ["CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer"]
+__all__ = [
+    "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer", "epoch_row",
+    "finished_episode_cost", "open_run_logger", "write_run_summary",
+]
 
 
 @contextlib.contextmanager
@@ -117,6 +123,82 @@ class CheckpointSchedule:
         self._saved_at, self.saved_epoch = time.monotonic(), epoch
 
 
+def finished_episode_cost(stats: EpisodeStats, batch: TensorDictBase, previous: float) -> float:
+    """Feed ``batch`` to ``stats``; the mean cost of the episodes it finished, ``previous`` when none did.
+
+    SafePO's :math:`J_c`, which the multiplier follows (kept from the last epoch that finished an episode).
+    """
+    stats.update(batch)
+    finished = stats.pop_finished()
+    return finished["cost"].mean().item() if finished["cost"].numel() else previous
+
+
+def epoch_row(
+    stats: EpisodeStats, last_mean_cost: float, epoch: int, total_steps: int, learned: dict[str, float], *,
+    rollout_time: float, update_time: float, total_time: float, fps: float,
+) -> dict[str, float]:
+    """One epoch's ``progress.csv`` row under SafePO's names, in the order every run logs them.
+
+    Episode metrics are 50-episode moving averages of ``stats`` (NaN before the first finished episode);
+    ``learned`` holds the multiplier, learning rate and update metrics of the epoch.
+    """
+    window = stats.window(50)
+    return {
+        "Metrics/EpRet": window.get("return", float("nan")),
+        "Metrics/EpCost": window.get("cost", float("nan")),
+        "Metrics/EpLen": window.get("length", float("nan")),
+        "Metrics/EpochEpCost": last_mean_cost,
+        "Train/Epoch": epoch,
+        "Train/TotalSteps": total_steps,
+        **learned,
+        "Time/Rollout": rollout_time,
+        "Time/Update": update_time,
+        "Time/Total": total_time,
+        "Time/FPS": fps,
+    }
+
+
+def open_run_logger(cfg: TrainConfig, checkpoint: dict[str, Any] | None, progress_row: dict[str, float] | None
+                    ) -> RunLogger:
+    """The :class:`RunLogger` of the run ``cfg`` describes (its ``run_dir`` and ``seed``).
+
+    With a ``checkpoint`` (a resumed run) ``progress.csv`` is cut back to the checkpoint's epoch and
+    ``progress_row``, the checkpointed epoch's row, is appended when the file lacks it.
+    """
+    return RunLogger(
+        cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb, config=cfg.to_dict(),
+        resume_epoch=None if checkpoint is None else checkpoint["epoch"],
+        resume_row=None if checkpoint is None else progress_row,
+    )
+
+
+def write_run_summary(
+    cfg: TrainConfig, logger: RunLogger, stats: EpisodeStats, evaluation: dict[str, float] | None, *, title: str,
+    total_steps: int, train_seconds: float, extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """End one run: log ``evaluation``, write ``summary.json`` and ``curves.png`` in ``cfg.run_dir``, close the logger.
+
+    The summary holds the mean return and cost of the last 10 training episodes, the evaluation and
+    ``extra`` (a seed group's note that a seed diverged); returns it (without the totals the file adds).
+    """
+    last10 = stats.window(10)
+    summary: dict[str, Any] = {
+        "Final/EpRetLast10": last10.get("return", float("nan")),
+        "Final/EpCostLast10": last10.get("cost", float("nan")),
+    }
+    if evaluation:
+        logger.log({**evaluation, "Train/TotalSteps": total_steps}, step=total_steps)
+        summary.update(evaluation)
+    summary.update(extra or {})
+    (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": total_steps,
+                                                          "Time/Total": train_seconds}, indent=2))
+    history = [row for row in logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
+    plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
+                title=f"{title} on {cfg.env_id} (seed {cfg.seed})")
+    logger.close()
+    return summary
+
+
 class EpochTrainer(abc.ABC):
     """The epoch loop every ``sg-train`` trainer shares; subclasses supply the algorithm.
 
@@ -134,6 +216,10 @@ class EpochTrainer(abc.ABC):
     Episode statistics are team-level (return, cost, length of finished episodes); the mean cost of
     the episodes finished in an epoch is :attr:`last_mean_cost` (kept from the previous epoch when
     none finished), SafePO's :math:`J_c`.
+
+    A trainer of several runs (a seed group) overrides the per-run pieces: :meth:`_train_epoch`,
+    :meth:`_open_logs`, :meth:`_log_epoch`, :meth:`_run_state` / :meth:`_load_run_state`,
+    :meth:`finish` and :meth:`_exhausted`.
     """
 
     title: str
@@ -168,11 +254,12 @@ class EpochTrainer(abc.ABC):
             checkpoint_files.check_new_run_dir(cfg.run_dir, cfg.overwrite)
             if checkpoint_files.existing_run_files(cfg.run_dir):  # cfg.overwrite: start over
                 checkpoint_files.clear_run_dir(cfg.run_dir)
-        self.logger = RunLogger(
-            cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb,
-            config=cfg.to_dict(), resume_epoch=self.epoch if checkpoint is not None else None,
-            resume_row=None if checkpoint is None else checkpoint.get("progress_row"),
-        )
+        self._open_logs(checkpoint)
+
+    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
+        """Open the run's logger (:func:`open_run_logger`), after the checkpoint (if any) is restored."""
+        row = None if checkpoint is None else checkpoint.get("progress_row")
+        self.logger = open_run_logger(self.cfg, checkpoint, row)
 
     @property
     def last_mean_cost(self) -> float:
@@ -196,6 +283,10 @@ class EpochTrainer(abc.ABC):
     def _load_algorithm_state(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`_algorithm_state` saved."""
 
+    def _exhausted(self) -> bool:
+        """Whether nothing is left to train before the budget is spent (every seed of a group diverged)."""
+        return False
+
     # ------------------------------------------------------------------ epochs
     def run(self, max_epochs: int | None = None) -> dict[str, float]:
         """Train until the budget is spent (or ``max_epochs`` more epochs), checkpointing on the way.
@@ -218,7 +309,7 @@ class EpochTrainer(abc.ABC):
         schedule = self._schedule = CheckpointSchedule(cfg.checkpoint_every, cfg.checkpoint_minutes, last_epoch)
         try:
             with StopRequests() as stop:
-                while self.epoch < last_epoch:
+                while self.epoch < last_epoch and not self._exhausted():
                     metrics = self.train_epoch()  # checkpoints (when due) before it logs the epoch
                     bar.update(cfg.steps_per_epoch)
                     bar.set_postfix(EpRet=f"{metrics['Metrics/EpRet']:.1f}",
@@ -228,7 +319,7 @@ class EpochTrainer(abc.ABC):
                         saved = schedule.saved_epoch == self.epoch
                         raise TrainingInterrupted(stop.signum, self.epoch,
                                                   self.checkpoint_path if saved else self.save_checkpoint())
-            if self.epoch >= cfg.epochs:
+            if self.epoch >= cfg.epochs or self._exhausted():
                 metrics.update(self.finish())
         finally:
             self._schedule = None
@@ -249,17 +340,18 @@ class EpochTrainer(abc.ABC):
         if schedule is not None and schedule.due(self.epoch):
             self.save_checkpoint()
             schedule.saved(self.epoch)
-        self.logger.log(metrics, step=self.total_steps)
+        self._log_epoch(metrics)
         return metrics
+
+    def _log_epoch(self, metrics: dict[str, float]) -> None:
+        """Log the epoch's row (after its checkpoint, when one was due)."""
+        self.logger.log(metrics, step=self.total_steps)
 
     def _train_epoch(self) -> dict[str, float]:
         start = time.perf_counter()
         batch = self.collector.collect()
         rollout_time = time.perf_counter() - start
-        self.stats.update(batch)
-        finished = self.stats.pop_finished()
-        if finished["cost"].numel():
-            self._last_mean_cost = finished["cost"].mean().item()
+        self._last_mean_cost = finished_episode_cost(self.stats, batch, self._last_mean_cost)
 
         update_start = time.perf_counter()
         learned = self._learn(batch)
@@ -269,41 +361,15 @@ class EpochTrainer(abc.ABC):
         epoch_time = time.perf_counter() - start
         self.train_seconds += epoch_time
 
-        window = self.stats.window(50)
-        metrics = {
-            "Metrics/EpRet": window.get("return", float("nan")),
-            "Metrics/EpCost": window.get("cost", float("nan")),
-            "Metrics/EpLen": window.get("length", float("nan")),
-            "Metrics/EpochEpCost": self._last_mean_cost,
-            "Train/Epoch": self.epoch,
-            "Train/TotalSteps": self.total_steps,
-            **learned,
-            "Time/Rollout": rollout_time,
-            "Time/Update": update_time,
-            "Time/Total": self.train_seconds,
-            "Time/FPS": batch.numel() / epoch_time,
-        }
-        return metrics
+        return epoch_row(self.stats, self._last_mean_cost, self.epoch, self.total_steps, learned,
+                         rollout_time=rollout_time, update_time=update_time, total_time=self.train_seconds,
+                         fps=batch.numel() / epoch_time)
 
     def finish(self) -> dict[str, float]:
         """Final evaluation, learning-curve PNG and summary."""
-        cfg = self.cfg
-        last10 = self.stats.window(10)
-        summary: dict[str, float] = {
-            "Final/EpRetLast10": last10.get("return", float("nan")),
-            "Final/EpCostLast10": last10.get("cost", float("nan")),
-        }
-        if cfg.eval_episodes > 0:
-            evaluation = self._evaluate()
-            self.logger.log({**evaluation, "Train/TotalSteps": self.total_steps}, step=self.total_steps)
-            summary.update(evaluation)
-        (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": self.total_steps,
-                                                              "Time/Total": self.train_seconds}, indent=2))
-        history = [row for row in self.logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
-        plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
-                    title=f"{self.title} on {cfg.env_id} (seed {cfg.seed})")
-        self.logger.close()
-        return summary
+        evaluation = self._evaluate() if self.cfg.eval_episodes > 0 else None
+        return write_run_summary(self.cfg, self.logger, self.stats, evaluation, title=self.title,
+                                 total_steps=self.total_steps, train_seconds=self.train_seconds)
 
     # ------------------------------------------------------------------ checkpoints
     @property
@@ -322,15 +388,26 @@ class EpochTrainer(abc.ABC):
             "epoch": self.epoch,
             "total_steps": self.total_steps,
             "train_seconds": self.train_seconds,
-            "last_mean_cost": self._last_mean_cost,
-            # The epoch's progress.csv row: written by a resumed run if the process died before logging it.
-            "progress_row": None if self._last_row is None else {k: float(v) for k, v in self._last_row.items()},
+            **self._run_state(),
             **self._algorithm_state(),
             "collector": self.collector.state_dict(),
-            "stats": self.stats.state_dict(),
             "torch_rng": torch.get_rng_state(),
         }
         return checkpoint_files.save_checkpoint(state, path)
+
+    def _run_state(self) -> dict[str, Any]:
+        """The checkpoint entries of the run's own record: :math:`J_c`, the epoch's row, episode statistics."""
+        return {
+            "last_mean_cost": self._last_mean_cost,
+            # The epoch's progress.csv row: written by a resumed run if the process died before logging it.
+            "progress_row": None if self._last_row is None else {k: float(v) for k, v in self._last_row.items()},
+            "stats": self.stats.state_dict(),
+        }
+
+    def _load_run_state(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`_run_state` saved."""
+        self._last_mean_cost = state["last_mean_cost"]
+        self.stats.load_state_dict(state["stats"])
 
     @staticmethod
     def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -350,10 +427,9 @@ class EpochTrainer(abc.ABC):
         self.epoch = state["epoch"]
         self.total_steps = state["total_steps"]
         self.train_seconds = state["train_seconds"]
-        self._last_mean_cost = state["last_mean_cost"]
+        self._load_run_state(state)
         self._load_algorithm_state(state)
         self.collector.load_state_dict(state["collector"])
-        self.stats.load_state_dict(state["stats"])
         torch.set_rng_state(state["torch_rng"])
 
 
