@@ -2,7 +2,9 @@
 
 Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. The twelve
 single-agent algorithms run in :class:`Trainer`, the four multi-agent ones (``--algo mappo``,
-``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`.
+``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`, and a seed
+group (``--seeds 0 1 2``: several seeds of a first-order algorithm side by side in one process) in
+:class:`~sg_torchrl.train.seed_group.GroupTrainer`.
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
@@ -31,6 +33,7 @@ _HEAVY = {
     "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
     "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
     "EpochTrainer": "sg_torchrl.train.trainer",
+    "GroupTrainer": "sg_torchrl.train.seed_group",
     "Trainer": "sg_torchrl.train.trainer",
 }
 
@@ -43,13 +46,19 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
-    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "MultiAgentTrainer", "TrainConfig", "Trainer",
+    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentTrainer",
+    "TrainConfig", "Trainer",
     "TrainingInterrupted", "algorithm_title", "main", "train", "trainer_class",
 ]
 
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
-    """:class:`MultiAgentTrainer` for the multi-agent algorithms, :class:`Trainer` for the rest."""
+    """:class:`GroupTrainer` for a seed group, :class:`MultiAgentTrainer` for the multi-agent algorithms,
+    :class:`Trainer` for the rest."""
+    if cfg.group:
+        from sg_torchrl.train.seed_group import GroupTrainer
+
+        return GroupTrainer
     from sg_torchrl.train.multi_agent import MultiAgentTrainer
     from sg_torchrl.train.trainer import Trainer
 
@@ -95,7 +104,8 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
 
     Raises:
         ValueError: an invalid merged config, or flags a resumed run cannot take (``--preset``,
-            ``--overwrite``, ``--output-dir`` / ``--run-name``: it stays in its directory).
+            ``--overwrite``, ``--output-dir`` / ``--run-name``: it stays in its directory; ``--seed`` /
+            ``--seeds`` other than its own: a run keeps its seeds).
         FileNotFoundError: no checkpoint at the ``--resume`` path.
         CheckpointError: a damaged or foreign checkpoint.
     """
@@ -118,6 +128,9 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     if unknown:
         raise CheckpointError(f"the config saved in {resume} has fields this sg_torchrl does not know "
                               f"({', '.join(unknown)}): written by another version")
+    for name in ("seed", "seeds"):  # a run (a group) keeps its seeds: its state holds their streams
+        if name in values and values[name] != saved.get(name, [] if name == "seeds" else None):
+            raise ValueError(f"a resumed run keeps its seeds ({_seeds_text(saved)}); --{name} cannot change them")
     merged = TrainConfig(**{**saved, **values, "resume": str(resume), "overwrite": False})
     run_dir = resume_run_dir(resume)
     moved = [name for name in ("output_dir", "run_name") if name in values]
@@ -126,6 +139,36 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
         raise ValueError(f"a resumed run continues in its own directory ({run_dir}); {flags} cannot move it to "
                          f"{merged.run_dir} (copy the run directory and resume the copy instead)")
     return dataclasses.replace(merged, output_dir=str(run_dir.parent), run_name=run_dir.name)
+
+
+def _seeds_text(config: dict[str, Any]) -> str:
+    seeds = config.get("seeds") or []
+    return f"--seeds {' '.join(map(str, seeds))}" if seeds else f"--seed {config.get('seed')}"
+
+
+def _print_group(cfg: TrainConfig, metrics: dict[str, Any]) -> None:
+    """A seed group's end-of-run report: each seed's figures, then their mean."""
+    run_dir, nan = cfg.run_dir, float("nan")
+    print(f"{algorithm_title(cfg.algo)} on {cfg.env_id}, seeds {' '.join(map(str, cfg.seeds))}: "
+          f"{metrics.get('Train/TotalSteps', 0):.0f} env steps per seed (cost limit {cfg.cost_limit:g})")
+    for seed in cfg.seeds:
+        prefix = f"seed-{seed:03d}/"
+        line = (f"  seed {seed}: training EpRet {metrics.get(prefix + 'Metrics/EpRet', nan):.1f}  "
+                f"EpCost {metrics.get(prefix + 'Metrics/EpCost', nan):.1f}")
+        if prefix + "Metrics/EvalEpRet" in metrics:
+            line += (f"   evaluation EpRet {metrics[prefix + 'Metrics/EvalEpRet']:.1f}  "
+                     f"EpCost {metrics[prefix + 'Metrics/EvalEpCost']:.1f}")
+        if metrics.get(prefix + "Diverged"):
+            line += f"   DIVERGED in epoch {metrics[prefix + 'DivergedEpoch']}: {metrics[prefix + 'DivergedReason']}"
+        print(line)
+    line = f"  mean of the seeds that trained to the end: EpRet {metrics.get('Metrics/EpRet', nan):.1f}  " \
+           f"EpCost {metrics.get('Metrics/EpCost', nan):.1f}"
+    if "Metrics/EvalEpRet" in metrics:
+        line += f"   evaluation EpRet {metrics['Metrics/EvalEpRet']:.1f}  EpCost {metrics['Metrics/EvalEpCost']:.1f}"
+    print(line)
+    print(f"  logs:       {run_dir}/seed-XXX/ (progress.csv, csv, summary.json, curves.png"
+          + (", wandb)" if cfg.wandb != "disabled" else ")") + f", {run_dir}/summary.json")
+    print(f"  checkpoint: {run_dir}/checkpoint.pt   (continue with: sg-train --resume {run_dir})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -151,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sg-train: {stop}\n  continue with: sg-train --resume {run_dir}", file=sys.stderr)
         return stop.exit_code
     print()
+    if cfg.group:
+        _print_group(cfg, metrics)
+        return 0 if any(not metrics.get(f"seed-{seed:03d}/Diverged") for seed in cfg.seeds) else 1
     print(f"{algorithm_title(cfg.algo)} on {cfg.env_id}, seed {cfg.seed}: {metrics.get('Train/TotalSteps', 0):.0f} env steps")
     print(f"  training (last 50 episodes): EpRet {metrics.get('Metrics/EpRet', float('nan')):.1f}  "
           f"EpCost {metrics.get('Metrics/EpCost', float('nan')):.1f}  (cost limit {cfg.cost_limit:g})")

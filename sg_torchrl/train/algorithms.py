@@ -24,6 +24,13 @@ pcpo          PPOLagLoss (critics)                 none                PCPO step
 So PPO is PPO-Lag with :class:`~sg_torchrl.objectives.NoMultiplier`, CPPO-PID is PPO-Lag with the PID
 multiplier, TRPO-Lag is TRPO with a Lagrange multiplier and RCPO (as SafePO implements it) is NPG
 with one. Adding an algorithm adds a row here, not trainer code.
+
+A row's ``make_group_update`` is its update loop for a seed group (``sg-train --seeds``,
+:mod:`sg_torchrl.train.group_updates`): the six first-order rows have one, built from the
+single-seed loss (:meth:`~sg_torchrl.train.fused.FirstOrderSpec.from_loss`), so both paths read the
+same hyper-parameters. The second-order rows have none yet (``None``: the config refuses them in a
+group, :data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`) until the stacked trust-region step
+(:mod:`sg_torchrl.train.stacked_trust_region`) is wired here.
 """
 
 from __future__ import annotations
@@ -49,22 +56,28 @@ from sg_torchrl.objectives import (
     TRPOStep,
 )
 from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.fused import FirstOrderSpec
+from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts, GroupUpdate, TwoStageGroupUpdate
 from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
 __all__ = ["Algorithm", "ALGORITHMS"]
 
 MakeLoss = Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
 MakeUpdate = Callable[[UpdateParts, Multiplier, TrainConfig], PolicyUpdate]
+#: ``(parts, loss, cfg) -> GroupUpdate``: ``loss`` is one seed's single-seed loss (``make_loss``), which
+#: carries the objective and its hyper-parameters.
+MakeGroupUpdate = Callable[[GroupParts, LossModule, TrainConfig], GroupUpdate]
 
 
 @dataclass(frozen=True)
 class Algorithm:
-    """How to build one algorithm's multiplier, loss and update loop from a config."""
+    """How to build one algorithm's multiplier, loss and update loop (single seed, and seed group) from a config."""
 
     title: str
     make_multiplier: Callable[[TrainConfig], Multiplier]
     make_loss: MakeLoss
     make_update: MakeUpdate
+    make_group_update: MakeGroupUpdate | None = None
 
 
 # ---------------------------------------------------------------------------- multipliers
@@ -126,16 +139,24 @@ def _trust_region(step_class: type, *, line_search: bool = True) -> MakeUpdate:
     return make
 
 
+def _first_order_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
+    return FirstOrderGroupUpdate(parts, FirstOrderSpec.from_loss(loss))
+
+
+def _two_stage_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
+    return TwoStageGroupUpdate(parts, FirstOrderSpec.from_loss(loss.reward_stage), FirstOrderSpec.from_loss(loss))
+
+
 _natural = _trust_region(NaturalPolicyStep, line_search=False)
 _trpo = _trust_region(TRPOStep)
 
 ALGORITHMS: dict[str, Algorithm] = {
-    "pg": Algorithm("PG", _none, _pg_loss, _first_order),
-    "ppo": Algorithm("PPO", _none, _ppo_lag_loss, _first_order),
-    "ppo_lag": Algorithm("PPO-Lag", _lagrange, _ppo_lag_loss, _first_order),
-    "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss, _first_order),
-    "focops": Algorithm("FOCOPS", _lagrange, _focops_loss, _first_order),
-    "cup": Algorithm("CUP", _lagrange, _cup_loss, _two_stage),
+    "pg": Algorithm("PG", _none, _pg_loss, _first_order, _first_order_group),
+    "ppo": Algorithm("PPO", _none, _ppo_lag_loss, _first_order, _first_order_group),
+    "ppo_lag": Algorithm("PPO-Lag", _lagrange, _ppo_lag_loss, _first_order, _first_order_group),
+    "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss, _first_order, _first_order_group),
+    "focops": Algorithm("FOCOPS", _lagrange, _focops_loss, _first_order, _first_order_group),
+    "cup": Algorithm("CUP", _lagrange, _cup_loss, _two_stage, _two_stage_group),
     "npg": Algorithm("NPG", _none, _ppo_lag_loss, _natural),
     "trpo": Algorithm("TRPO", _none, _ppo_lag_loss, _trpo),
     "trpo_lag": Algorithm("TRPO-Lag", _lagrange, _ppo_lag_loss, _trpo),

@@ -27,6 +27,13 @@ holds, with a CNN encoder before ``hidden_sizes`` when there are images
 (:mod:`sg_torchrl.train.models`), and ``normalize_obs`` applies to the flat vector only. The
 ``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU.
 
+**Seed groups.** ``seeds`` (``--seeds 0 1 2``) trains S seeds side by side in one process
+(:mod:`sg_torchrl.train.seed_group`), each exactly as its single-seed run with that ``seed`` would
+train: ``num_envs``, ``steps_per_epoch`` and ``total_steps`` are per seed. ``--seeds 0`` is a group
+of one; ``--seed`` and ``--seeds`` together are refused. Groups train the single-agent algorithms of
+:data:`SEED_GROUP_ALGORITHMS` on flat-vector observations; the others are refused here, before
+anything is built.
+
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
 match.
@@ -45,8 +52,8 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
-    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER", "TrainConfig", "PRESETS",
-    "parse_args",
+    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER", "SEED_GROUP_ALGORITHMS",
+    "TrainConfig", "PRESETS", "parse_args",
 ]
 
 SingleAgentAlgorithmName = Literal[
@@ -60,6 +67,11 @@ ALGORITHM_NAMES: tuple[str, ...] = get_args(SingleAgentAlgorithmName)
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = get_args(MultiAgentAlgorithmName)
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
 SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"})
+#: Algorithms a seed group (``--seeds``) can train: the rows of ``sg_torchrl.train.algorithms.ALGORITHMS``
+#: that have a ``make_group_update`` (``tests/test_seed_group.py`` checks that the two agree). Kept here,
+#: free of torch, so that the command line refuses the others in a second. The second-order rows join
+#: when their stacked update (``sg_torchrl.train.stacked_trust_region``) is wired into the table.
+SEED_GROUP_ALGORITHMS = frozenset({"pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup"})
 
 _SINGLE_AGENT_DEFAULTS = dict(
     env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
@@ -113,7 +125,13 @@ class TrainConfig:
     env_options: dict[str, Any] = _opt(
         {}, "task options for sg_torchrl.make as KEY=VALUE (e.g. velocity_threshold=1.5 cost_mode=raw "
         "lidar=natural); values are read as JSON where they parse, else as strings")
-    seed: int = _opt(0, "seed of the simulators, the networks and the minibatch order")
+    seed: int | None = _opt(
+        None, "seed of the simulators, the networks and the minibatch order (with seeds: the first of them)",
+        shown_default=0)
+    seeds: list[int] = _opt(
+        (), "train a seed group: these seeds side by side in one process (e.g. 0 1 2), each exactly as its "
+        "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
+        f"group's directory; algorithms {', '.join(sorted(SEED_GROUP_ALGORITHMS))} on flat observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
     steps_per_epoch: int | None = _opt(
@@ -162,7 +180,8 @@ class TrainConfig:
         "in the networks; multi-agent: each agent's observation, per agent, and the global state)")
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
-    run_name: str | None = _opt(None, "run directory name (default: <env>/<algo>/seed-<seed>)")
+    run_name: str | None = _opt(
+        None, "run directory name (default: <env>/<algo>/seed-<seed>; a seed group: <env>/<algo>/seeds-0-1-2)")
     wandb: Literal["offline", "online", "disabled"] = _opt("offline", "wandb mode; offline needs no account")
     checkpoint_every: int = _opt(
         10, "epochs between checkpoints; the first epoch a process trains and the last epoch are always saved")
@@ -186,12 +205,20 @@ class TrainConfig:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
+        if self.seed is None:  # a group's seed is its first seed; bad seeds are refused by validate()
+            seeds = self.seeds
+            self.seed = seeds[0] if isinstance(seeds, list) and seeds and type(seeds[0]) is int else 0
         self.validate()
 
     @property
     def second_order(self) -> bool:
         """Whether the actor moves by a trust-region step (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO, MACPO)."""
         return self.algo in SECOND_ORDER
+
+    @property
+    def group(self) -> bool:
+        """Whether this is a seed group (``seeds`` given; :mod:`sg_torchrl.train.seed_group`)."""
+        return bool(self.seeds)
 
     @property
     def multi_agent(self) -> bool:
@@ -205,6 +232,7 @@ class TrainConfig:
             raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(names)}")
         self._validate_types()
         self._validate_env_kind()
+        self._validate_seeds()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
         for name in positive:
@@ -253,6 +281,28 @@ class TrainConfig:
         self._validate_observation_mode()
         self._validate_checkpointing()
 
+    def _validate_seeds(self) -> None:
+        """A seed group's seeds: distinct, >= 0, agreeing with ``seed``, and an algorithm and observation
+        a group can train (:data:`SEED_GROUP_ALGORITHMS`, flat vectors)."""
+        if not self.seeds:
+            return
+        if min(self.seeds) < 0:
+            raise ValueError(f"config: seeds must be >= 0, got {self.seeds}")
+        repeated = sorted({s for s in self.seeds if self.seeds.count(s) > 1})
+        if repeated:
+            raise ValueError(f"config: seeds must be distinct (a repeated seed trains the same run twice), "
+                             f"{', '.join(map(str, repeated))} repeated in {self.seeds}")
+        if self.seed != self.seeds[0]:
+            raise ValueError(f"config: seed ({self.seed}) and seeds ({self.seeds}) disagree: a seed group's seed is "
+                             f"its first seed; give seeds alone")
+        if self.multi_agent:
+            raise ValueError(f"config: seed groups do not train multi-agent algorithms yet ({self.algo!r}); run one "
+                             f"seed per process (--seed) instead")
+        if self.algo not in SEED_GROUP_ALGORITHMS:
+            kind = "second-order " if self.second_order else ""
+            raise ValueError(f"config: the {kind}algorithm {self.algo!r} is not yet in seed groups (--seeds trains "
+                             f"{', '.join(sorted(SEED_GROUP_ALGORITHMS))}); run one seed per process (--seed) instead")
+
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""
         if not (isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1):
@@ -300,6 +350,9 @@ class TrainConfig:
         obs_mode, image_size = options.get("obs_mode", "vector"), options.get("image_size")
         if obs_mode == "vector":  # every other mode holds images
             return
+        if self.seeds:
+            raise ValueError(f"config: seed groups (seeds) train on flat-vector observations only; {self.env_id} "
+                             f"with obs_mode={obs_mode!r} emits images (run one seed per process with --seed)")
         from sg_torchrl.train.cnn import DEFAULT_CNN
 
         smallest = DEFAULT_CNN.min_image_size
@@ -360,8 +413,23 @@ class TrainConfig:
 
     @property
     def run_dir(self) -> Path:
-        name = self.run_name or f"{self.env_id}/{self.algo}/seed-{self.seed:03d}"
-        return Path(self.output_dir) / name
+        """The run's directory; a seed group's holds the group's config and checkpoint and its seeds' run
+        directories (:meth:`seed_dir`)."""
+        default = f"seeds-{'-'.join(map(str, self.seeds))}" if self.seeds else f"seed-{self.seed:03d}"
+        return Path(self.output_dir) / (self.run_name or f"{self.env_id}/{self.algo}/{default}")
+
+    def seed_dir(self, seed: int) -> Path:
+        """Seed ``seed``'s run directory in a seed group: ``<run_dir>/seed-XXX``."""
+        return self.run_dir / f"seed-{seed:03d}"
+
+    def for_seed(self, seed: int) -> TrainConfig:
+        """The single-seed config of one seed of this group: ``seed`` alone, in its ``seed-XXX`` directory.
+
+        What the group writes to that directory's ``config.json``, so tools that read a run directory
+        see the run that seed is.
+        """
+        return dataclasses.replace(self, seed=seed, seeds=[], output_dir=str(self.run_dir),
+                                   run_name=f"seed-{seed:03d}", resume=None, overwrite=False)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -446,12 +514,14 @@ def build_parser() -> argparse.ArgumentParser:
         hint = hints[f.name]
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         # argparse default stays None so that explicitly given flags can be told apart (--resume).
-        help_text = f"{f.metadata.get('help', '')} (default: {default})"
+        help_text = f"{f.metadata.get('help', '')} (default: {f.metadata.get('shown_default', default)})"
         kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": help_text, "default": None}
         if get_origin(hint) is Literal:
             kwargs["choices"] = list(get_args(hint))
         if get_origin(hint) in (list, dict):
             kwargs["nargs"] = "+"
+        if f.name == "seeds":
+            kwargs["metavar"] = "SEED"
         if get_origin(hint) is dict:
             kwargs["metavar"] = "KEY=VALUE"
         if f.metadata.get("bare_flag"):  # ``--overwrite`` alone means true
@@ -467,7 +537,11 @@ def command_line_values(argv: list[str] | None = None) -> dict[str, Any]:
     merged over its saved config (:func:`sg_torchrl.train._resolve_resume`), a new run as they are.
     ``"preset"`` holds the preset's name when one was given.
     """
-    namespace = build_parser().parse_args(argv)
+    parser = build_parser()
+    namespace = parser.parse_args(argv)
+    if namespace.seed is not None and namespace.seeds is not None:
+        parser.error("--seed and --seeds cannot be given together: --seed 3 trains one run, --seeds 3 4 5 a group "
+                     "of runs (whose first seed is the group's)")
     values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
     values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
     if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag

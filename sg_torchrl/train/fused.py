@@ -215,6 +215,10 @@ class SeedShuffler:
     ``SeedShuffler(seeds)`` seeds generator ``s`` with ``seeds[s]`` as the single-seed trainer seeds
     its ``minibatch_rng``, and :meth:`permutation` draws ``torch.randperm(n, generator=g_s)`` per seed,
     so seed ``s`` visits its samples in the same order as its single-seed run, whatever S is.
+
+    With an ``active`` mask only the active seeds draw: a seed whose KL early stop fired takes no
+    further pass of its single-seed run, so its generator must not advance either (its rows get
+    ``arange(n)``, which its masked step ignores), or its next epoch's order would differ.
     """
 
     def __init__(self, seeds: Sequence[int] = (), *, generators: Sequence[torch.Generator] | None = None) -> None:
@@ -223,13 +227,19 @@ class SeedShuffler:
         if not self.generators:
             raise ValueError("SeedShuffler needs seeds or generators")
 
-    def permutation(self, n: int) -> Tensor:
-        """One permutation of ``range(n)`` per seed, ``(S, n)``."""
-        return torch.stack([torch.randperm(n, generator=g) for g in self.generators])
+    def permutation(self, n: int, active: Sequence[bool] | None = None) -> Tensor:
+        """One permutation of ``range(n)`` per seed, ``(S, n)``; an inactive seed draws none (``arange(n)``)."""
+        if active is None:
+            return torch.stack([torch.randperm(n, generator=g) for g in self.generators])
+        return torch.stack([torch.randperm(n, generator=g) if on else torch.arange(n)
+                            for g, on in zip(self.generators, active, strict=True)])
 
-    def minibatches(self, n: int, size: int) -> Iterator[Tensor]:
-        """A shuffled pass: ``(S, size)`` index blocks (the last one shorter when ``size`` does not divide ``n``)."""
-        order = self.permutation(n)
+    def minibatches(self, n: int, size: int, active: Sequence[bool] | None = None) -> Iterator[Tensor]:
+        """A shuffled pass: ``(S, size)`` index blocks (the last one shorter when ``size`` does not divide ``n``).
+
+        ``active``: which seeds draw their order (:meth:`permutation`); ``None``: all.
+        """
+        order = self.permutation(n, active)
         for start in range(0, n, size):
             yield order[:, start : start + size]
 
