@@ -12,7 +12,14 @@ pass sums in another order than the single-seed one, and conjugate gradient ampl
 last-bit differences); float64, rtol 1e-10 and atol 1e-12. Discrete outcomes (the accepted
 line-search trial, the CPO case) must be equal.
 
-Timing (not asserted; ``benchmarks/trust_region_group.py``): see that script's docstring.
+Timing (not asserted; ``benchmarks/trust_region_group.py``; provisional: one run on a shared 2-core
+CPU, one thread, HalfCheetah shapes obs 17 / act 6 / [64, 64], S = 3, median of 5): at 20,000
+samples per seed three single-seed TRPO steps took 1.8 s and the group step 2.8 s (0.64x), CPO
+3.2 s against 5.2 s (0.62x). The group's 5-15 MB temporaries went back to the OS and were faulted in
+again (400,000-650,000 minor page faults per call, none for the single-seed steps); with glibc told
+to keep freed memory (``--keep-freed-memory``) TRPO 1.7 s against 2.1 s (0.83x), CPO 3.4 s against
+4.0 s (0.86x). At 2,000 samples per seed the two are level, at 500 the group is 1.1-1.2x faster: the
+step is compute bound on a CPU; the stacked step pays off where per-op overhead dominates.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ from sg_torchrl.train.stacked_trust_region import (  # noqa: E402
     StackedCPOStep,
     StackedTRPOStep,
     seed_conjugate_gradient,
+    seed_flat_grad,
     seed_linearise,
 )
 
@@ -139,7 +147,7 @@ def assert_same_as_single(name, nets, batches, violations, dtype=torch.float32, 
         assert set(metrics) == set(expected)
         for key, value in expected.items():
             got = metrics[key][seed].item()
-            assert metrics[key].shape == (len(SEEDS),) and metrics[key].dtype == torch.float64
+            assert metrics[key].shape == (len(nets),) and metrics[key].dtype == torch.float64
             if key in DISCRETE:
                 assert got == value, (key, seed)
             else:
@@ -162,8 +170,7 @@ def violation_scale(nets, batches) -> list[float]:
                                 data["advantage"].squeeze(-1), data["cost_advantage"].squeeze(-1), loc, scale)
     reward, cost, kl = surrogates(model)
     params = model.actor_parameters()
-    grads = [torch.cat([g.reshape(len(SEEDS), -1) for g in torch.autograd.grad(v.sum(), params, retain_graph=True)], 1)
-             for v in (reward, cost)]
+    grads = [seed_flat_grad(v.sum(), params, len(nets), retain_graph=True) for v in (reward, cost)]
     lin = seed_linearise(SeedFisherVectorProduct(kl, params, 0.1), *grads)
     return [math.sqrt(2 * 0.01 * s) for s in lin.s.tolist()]
 
@@ -257,6 +264,12 @@ def test_seeds_stop_at_their_own_trials_and_a_failed_search_keeps_its_seed():
     metrics = assert_same_as_single("cpo", nets, batches, [0.1, 0.1, 0.1])
     assert metrics["Misc/AcceptanceStep"].tolist() == [11.0, 0.0, 1.0]
     assert metrics["Misc/FinalStepNorm"][1] == 0.0 and metrics["Train/KL"][1] == 0.0
+
+
+def test_a_group_of_one_is_the_single_seed_step():
+    nets, batches = make_group(obs_scales=(100.0, 1.0, 1.0), off_policy=(3.0, 0.0, 0.0))
+    metrics = assert_same_as_single("cpo", nets[:1], batches[:1], [0.1])
+    assert metrics["Misc/AcceptanceStep"].tolist() == [11.0]
 
 
 def test_non_finite_candidates_are_rejected_per_seed():

@@ -38,6 +38,7 @@ step classes; ``benchmarks/trust_region_group.py`` times the group against S sin
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -65,6 +66,7 @@ __all__ = [
     "STACKED_STEPS",
     "SeedFisherVectorProduct",
     "SeedLinearisation",
+    "SeedProposals",
     "SeedSurrogates",
     "StackedCPOStep",
     "StackedNaturalPolicyStep",
@@ -117,7 +119,16 @@ class SeedSurrogates:
         self.observation, self.action, self.log_prob = observation, action, log_prob
         self.advantage, self.cost_advantage = advantage, cost_advantage
         self.old_loc, self.old_scale = old_loc, old_scale
-        self.kl_divisor = action.shape[-1] if kl_action_reduction == "mean" else 1
+        self.kl_action_reduction = kl_action_reduction
+
+    def rows(self, index: Tensor) -> SeedSurrogates:
+        """The same quantities for the seeds ``index`` only (their batches copied), for a smaller group."""
+        def pick(value: Tensor | None) -> Tensor | None:
+            return None if value is None else value.index_select(0, index)
+
+        return SeedSurrogates(pick(self.observation), pick(self.action), pick(self.log_prob), pick(self.advantage),
+                              pick(self.cost_advantage), pick(self.old_loc), pick(self.old_scale),
+                              self.kl_action_reduction)
 
     def __call__(self, model: StackedActorCritic) -> tuple[Tensor, Tensor, Tensor]:
         loc, scale = model.dist_params(self.observation)
@@ -125,8 +136,8 @@ class SeedSurrogates:
         reward = (ratio * self.advantage).mean(1)
         cost = torch.zeros_like(reward) if self.cost_advantage is None else (ratio * self.cost_advantage).mean(1)
         kl = gaussian_kl(self.old_loc, self.old_scale, loc, scale)
-        if self.kl_divisor != 1:
-            kl = kl / self.kl_divisor
+        if self.kl_action_reduction == "mean":
+            kl = kl / loc.shape[-1]
         return reward, cost, kl.mean(1)
 
 
@@ -285,8 +296,27 @@ class SeedProposals:
                                         dtype=torch.float64, **options) for name in names},
         )
 
+    def rows(self, index: Tensor) -> SeedProposals:
+        """The proposals of the seeds ``index`` (a subset, in that order)."""
+        return SeedProposals(
+            direction=self.direction[index], require_improvement=self.require_improvement[index],
+            checks_cost=self.checks_cost[index], cost_tolerance=self.cost_tolerance[index],
+            metrics={name: value[index] for name, value in self.metrics.items()},
+        )
 
-class StackedTrustRegionStep:
+
+def _actor_rows(model: StackedActorCritic, rows: Tensor) -> StackedActorCritic:
+    """A group of the networks' shape for the seeds ``rows`` of ``model`` (its actor rows are set by the caller).
+
+    The line search evaluates candidates of the seeds still searching in one of these, so the
+    forward pass is ``model``'s own (:meth:`StackedActorCritic.dist_params`) on fewer rows.
+    """
+    weight = model.flat_actor
+    return StackedActorCritic(rows.numel(), model.obs_dim, model.action_dim, model.hidden_sizes,
+                              scale_lb=model.scale_lb, device=weight.device, dtype=weight.dtype)
+
+
+class StackedTrustRegionStep(abc.ABC):
     """The trust-region step of every seed of a group; subclasses only name the per-seed proposal.
 
     :meth:`step` follows :meth:`~sg_torchrl.objectives.TrustRegionStep.step` for each row of
@@ -343,6 +373,7 @@ class StackedTrustRegionStep:
         self.kl_action_reduction = kl_action_reduction
 
     # ------------------------------------------------------------------ hook
+    @abc.abstractmethod
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
         """One seed's step direction and acceptance tests (the single-seed class's proposal)."""
         raise NotImplementedError
@@ -359,7 +390,9 @@ class StackedTrustRegionStep:
                 ``(S, N, 1)``: ``combine_advantages`` with the seed's multiplier for TRPO-Lag / RCPO.
             cost_advantage: the mean-centred cost advantage (same shape), or ``None`` (then the cost
                 surrogate is 0; CPO / PCPO need it).
-            cost_violation: :math:`c_s = J_{c,s} - d` per seed, ``(S,)`` (unused by NPG / TRPO).
+            cost_violation: :math:`c_s = J_{c,s} - d` per seed, ``(S,)``: Python floats or a float64
+                tensor (the single-seed step reads a Python float; float32 would round it). Unused by
+                NPG / TRPO.
 
         Returns:
             The metrics of the class docstring, ``(S,)`` each.
@@ -384,20 +417,21 @@ class StackedTrustRegionStep:
             None if cost_advantage is None else _per_sample(cost_advantage.detach(), shape, "cost_advantage"),
             old_loc, old_scale, self.kl_action_reduction,
         )
-        reward, cost, kl = surrogates(model)
-        lin = self._linearise(reward, cost, kl)
-        before_reward, before_cost = reward.detach(), cost.detach()
+        lin, before_reward, before_cost = self._linearise(surrogates)
         proposals = SeedProposals.stack([self._propose(seed_lin, c) for seed_lin, c in zip(lin.seeds(), violations)])
         step_index, kl_after = self._apply(surrogates, proposals, before_reward, before_cost)
         return self._metrics(lin, proposals, step_index, kl_after, before_reward)
 
-    def _linearise(self, reward: Tensor, cost: Tensor, kl: Tensor) -> SeedLinearisation:
-        params = self.model.actor_parameters()
-        seeds = self.model.num_seeds
+    def _linearise(self, surrogates: SeedSurrogates) -> tuple[SeedLinearisation, Tensor, Tensor]:
+        """Every seed's linearisation and its reward and cost surrogates before the step."""
+        model = self.model
+        reward, cost, kl = surrogates(model)
+        params, seeds = model.actor_parameters(), model.num_seeds
         fvp = SeedFisherVectorProduct(kl, params, self.cg_damping)
         g = seed_flat_grad(reward.sum(), params, seeds, retain_graph=True)
         b = seed_flat_grad(cost.sum(), params, seeds, retain_graph=True) if self.uses_cost else None
-        return seed_linearise(fvp, g, b, cg_iters=self.cg_iters, residual_tol=self.cg_residual_tol, eps=self.cg_eps)
+        lin = seed_linearise(fvp, g, b, cg_iters=self.cg_iters, residual_tol=self.cg_residual_tol, eps=self.cg_eps)
+        return lin, reward.detach(), cost.detach()
 
     def acceptable(self, reward: Tensor, cost: Tensor, kl: Tensor, before_reward: Tensor, before_cost: Tensor,
                    proposals: SeedProposals) -> Tensor:
@@ -415,29 +449,40 @@ class StackedTrustRegionStep:
     @torch.no_grad()
     def _apply(self, surrogates: SeedSurrogates, proposals: SeedProposals, before_reward: Tensor,
                before_cost: Tensor) -> tuple[Tensor, Tensor]:
-        """Moves the rows of ``flat_actor``; returns each seed's accepted trial (0: none) and KL after."""
-        flat, direction = self.model.flat_actor, proposals.direction
-        theta_old = flat.clone()
+        """Moves the rows of ``flat_actor``; returns each seed's accepted trial (0: none) and KL after.
+
+        Trial ``k`` evaluates only the seeds still searching: the whole group while none has
+        stopped, then a smaller group of just those rows (:func:`_actor_rows`), so a seed that
+        backtracks far (PCPO tries up to 200 fractions) does not make every seed pay for each trial.
+        """
+        model, direction = self.model, proposals.direction
+        theta_old = model.flat_actor.clone()
         if self.line_search_steps == 0:
-            flat.copy_(theta_old + direction)
-            kl = surrogates(self.model)[2].double()
+            model.flat_actor.copy_(theta_old + direction)
+            kl = surrogates(model)[2].double()
             return torch.ones_like(kl), kl
-        seeds = flat.shape[0]
-        step_index = torch.zeros(seeds, dtype=torch.float64, device=flat.device)
+        final = theta_old.clone()  # a seed that accepts nothing keeps its row
+        step_index = torch.zeros(theta_old.shape[0], dtype=torch.float64, device=theta_old.device)
         kl_after = torch.zeros_like(step_index)
-        searching = torch.ones(seeds, dtype=torch.bool, device=flat.device)
+        searching = torch.arange(theta_old.shape[0], device=theta_old.device)
+        group, part, tests = model, surrogates, proposals
         fraction = 1.0
         for trial in range(1, self.line_search_steps + 1):
-            flat.copy_(torch.where(searching.unsqueeze(1), theta_old + fraction * direction, flat))
-            reward, cost, kl = surrogates(self.model)
-            accepted = searching & self.acceptable(reward, cost, kl, before_reward, before_cost, proposals)
-            step_index = torch.where(accepted, float(trial), step_index)
-            kl_after = torch.where(accepted, kl.double(), kl_after)
-            searching = searching & ~accepted
-            if not bool(searching.any()):
-                break
+            group.flat_actor.copy_(theta_old[searching] + fraction * direction[searching])
+            reward, cost, kl = part(group)
+            ok = self.acceptable(reward, cost, kl, before_reward[searching], before_cost[searching], tests)
+            if bool(ok.any()):
+                accepted = searching[ok]
+                final[accepted] = group.flat_actor[ok]
+                step_index[accepted] = float(trial)
+                kl_after[accepted] = kl[ok].double()
+                searching = searching[~ok]
+                if searching.numel() == 0:
+                    break
+                group, part = _actor_rows(model, searching), surrogates.rows(searching)
+                tests = proposals.rows(searching)
             fraction *= self.step_fraction
-        flat.copy_(torch.where(searching.unsqueeze(1), theta_old, flat))  # no acceptable trial: no update
+        model.flat_actor.copy_(final)
         return step_index, kl_after
 
     def _metrics(self, lin: SeedLinearisation, proposals: SeedProposals, step_index: Tensor, kl_after: Tensor,
