@@ -22,10 +22,10 @@ would move it (same conventions, hyper-parameters and metric names):
   :func:`~sg_torchrl.objectives.trust_region.cpo_proposal`, :func:`~sg_torchrl.objectives.trust_region.pcpo_proposal`,
   over :func:`~sg_torchrl.objectives.trust_region.cpo_direction` and
   :func:`~sg_torchrl.objectives.trust_region.pcpo_direction`) are called seed by seed on
-  :meth:`SeedLinearisation.seed`: a handful of scalars and ``(P,)`` vectors per seed, so each formula
+  :meth:`SeedLinearisation.seeds`: a handful of scalars and ``(P,)`` vectors per seed, so each formula
   keeps its one home and the group takes each seed's CPO case from that seed's own violation;
 * **line search**: trial ``k`` writes :math:`\\theta_{\\text{old}} + 0.8^{k-1} d_s` into every row
-  still searching and evaluates all seeds in one stacked pass; a seed accepts its first acceptable
+  still searching and evaluates those seeds in one stacked pass; a seed accepts its first acceptable
   candidate (finite surrogates and KL, :math:`\\mathrm{KL} \\le \\delta`, the proposal's
   improvement / cost tests, :meth:`StackedTrustRegionStep.acceptable`) and is not moved by later
   trials; seeds that never accept get their old row back.
