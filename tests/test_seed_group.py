@@ -317,7 +317,7 @@ TINY = ["--env-id", POINT, "--env-options", "max_episode_steps=100", "--num-envs
 def test_command_line_group_writes_every_per_seed_file(tmp_path, capsys):
     assert main(["--seeds", "0", "1", "--algo", "ppo_lag", "--output-dir", str(tmp_path), *TINY]) == 0
     group_dir = tmp_path / POINT / "ppo_lag" / "seeds-0-1"
-    for name in (CHECKPOINT_NAME, "config.json", "summary.json"):
+    for name in (CHECKPOINT_NAME, "config.json", "summary.json", "curves.png"):  # curves.png: every seed and the mean
         assert (group_dir / name).exists(), name
     for seed in (0, 1):
         for name in ("progress.csv", "config.json", "summary.json", "curves.png", "csv"):

@@ -31,6 +31,7 @@ of the critics' one-wide output sum in another order for S = 1 and S > 1, about 
 
     seeds-0-1-2/
       config.json  checkpoint.pt  summary.json   the group: its config, checkpoint, per-seed and mean summary
+      curves.png   every seed's return and cost curves (thin) and their mean (thick), with the cost limit
       seed-000/    config.json (that seed's single-seed config), progress.csv, csv/, wandb/, summary.json, curves.png
       seed-001/ ...
 
@@ -73,6 +74,7 @@ from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
 from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
+from sg_torchrl.train.plot import plot_group_curves
 from sg_torchrl.train.stacked import StackedActorCritic
 from sg_torchrl.train.trainer import EpochTrainer, epoch_row, finished_episode_cost, open_run_logger, write_run_summary
 
@@ -363,6 +365,10 @@ class GroupTrainer(EpochTrainer):
             {"seeds": {str(seed): summary for seed, summary in summaries.items()}, "mean": mean,
              "diverged": [run.seed for run in self.runs if not run.alive], "Train/TotalSteps": self.total_steps,
              "Time/Total": self.train_seconds}, indent=2))
+        # The group's figure: every seed's curves and their mean in one picture (seed-XXX/ holds each alone).
+        plot_group_curves({run.seed: run.logger.history() for run in self.runs}, cfg.run_dir / "curves.png",
+                          cost_limit=cfg.cost_limit,
+                          title=f"{self.title} on {cfg.env_id} (seeds {' '.join(map(str, self.seeds))})")
         out: dict[str, Any] = dict(mean)
         for run in self.runs:
             prefix = f"seed-{run.seed:03d}/"
