@@ -26,11 +26,12 @@ multiplier, TRPO-Lag is TRPO with a Lagrange multiplier and RCPO (as SafePO impl
 with one. Adding an algorithm adds a row here, not trainer code.
 
 A row's ``make_group_update`` is its update loop for a seed group (``sg-train --seeds``,
-:mod:`sg_torchrl.train.group_updates`): the six first-order rows have one, built from the
-single-seed loss (:meth:`~sg_torchrl.train.fused.FirstOrderSpec.from_loss`), so both paths read the
-same hyper-parameters. The second-order rows have none yet (``None``: the config refuses them in a
-group, :data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`) until the stacked trust-region step
-(:mod:`sg_torchrl.train.stacked_trust_region`) is wired here.
+:mod:`sg_torchrl.train.group_updates`), built from the single-seed loss
+(:meth:`~sg_torchrl.train.fused.FirstOrderSpec.from_loss`) and, for the second-order rows, from the
+row's single-seed step class through :data:`~sg_torchrl.train.stacked_trust_region.STACKED_STEPS`
+with the options the single-seed update passes (:func:`_trust_region_options`), so both paths read
+the same hyper-parameters. Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
+names them, for the command line).
 """
 
 from __future__ import annotations
@@ -56,8 +57,15 @@ from sg_torchrl.objectives import (
     TRPOStep,
 )
 from sg_torchrl.train.config import TrainConfig
-from sg_torchrl.train.fused import FirstOrderSpec
-from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts, GroupUpdate, TwoStageGroupUpdate
+from sg_torchrl.train.fused import FirstOrderSpec, combine_rule
+from sg_torchrl.train.group_updates import (
+    FirstOrderGroupUpdate,
+    GroupParts,
+    GroupUpdate,
+    TrustRegionGroupUpdate,
+    TwoStageGroupUpdate,
+)
+from sg_torchrl.train.stacked_trust_region import STACKED_STEPS
 from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
 __all__ = ["Algorithm", "ALGORITHMS"]
@@ -129,12 +137,27 @@ def _two_stage(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> 
     return TwoStageUpdate(parts)
 
 
+def _trust_region_options(cfg: TrainConfig, line_search: bool) -> dict:
+    """The options of a trust-region step class (single seed and seed group alike) from the config."""
+    options = dict(target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping)
+    if line_search:
+        options.update(line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction)
+    return options
+
+
 def _trust_region(step_class: type, *, line_search: bool = True) -> MakeUpdate:
     def make(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
-        options = dict(target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping)
-        if line_search:
-            options.update(line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction)
-        return TrustRegionUpdate(parts, step_class(parts.actor, **options), multiplier)
+        return TrustRegionUpdate(parts, step_class(parts.actor, **_trust_region_options(cfg, line_search)), multiplier)
+
+    return make
+
+
+def _trust_region_group(step_class: type, *, line_search: bool = True) -> MakeGroupUpdate:
+    """The seed-group update of a second-order row: ``step_class``'s stacked step, critics-only passes."""
+    def make(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
+        step = STACKED_STEPS[step_class](parts.model, **_trust_region_options(cfg, line_search))
+        return TrustRegionGroupUpdate(parts, step, FirstOrderSpec.from_loss(loss, critics_only=True),
+                                      combine_rule(loss.multiplier))
 
     return make
 
@@ -147,8 +170,12 @@ def _two_stage_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> G
     return TwoStageGroupUpdate(parts, FirstOrderSpec.from_loss(loss.reward_stage), FirstOrderSpec.from_loss(loss))
 
 
-_natural = _trust_region(NaturalPolicyStep, line_search=False)
-_trpo = _trust_region(TRPOStep)
+def _second_order(title: str, make_multiplier: Callable[[TrainConfig], Multiplier], step_class: type, *,
+                  line_search: bool = True) -> Algorithm:
+    """A second-order row: PPO-Lag's critic losses, ``step_class`` for the actor (single seed and seed group)."""
+    return Algorithm(title, make_multiplier, _ppo_lag_loss, _trust_region(step_class, line_search=line_search),
+                     _trust_region_group(step_class, line_search=line_search))
+
 
 ALGORITHMS: dict[str, Algorithm] = {
     "pg": Algorithm("PG", _none, _pg_loss, _first_order, _first_order_group),
@@ -157,10 +184,10 @@ ALGORITHMS: dict[str, Algorithm] = {
     "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss, _first_order, _first_order_group),
     "focops": Algorithm("FOCOPS", _lagrange, _focops_loss, _first_order, _first_order_group),
     "cup": Algorithm("CUP", _lagrange, _cup_loss, _two_stage, _two_stage_group),
-    "npg": Algorithm("NPG", _none, _ppo_lag_loss, _natural),
-    "trpo": Algorithm("TRPO", _none, _ppo_lag_loss, _trpo),
-    "trpo_lag": Algorithm("TRPO-Lag", _lagrange, _ppo_lag_loss, _trpo),
-    "rcpo": Algorithm("RCPO", _lagrange, _ppo_lag_loss, _natural),
-    "cpo": Algorithm("CPO", _none, _ppo_lag_loss, _trust_region(CPOStep)),
-    "pcpo": Algorithm("PCPO", _none, _ppo_lag_loss, _trust_region(PCPOStep)),
+    "npg": _second_order("NPG", _none, NaturalPolicyStep, line_search=False),
+    "trpo": _second_order("TRPO", _none, TRPOStep),
+    "trpo_lag": _second_order("TRPO-Lag", _lagrange, TRPOStep),
+    "rcpo": _second_order("RCPO", _lagrange, NaturalPolicyStep, line_search=False),
+    "cpo": _second_order("CPO", _none, CPOStep),
+    "pcpo": _second_order("PCPO", _none, PCPOStep),
 }

@@ -31,8 +31,8 @@ holds, with a CNN encoder before ``hidden_sizes`` when there are images
 (:mod:`sg_torchrl.train.seed_group`), each exactly as its single-seed run with that ``seed`` would
 train: ``num_envs``, ``steps_per_epoch`` and ``total_steps`` are per seed. ``--seeds 0`` is a group
 of one; ``--seed`` and ``--seeds`` together are refused. Groups train the single-agent algorithms of
-:data:`SEED_GROUP_ALGORITHMS` on flat-vector observations; the others are refused here, before
-anything is built.
+:data:`SEED_GROUP_ALGORITHMS` (all twelve, first and second order) on flat-vector observations;
+multi-agent algorithms and pixel observations are refused here, before anything is built.
 
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
@@ -68,10 +68,10 @@ MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = get_args(MultiAgentAlgorithmName)
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
 SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"})
 #: Algorithms a seed group (``--seeds``) can train: the rows of ``sg_torchrl.train.algorithms.ALGORITHMS``
-#: that have a ``make_group_update`` (``tests/test_seed_group.py`` checks that the two agree). Kept here,
-#: free of torch, so that the command line refuses the others in a second. The second-order rows join
-#: when their stacked update (``sg_torchrl.train.stacked_trust_region``) is wired into the table.
-SEED_GROUP_ALGORITHMS = frozenset({"pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup"})
+#: that have a ``make_group_update`` (``tests/test_seed_group.py`` checks that the two agree): every
+#: single-agent algorithm, the second-order ones through ``sg_torchrl.train.stacked_trust_region``. Kept
+#: here, free of torch, so that the command line refuses the others in a second.
+SEED_GROUP_ALGORITHMS = frozenset(ALGORITHM_NAMES)
 
 _SINGLE_AGENT_DEFAULTS = dict(
     env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
@@ -131,7 +131,7 @@ class TrainConfig:
     seeds: list[int] = _opt(
         (), "train a seed group: these seeds side by side in one process (e.g. 0 1 2), each exactly as its "
         "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
-        f"group's directory; algorithms {', '.join(sorted(SEED_GROUP_ALGORITHMS))} on flat observations")
+        "group's directory; single-agent algorithms on flat observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
     steps_per_epoch: int | None = _opt(
@@ -299,8 +299,7 @@ class TrainConfig:
             raise ValueError(f"config: seed groups do not train multi-agent algorithms yet ({self.algo!r}); run one "
                              f"seed per process (--seed) instead")
         if self.algo not in SEED_GROUP_ALGORITHMS:
-            kind = "second-order " if self.second_order else ""
-            raise ValueError(f"config: the {kind}algorithm {self.algo!r} is not yet in seed groups (--seeds trains "
+            raise ValueError(f"config: the algorithm {self.algo!r} is not in seed groups (--seeds trains "
                              f"{', '.join(sorted(SEED_GROUP_ALGORITHMS))}); run one seed per process (--seed) instead")
 
     def _validate_checkpointing(self) -> None:

@@ -10,7 +10,9 @@ together:
 * :func:`policy_loss` / :func:`critic_losses`: PPO-clip on ``multiplier.combine``'s advantage
   (PPO, PPO-Lag, CPPO-PID: :class:`~sg_torchrl.objectives.PPOLagLoss`), the importance-weighted PG
   (:class:`~sg_torchrl.objectives.PGLoss`), FOCOPS and CUP's projection stage, and the critics'
-  MSE, per seed: the mean over the seed's minibatch, ``(S,)``;
+  MSE, per seed: the mean over the seed's minibatch, ``(S,)``; the objective ``"critics"`` is the
+  critics' MSE alone, the minibatch passes of the second-order algorithms (whose actor moves by the
+  trust-region step of :mod:`sg_torchrl.train.stacked_trust_region` instead);
 * :class:`FusedFirstOrderStep`: backward of the **sum** over seeds (so seed ``s``'s gradient block
   is its single-seed gradient), the critics' L2 penalty ``critic_l2 * sum(p ** 2)`` added to the
   gradient in closed form (``2 * critic_l2 * p``, one op on the flat buffer instead of ~40 in the
@@ -47,7 +49,7 @@ __all__ = [
     "multiplier_values", "policy_loss",
 ]
 
-Objective = Literal["ppo", "pg", "focops", "cup_projection"]
+Objective = Literal["ppo", "pg", "focops", "cup_projection", "critics"]
 CombineRule = Literal["sum_norm", "diff_norm", "plain"]
 
 
@@ -58,8 +60,9 @@ class FirstOrderSpec:
 
     Attributes:
         objective: ``"ppo"`` (clipped surrogate: PPO, PPO-Lag, CPPO-PID, CUP's stage one), ``"pg"``
-            (plain importance weighting), ``"focops"`` or ``"cup_projection"`` (CUP's stage two,
-            actor only).
+            (plain importance weighting), ``"focops"``, ``"cup_projection"`` (CUP's stage two,
+            actor only) or ``"critics"`` (the critics alone: the second-order algorithms' passes, as
+            ``PPOLagLoss.critic_losses``; no KL early stop, the actor does not move).
         combine: how the multiplier combines the advantages (:func:`combine_rule`).
         clip_epsilon: PPO's ratio clip.
         critic_l2: weight of ``sum(p ** 2)`` over each critic's parameters (0: none).
@@ -79,7 +82,7 @@ class FirstOrderSpec:
     _clip_bounds: tuple[float, float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if self.objective not in ("ppo", "pg", "focops", "cup_projection"):
+        if self.objective not in ("ppo", "pg", "focops", "cup_projection", "critics"):
             raise ValueError(f"unknown objective {self.objective!r}")
         if self.combine not in ("sum_norm", "diff_norm", "plain"):
             raise ValueError(f"unknown combine rule {self.combine!r}")
@@ -89,12 +92,36 @@ class FirstOrderSpec:
 
     @property
     def actor_only(self) -> bool:
-        """Whether only the actor learns (CUP's projection); else actor and both critics."""
+        """Whether only the actor learns (CUP's projection)."""
         return self.objective == "cup_projection"
+
+    @property
+    def critics_only(self) -> bool:
+        """Whether only the critics learn (the second-order algorithms' minibatch passes)."""
+        return self.objective == "critics"
+
+    @property
+    def groups(self) -> tuple[int, ...]:
+        """The optimiser groups the step moves: 0 the actor, 1 the critics (``FusedFirstOrderStep.make_optimizer``)."""
+        if self.actor_only:
+            return (0,)
+        return (1,) if self.critics_only else (0, 1)
+
+    @property
+    def num_losses(self) -> int:
+        """How many per-seed losses a step returns: the objective (unless critics only), then each critic's."""
+        return (0 if self.critics_only else 1) + (0 if self.actor_only else 2)
+
+    @property
+    def kl_stop(self) -> bool:
+        """Whether the passes stop on the policy's KL (SafePO's early stop); not when only the critics move."""
+        return not self.critics_only
 
     @property
     def fields(self) -> tuple[str, ...]:
         """The :class:`SeedBatch` fields the step reads."""
+        if self.critics_only:
+            return ("observation", "value_target", "cost_value_target")
         if self.objective == "cup_projection":
             return ("observation", "action", "action_log_prob", "cost_advantage", "stage1_loc", "stage1_scale")
         names = ("observation", "action", "action_log_prob", "advantage", "cost_advantage", "value_target",
@@ -102,10 +129,12 @@ class FirstOrderSpec:
         return names + (("loc", "scale") if self.objective == "focops" else ())
 
     @classmethod
-    def from_loss(cls, loss) -> FirstOrderSpec:
+    def from_loss(cls, loss, *, critics_only: bool = False) -> FirstOrderSpec:
         """The spec of a single-seed first-order loss (``PPOLagLoss``, ``PGLoss``, ``FOCOPSLoss``, ``CUPLoss``).
 
-        ``CUPLoss`` gives its projection stage; its ``reward_stage`` gives stage one. Raises
+        ``CUPLoss`` gives its projection stage; its ``reward_stage`` gives stage one. With
+        ``critics_only``, the ``"critics"`` spec of the loss's ``critic_losses`` (what the single-seed
+        second-order update trains its critics with), the same checks applying. Raises
         ``ValueError`` for options the fused step does not implement (entropy bonus, value clipping,
         in-loss advantage normalisation, non-MSE critics, critic coefficients other than 1).
         """
@@ -125,6 +154,8 @@ class FirstOrderSpec:
             raise ValueError(f"the fused step does not implement: {', '.join(used)}")
         l2 = 0.0 if loss.critic_l2_coeff is None else float(loss.critic_l2_coeff)
         common = dict(combine=combine_rule(loss.multiplier), critic_l2=l2, clip_epsilon=float(loss.clip_epsilon))
+        if critics_only:
+            return cls("critics", **common)
         if isinstance(loss, CUPLoss):
             return cls("cup_projection", cup_cost_coeff=float(loss.cost_coeff), **common)
         if isinstance(loss, FOCOPSLoss):
@@ -329,9 +360,24 @@ def first_order_diagnostics(model: StackedActorCritic, batch: SeedBatch, lam: Te
 
     ``loss_objective``, ``loss_critic`` and ``loss_cost_critic`` (the critics' with their L2 term,
     as ``PPOLagLoss`` reports them), ``kl_approx`` (mean log old / new), ``mean_ratio``, ``max_ratio``
-    and, per objective, ``clip_fraction`` (PPO), ``kl`` and ``kl_mask_fraction`` (FOCOPS), ``kl`` (CUP).
+    and, per objective, ``clip_fraction`` (PPO), ``kl`` and ``kl_mask_fraction`` (FOCOPS), ``kl`` (CUP);
+    the ``"critics"`` objective has the critics' entries only.
     """
     views = batch.fields()
+    out: dict[str, Tensor] = {}
+    if not spec.critics_only:
+        out.update(_policy_diagnostics(model, views, lam, spec))
+    if not spec.actor_only:
+        reward, cost = critic_losses(model, views)
+        norm_reward, norm_cost = model.critic_squared_norms()
+        out["loss_critic"] = reward + spec.critic_l2 * norm_reward
+        out["loss_cost_critic"] = cost + spec.critic_l2 * norm_cost
+    return out
+
+
+def _policy_diagnostics(model: StackedActorCritic, views: Mapping[str, Tensor], lam: Tensor, spec: FirstOrderSpec,
+                        ) -> dict[str, Tensor]:
+    """The policy's entries of :func:`first_order_diagnostics`."""
     out = {"loss_objective": policy_loss(model, views, lam, spec)}
     loc, scale = model.dist_params(views["observation"])
     log_ratio = gaussian_log_prob(views["action"], loc, scale).unsqueeze(-1) - views["action_log_prob"]
@@ -345,11 +391,6 @@ def first_order_diagnostics(model: StackedActorCritic, batch: SeedBatch, lam: Te
         out.update(kl=kl.mean(1), kl_mask_fraction=(kl <= spec.kl_threshold).to(kl.dtype).mean(1))
     elif spec.objective == "cup_projection":
         out["kl"] = gaussian_kl(loc, scale, views["stage1_loc"], views["stage1_scale"]).mean(1)
-    if not spec.actor_only:
-        reward, cost = critic_losses(model, views)
-        norm_reward, norm_cost = model.critic_squared_norms()
-        out["loss_critic"] = reward + spec.critic_l2 * norm_reward
-        out["loss_cost_critic"] = cost + spec.critic_l2 * norm_cost
     return out
 
 
@@ -360,9 +401,10 @@ class FusedFirstOrderStep:
     ``step(batch, lam, active)``: the losses of :func:`policy_loss` and :func:`critic_losses` on the
     packed minibatch ``batch`` (``(S, mb, F)``), backward of their sum over seeds and terms, the
     critics' L2 gradient ``2 * critic_l2 * p`` added on the flat buffer, then ``optimizer.step``
-    (per-seed clip and masked Adam) on the actor and, unless the objective is actor-only, the
-    critics. Seed ``s``'s gradient and update are those of its single-seed trainer step
-    (``PPOLagLoss`` & co., ``clip_grad_norm_``, ``torch.optim.Adam``) to float rounding.
+    (per-seed clip and masked Adam) on the optimiser groups of ``spec.groups``: the actor unless the
+    objective is ``"critics"``, the critics unless it is actor-only. Seed ``s``'s gradient and update
+    are those of its single-seed trainer step (``PPOLagLoss`` & co., ``clip_grad_norm_`` over the
+    parameters stepped, ``torch.optim.Adam``) to float rounding.
 
     Args:
         model: the seed group's networks.
@@ -376,15 +418,15 @@ class FusedFirstOrderStep:
 
     def __init__(self, model: StackedActorCritic, optimizer: SeedMaskedAdam, spec: FirstOrderSpec, *,
                  compile: bool = False) -> None:
-        groups = optimizer.param_groups
-        if len(groups) < 2 - spec.actor_only or groups[0]["params"] != [model.flat_actor] or (
-                not spec.actor_only and groups[1]["params"] != [model.flat_critics]):
+        groups, flat = optimizer.param_groups, model.flat_groups
+        if any(len(groups) <= i or len(groups[i]["params"]) != 1 or groups[i]["params"][0] is not flat[i]
+               for i in spec.groups):
             raise ValueError("the optimiser's groups must be [model.flat_actor] and [model.flat_critics] "
                              "(see FusedFirstOrderStep.make_optimizer)")
         self.model = model
         self.optimizer = optimizer
         self.spec = spec
-        self.groups = (0,) if spec.actor_only else (0, 1)
+        self.groups = spec.groups
         self._losses = torch.compile(self._eager_losses, dynamic=False) if compile else self._eager_losses
         self.compile_error: str | None = None
         self._backward_seen = False
@@ -400,6 +442,8 @@ class FusedFirstOrderStep:
     def _eager_losses(self, data: Tensor, lam: Tensor, names: tuple[str, ...], widths: tuple[int, ...],
                       ) -> tuple[Tensor, ...]:
         views = dict(zip(names, torch.split(data, widths, dim=-1)))
+        if self.spec.critics_only:
+            return critic_losses(self.model, views)
         objective = policy_loss(self.model, views, lam, self.spec)
         if self.spec.actor_only:
             return (objective,)
@@ -408,19 +452,20 @@ class FusedFirstOrderStep:
     def backward(self, batch: SeedBatch, lam: Tensor) -> tuple[Tensor, ...]:
         """Gradients of the minibatch losses into the flat gradient buffers (zeroed first).
 
-        Returns the per-seed losses, detached: ``(objective,)`` for an actor-only objective, else
-        ``(objective, reward critic MSE, cost critic MSE)`` (without the L2 term, see
-        :func:`first_order_diagnostics`).
+        Returns the per-seed losses, detached: ``(objective,)`` for an actor-only objective,
+        ``(reward critic MSE, cost critic MSE)`` for ``"critics"``, else ``(objective, reward critic
+        MSE, cost critic MSE)`` (the critics' without the L2 term, see :func:`first_order_diagnostics`).
         """
         missing = set(self.spec.fields) - set(batch.names)
         if missing:
             raise KeyError(f"the batch lacks {sorted(missing)} (fields: {batch.names})")
         model = self.model
-        model.flat_actor.grad.zero_()
-        if not self.spec.actor_only:
-            model.flat_critics.grad.zero_()
+        for index in self.groups:
+            model.flat_groups[index].grad.zero_()
         losses = self._compute(batch, lam)
-        total = losses[0] if len(losses) == 1 else losses[0] + losses[1] + losses[2]
+        total = losses[0]
+        for loss in losses[1:]:
+            total = total + loss
         if self._backward_seen:
             total.sum().backward()
         else:

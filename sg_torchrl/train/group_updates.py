@@ -5,18 +5,19 @@ The seed-group counterpart of :mod:`sg_torchrl.train.updates`. The group trainer
 hands the algorithm's :class:`GroupUpdate` the epoch's samples as ``(S, n, k)`` tensors, seed ``s``'s
 on row ``s``: ``observation``, ``action``, ``action_log_prob``, ``loc`` and ``scale`` (the rollout
 policy), ``advantage``, ``cost_advantage``, ``value_target``, ``cost_value_target``. The update is
-chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torchrl.train.algorithms`),
-so another kind (the stacked trust-region step of :mod:`sg_torchrl.train.stacked_trust_region`)
-plugs in there without touching the trainer:
+chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torchrl.train.algorithms`):
 
 * :class:`FirstOrderGroupUpdate` (PG, PPO, PPO-Lag, CPPO-PID, FOCOPS): SafePO's first-order loop,
   every seed's minibatch step fused into one (:class:`~sg_torchrl.train.fused.FusedFirstOrderStep`);
 * :class:`TwoStageGroupUpdate` (CUP): that loop on the reward stage, then actor-only passes of the
-  projection loss towards each seed's stage-one policy.
+  projection loss towards each seed's stage-one policy;
+* :class:`TrustRegionGroupUpdate` (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): the stacked trust-region
+  step of every seed's actor (:mod:`sg_torchrl.train.stacked_trust_region`), then critics-only passes.
 
-Both run :func:`seed_passes`, the minibatch loop of a group. Each seed follows its single-seed run:
+All run :func:`seed_passes`, the minibatch loop of a group. Each seed follows its single-seed run:
 its own minibatch order (:class:`~sg_torchrl.train.fused.SeedShuffler`), its own KL early stop (after
-every pass, KL(reference || current) over the seed's batch against ``target_kl``). A seed that
+every pass, KL(reference || current) over the seed's batch against ``target_kl``; none for the
+critics-only passes). A seed that
 stopped takes no further step: its later steps are masked (:class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`),
 so its parameters, Adam moments and step counts stay exactly as they are, and its shuffler draws no
 more orders, as its single run would not; the passes end when no seed is active.
@@ -34,19 +35,29 @@ which the trainer reads once per epoch.
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
+from sg_torchrl.train.fused import (
+    CombineRule,
+    FirstOrderSpec,
+    FusedFirstOrderStep,
+    SeedBatch,
+    SeedShuffler,
+    batch_kl,
+    combine_advantages,
+)
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
 from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.train.stacked_trust_region import StackedTrustRegionStep
 
 __all__ = [
     "FirstOrderGroupUpdate", "GroupParts", "GroupResult", "GroupUpdate", "PassesResult", "SeedSnapshot",
-    "finite_seeds", "seed_passes", "TwoStageGroupUpdate",
+    "finite_seeds", "seed_passes", "TrustRegionGroupUpdate", "TwoStageGroupUpdate",
 ]
 
 #: The per-seed fields every update receives (``(S, n, k)`` each).
@@ -61,7 +72,9 @@ class GroupParts:
     Attributes:
         model: the seed group's actors and critics.
         optimizer: the masked Adam over ``model.flat_actor`` (group 0) and ``model.flat_critics``
-            (group 1), clipping each seed's gradient at the config's ``max_grad_norm``.
+            (group 1), clipping each seed's gradient at the config's ``max_grad_norm`` (over the
+            groups a step moves). Second order never steps group 0: its actor moves by the
+            trust-region step.
         shuffler: one minibatch-order generator per seed (checkpointed by the trainer).
         passes, minibatch_size, target_kl: the config's values (the same for every seed).
         compile: run the fused minibatch losses through ``torch.compile``.
@@ -142,7 +155,7 @@ def seed_passes(
     data: Mapping[str, Tensor],
     lam: Tensor,
     active: Tensor,
-    reference: tuple[Tensor, Tensor],
+    reference: tuple[Tensor, Tensor] | None,
 ) -> PassesResult:
     """Up to ``parts.passes`` shuffled passes of ``step`` for the ``active`` seeds, each with its own KL stop.
 
@@ -150,7 +163,9 @@ def seed_passes(
     minibatch (seeds that are no longer active masked), then computes each active seed's mean
     KL(``reference`` || current policy) over its batch: a seed whose KL exceeds ``parts.target_kl``
     (SafePO's early stop), or whose KL, losses or parameters are not finite (flagged diverged),
-    takes no further step.
+    takes no further step. A critics-only step (``spec.kl_stop`` false: the second-order
+    algorithms' critic passes) runs every pass with no KL (``reference`` unused, reported KL 0);
+    non-finite losses or parameters still stop and flag a seed.
 
     Args:
         parts: the group's model, optimiser, shuffler and loop settings.
@@ -158,22 +173,26 @@ def seed_passes(
         data: the per-seed fields, ``(S, n, k)`` each.
         lam: each seed's multiplier value, ``(S,)``.
         active: ``(S,)`` bool, the seeds that train (frozen seeds do not).
-        reference: ``(loc, scale)`` of the policy the KL is measured from, ``(S, n, A)`` each.
+        reference: ``(loc, scale)`` of the policy the KL is measured from, ``(S, n, A)`` each
+            (``None`` for a critics-only step).
 
     Returns:
         Per seed: the passes taken (SafePO's ``StopIter``), the KL after its last pass, the mean of
-        each loss term over its steps (the objective, and unless actor-only each critic's loss with
-        its L2 term, as the single-seed losses report them), and whether it diverged.
+        each loss term over its steps (the objective unless critics only, then unless actor-only
+        each critic's loss with its L2 term, as the single-seed losses report them), and whether it
+        diverged.
     """
     model = parts.model
     spec = step.spec
+    if spec.kl_stop and reference is None:
+        raise ValueError(f"the {spec.objective!r} passes stop on the KL to a reference policy: give reference")
     batch = SeedBatch.pack({name: data[name] for name in spec.fields})
-    observation, (old_loc, old_scale) = data["observation"], reference
+    observation = data["observation"]
     seeds, size = batch.num_seeds, batch.num_samples
     with_critics, l2 = not spec.actor_only, spec.critic_l2
     width = model.reward_critic_width
     f64 = dict(dtype=torch.float64, device=observation.device)
-    sums = torch.zeros(3 if with_critics else 1, seeds, **f64)
+    sums = torch.zeros(spec.num_losses, seeds, **f64)
     steps, passes, kl_last = (torch.zeros(seeds, **f64) for _ in range(3))
     diverged = torch.zeros(seeds, dtype=torch.bool, device=observation.device)
     active = active.clone()
@@ -189,16 +208,21 @@ def seed_passes(
             if with_critics and l2:  # the critics' losses as reported: with the L2 term at the step's parameters
                 squares = model.flat_critics.detach().square()
                 norms = torch.stack((squares[:, :width].sum(1), squares[:, width:].sum(1)))
-                values = torch.cat((values[:1], values[1:] + l2 * norms))
+                values = torch.cat((values[:-2], values[-2:] + l2 * norms))  # the critics' are the last two
             step.update(mask)
             sums += values.to(torch.float64) * weight
             steps += weight
         passes += weight
-        kl = batch_kl(model, observation, old_loc, old_scale).to(torch.float64)
-        kl_last = torch.where(active, kl, kl_last)
-        bad = active & ~(torch.isfinite(kl) & finite_seeds(model) & torch.isfinite(sums).all(0))
+        finite = finite_seeds(model) & torch.isfinite(sums).all(0)
+        if spec.kl_stop:
+            kl = batch_kl(model, observation, *reference).to(torch.float64)
+            kl_last = torch.where(active, kl, kl_last)
+            finite &= torch.isfinite(kl)
+        bad = active & ~finite
         diverged |= bad
-        active &= ~bad & ~(kl > parts.target_kl)
+        active &= ~bad
+        if spec.kl_stop:
+            active &= ~(kl > parts.target_kl)
         flags = active.tolist()
     return PassesResult(passes, kl_last, sums / steps.clamp_min(1.0), diverged)
 
@@ -283,3 +307,77 @@ class TwoStageGroupUpdate(GroupUpdate):
         metrics.update({"Train/ProjectionStopIter": second.passes, "Train/ProjectionKL": second.kl,
                         "Loss/Loss_projection": second.means[0]})
         return GroupResult(metrics, diverged)
+
+
+class TrustRegionGroupUpdate(GroupUpdate):
+    """The second-order epoch (as :class:`~sg_torchrl.train.updates.TrustRegionUpdate`) for every seed.
+
+    NPG, TRPO, TRPO-Lag, RCPO, CPO and PCPO: one trust-region step of the actors on the whole batch
+    (``policy_step``, a :class:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep`
+    moving every live seed's row of ``model.flat_actor`` at once), then ``parts.passes`` passes of
+    critics-only minibatch steps (``critic_spec``, objective ``"critics"``: Adam's critic group only,
+    no KL stop) through :func:`seed_passes`. Per seed, the step sees the advantage its single-seed
+    update hands its step: ``combine_advantages`` with the seed's multiplier value and the
+    multiplier class's rule ``combine`` (the reward advantage itself under ``NoMultiplier``), the
+    cost advantage, and the seed's ``cost_violation`` :math:`J_{c,s} - d` (``Multiplier.violation``,
+    float64, read by CPO and PCPO).
+
+    **Frozen and diverged seeds.** When some seeds are frozen, the step runs on a copy of the live
+    seeds' rows only (:meth:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep.for_rows`)
+    and their moved rows are copied back: a frozen seed's actor is never touched (nor computed on).
+    A live seed whose actor row is not finite after the step takes no critic pass; it, and any seed
+    whose critic passes turn non-finite, is flagged in :attr:`GroupResult.diverged` and put back to
+    its state before the update (:class:`SeedSnapshot`), as the first-order group update does.
+
+    Metrics, ``(S,)`` float64 per seed, under the single-seed names: the step's (``Misc/...``,
+    ``Train/KL``, ``Loss/Loss_actor``; NaN for frozen seeds), then ``Train/StopIter`` (the critic
+    passes taken), ``Loss/Loss_reward_critic`` and ``Loss/Loss_cost_critic`` (mean over the
+    critic steps, with their L2 term).
+    """
+
+    def __init__(self, parts: GroupParts, policy_step: StackedTrustRegionStep, critic_spec: FirstOrderSpec,
+                 combine: CombineRule) -> None:
+        super().__init__(parts)
+        if not critic_spec.critics_only:
+            raise ValueError(f"the second-order passes train the critics only, got objective {critic_spec.objective!r}")
+        if policy_step.model is not parts.model:
+            raise ValueError("the trust-region step must move the group's own model (parts.model)")
+        self.policy_step = policy_step
+        self.critic_step = FusedFirstOrderStep(parts.model, parts.optimizer, critic_spec, compile=parts.compile)
+        self.combine = combine
+
+    def __call__(self, data: Mapping[str, Tensor], lam: Tensor, cost_violation: Tensor, active: Tensor
+                 ) -> GroupResult:
+        model = self.parts.model
+        snapshot = SeedSnapshot(model, self.parts.optimizer)
+        metrics = self._actor_step(data, lam, torch.as_tensor(cost_violation, dtype=torch.float64), active)
+        bad = active & ~torch.isfinite(model.flat_actor).all(1)
+        critics = seed_passes(self.parts, self.critic_step, data, lam, active & ~bad, None)
+        diverged = bad | critics.diverged
+        snapshot.restore(diverged)
+        metrics.update({"Train/StopIter": critics.passes, "Loss/Loss_reward_critic": critics.means[0],
+                        "Loss/Loss_cost_critic": critics.means[1]})
+        return GroupResult(metrics, diverged)
+
+    def _actor_step(self, data: Mapping[str, Tensor], lam: Tensor, violation: Tensor, active: Tensor
+                    ) -> dict[str, Tensor]:
+        """The trust-region step of the ``active`` seeds' actors; its metrics, ``(S,)`` each (NaN where frozen)."""
+        model = self.parts.model
+        advantage = combine_advantages(data["advantage"], data["cost_advantage"], lam, self.combine)
+        if bool(active.all()):
+            return self.policy_step.step(data, advantage, data["cost_advantage"], violation)
+        rows = active.nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return {}
+        step = self.policy_step.for_rows(rows)
+
+        def pick(value: Tensor) -> Tensor:
+            return value.index_select(0, rows)
+
+        batch = {name: pick(data[name]) for name in ("observation", "action", "action_log_prob")}
+        moved = step.step(batch, pick(advantage), pick(data["cost_advantage"]), violation[active.to(violation.device)])
+        with torch.no_grad():
+            model.flat_actor.index_copy_(0, rows, step.model.flat_actor)
+        full = dict(dtype=torch.float64, device=rows.device)
+        return {name: torch.full((model.num_seeds,), math.nan, **full).index_copy_(0, rows, value.to(**full))
+                for name, value in moved.items()}

@@ -18,7 +18,9 @@ run in every respect that is not float rounding:
   the single-seed trainer seeds its own);
 * **multiplier, advantages, update**: one multiplier per seed, updated from its own episodes'
   mean cost; GAE per simulator, advantage normalisation per seed; the algorithm's group update
-  (:mod:`sg_torchrl.train.group_updates`) with per-seed clip, Adam state and KL early stop;
+  (:mod:`sg_torchrl.train.group_updates`) with per-seed clip, Adam state and KL early stop (second
+  order: each seed's trust-region step from its own multiplier and :math:`J_c - d`, then its critic
+  passes);
 * **logs and summary**: its own run directory with exactly a single run's files and metric names.
 
 So within an epoch a seed's env trajectory is bit-identical whatever the group (the per-seed
@@ -149,7 +151,7 @@ class SeedRun:
 
 
 class GroupTrainer(EpochTrainer):
-    """Build and run a seed group (``cfg.seeds``) of a single-agent first-order algorithm; see the module docstring.
+    """Build and run a seed group (``cfg.seeds``) of a single-agent algorithm; see the module docstring.
 
     Args:
         cfg: the group's config (``seeds`` set; ``num_envs``, ``steps_per_epoch``, ``total_steps``
@@ -188,7 +190,10 @@ class GroupTrainer(EpochTrainer):
         loss = self.algorithm.make_loss(*singles[0], self.multipliers[0], cfg)
         self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
-        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, cfg.actor_lr, cfg.critic_lr,
+        # Second order has no actor learning rate (the single-seed Trainer's Adam holds the critics
+        # alone): the actor's group is kept at lr 0 and never stepped, its trust-region step moves it.
+        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
+        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
         self.shuffler = SeedShuffler(self.seeds)
         self.action_generators = [torch.Generator().manual_seed(action_seed(seed)) for seed in self.seeds]
@@ -266,21 +271,25 @@ class GroupTrainer(EpochTrainer):
         """Multipliers, advantages and the group update; each seed's learned metrics and whether it diverged.
 
         Every live seed's multiplier follows its own mean episode cost (before the update, as SafePO),
-        the actor learning rate is annealed as the single-seed trainer's scheduler does, and the
-        algorithm's group update moves the live seeds. One host read of the metrics per epoch.
+        the actor learning rate is annealed as the single-seed trainer's scheduler does (first order;
+        second order has none and logs 0), and the algorithm's group update moves the live seeds, each
+        with its :math:`J_{c,s} - d` from its multiplier (``Multiplier.violation``). One host read of
+        the metrics per epoch.
         """
         cfg = self.cfg
         alive = self.alive
         lagrange = [float(m.update(run.last_mean_cost) if run.alive else m.value)
                     for m, run in zip(self.multipliers, self.runs)]
         data, raw_advantages = self._seed_data(batch)
-        self.optimizer.param_groups[0]["lr"] = cfg.actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
-        violation = torch.tensor([run.last_mean_cost - cfg.cost_limit for run in self.runs], dtype=torch.float64)
+        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
+        self.optimizer.param_groups[0]["lr"] = actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
+        violation = torch.tensor([m.violation(run.last_mean_cost) for m, run in zip(self.multipliers, self.runs)],
+                                 dtype=torch.float64)
         result = self.group_update(data, multiplier_values(self.multipliers), violation, alive)
         names = list(result.metrics)
         values = torch.stack([result.metrics[name].to(torch.float64) for name in names]
                              + [raw_advantages[0].double(), raw_advantages[1].double()]).tolist()
-        next_lr = cfg.actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
+        next_lr = actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
         rows = []
         for index, lam in enumerate(lagrange):
             update = {name: int(values[i][index]) if name in _COUNTS else values[i][index]

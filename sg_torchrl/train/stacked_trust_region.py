@@ -39,6 +39,7 @@ step classes; ``benchmarks/trust_region_group.py`` times the group against S sin
 from __future__ import annotations
 
 import abc
+import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -371,6 +372,18 @@ class StackedTrustRegionStep(abc.ABC):
         self.cg_residual_tol = float(cg_residual_tol)
         self.cg_eps = float(cg_eps)
         self.kl_action_reduction = kl_action_reduction
+
+    def for_rows(self, rows: Tensor) -> StackedTrustRegionStep:
+        """This step (same class and options) on a copy of the actor rows ``rows`` alone.
+
+        A seed group steps only its live seeds with it: a frozen seed's row may not be finite, and
+        would otherwise search all its line-search trials every epoch. Copy the moved rows back.
+        """
+        part = copy.copy(self)
+        part.model = _actor_rows(self.model, rows)
+        with torch.no_grad():
+            part.model.flat_actor.copy_(self.model.flat_actor.index_select(0, rows))
+        return part
 
     # ------------------------------------------------------------------ hook
     @abc.abstractmethod

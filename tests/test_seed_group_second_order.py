@@ -1,0 +1,194 @@
+"""The second-order seed-group update (``TrustRegionGroupUpdate``) against the single-seed ``TrustRegionUpdate``.
+
+``tests/test_seed_group.py`` checks that seed s of a group follows the group of s alone, end to end
+(CPO, TRPO-Lag, PCPO among the algorithms). This file checks the update itself against the
+single-seed trainer's, on synthetic batches of two seeds with different costs (one above the limit,
+one below, so the multipliers and CPO / PCPO's violations differ per seed):
+
+* **every second-order algorithm**, each seed of the group against its own ``TrustRegionUpdate``
+  built as the single-seed ``Trainer`` builds it (the algorithm table's ``make_update``, ``Adam``
+  over the critics alone, the same minibatch generator seed): the same metric names in the same
+  order, values to rtol 1e-4 / atol 1e-6 (float32: the stacked pass sums in another order, which
+  conjugate gradient amplifies, as in ``tests/test_stacked_trust_region.py``), discrete ones (accepted
+  trial, CPO case, critic passes) equal; the actor to rtol 1e-4 / atol 1e-6 and the critics after their
+  passes to atol 1e-5 (Adam lifts 1e-7 rounding differences on near-zero gradient entries, as in the
+  first-order tests). The actor's Adam group is never stepped;
+* **a frozen seed** (its actor row non-finite) is neither moved nor computed on, its critics and Adam
+  rows stay bit for bit, its step metrics are NaN, and the live seeds move as they do in a group
+  where every seed is live (rtol 1e-5: a two-row stack instead of three);
+* **divergence inside the step** (RCPO, whose natural step has no line search to refuse a non-finite
+  candidate): the seed is flagged and put back bit for bit; the other seed moves bit for bit as in a
+  clean run.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+
+torch.set_num_threads(1)
+
+from tensordict import TensorDict  # noqa: E402
+from torchrl.data import Bounded  # noqa: E402
+
+from sg_torchrl.train import ALGORITHMS, TrainConfig  # noqa: E402
+from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values  # noqa: E402
+from sg_torchrl.train.group_updates import GroupParts  # noqa: E402
+from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
+from sg_torchrl.train.updates import UpdateParts  # noqa: E402
+
+OBS, ACT, HIDDEN, N = 5, 2, [16, 16], 300
+SPEC = Bounded(-1.0, 1.0, shape=(ACT,))
+SEEDS, COSTS = (3, 11), (40.0, 10.0)  # episode costs against the limit 25: one seed above it, one below
+WARM_UP_COST = 50.0  # every multiplier's first epoch: all grow, then each follows its seed's cost
+SECOND_ORDER = ("npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
+DISCRETE = ("Misc/AcceptanceStep", "Misc/CPOCase", "Train/StopIter")
+
+
+def config(algo: str) -> TrainConfig:
+    return TrainConfig(algo=algo, update_iters=3, minibatch_size=128, eval_episodes=0, wandb="disabled",
+                       progress=False)
+
+
+def networks(seed: int):
+    torch.manual_seed(seed)
+    return make_actor_critics(OBS, SPEC, HIDDEN)
+
+
+def batch(seed: int, actor) -> TensorDict:
+    """A collected-like flat batch: advantages tied to the actions, so both surrogates have slopes."""
+    gen = torch.Generator().manual_seed(1000 + seed)
+    with torch.no_grad():
+        data = actor(TensorDict(observation=torch.randn(N, OBS, generator=gen), batch_size=[N]))
+    noise = (data["action"] - data["loc"]) / data["scale"]
+    adv = noise[:, :1] + 0.3 * torch.randn(N, 1, generator=gen)
+    cost_adv = noise[:, :1] + noise[:, 1:] + 0.3 * torch.randn(N, 1, generator=gen)
+    data["advantage"] = (adv - adv.mean()) / (adv.std() + 1e-8)
+    data["cost_advantage"] = cost_adv - cost_adv.mean()
+    data["value_target"] = torch.randn(N, 1, generator=gen)
+    data["cost_value_target"] = 3.0 * torch.rand(N, 1, generator=gen)
+    return data.select("observation", "action", "action_log_prob", "loc", "scale", "advantage", "cost_advantage",
+                       "value_target", "cost_value_target")
+
+
+def flat(modules) -> torch.Tensor:
+    return torch.cat([p.detach().reshape(-1) for module in modules for p in module.parameters()])
+
+
+def single_update(algo: str, index: int, nets, data: TensorDict):
+    """Seed ``index`` through the single-seed update, built as ``Trainer`` builds it: (metrics, networks)."""
+    cfg, row = config(algo), ALGORITHMS[algo]
+    actor, critic, cost_critic = copy.deepcopy(nets)
+    multiplier = row.make_multiplier(cfg)
+    for cost in (WARM_UP_COST, COSTS[index]):
+        multiplier.update(cost)
+    loss = row.make_loss(actor, critic, cost_critic, multiplier, cfg)
+    optimizer = torch.optim.Adam([{"params": [*critic.parameters(), *cost_critic.parameters()],
+                                   "lr": cfg.critic_lr}], fused=True)
+    parts = UpdateParts(actor, (critic, cost_critic), loss, optimizer, torch.Generator().manual_seed(SEEDS[index]),
+                        cfg.update_iters, cfg.minibatch_size, cfg.target_kl, cfg.max_grad_norm)
+    metrics = row.make_update(parts, multiplier, cfg)(data.clone(), multiplier.violation(COSTS[index]))
+    return metrics, (actor, critic, cost_critic)
+
+
+def group_update(algo: str, nets, costs=COSTS, seeds=SEEDS):
+    """The group's update, built as ``GroupTrainer`` builds it; returns (update, stacked data, lam, violation)."""
+    cfg, row = config(algo), ALGORITHMS[algo]
+    model = StackedActorCritic.from_single([copy.deepcopy(triple) for triple in nets])
+    optimizer = FusedFirstOrderStep.make_optimizer(model, 0.0, cfg.critic_lr, max_grad_norm=cfg.max_grad_norm)
+    parts = GroupParts(model, optimizer, SeedShuffler(seeds), passes=cfg.update_iters,
+                       minibatch_size=cfg.minibatch_size, target_kl=cfg.target_kl)
+    multipliers = [row.make_multiplier(cfg) for _ in seeds]
+    for multiplier, cost in zip(multipliers, costs):
+        for value in (WARM_UP_COST, cost):
+            multiplier.update(value)
+    loss = row.make_loss(*copy.deepcopy(nets[0]), multipliers[0], cfg)
+    violation = torch.tensor([m.violation(cost) for m, cost in zip(multipliers, costs)], dtype=torch.float64)
+    return row.make_group_update(parts, loss, cfg), multiplier_values(multipliers), violation
+
+
+def stacked(batches) -> dict[str, torch.Tensor]:
+    data = {key: torch.stack([b[key] for b in batches]) for key in batches[0].keys()}
+    data["action_log_prob"] = data["action_log_prob"].unsqueeze(-1)
+    return data
+
+
+def seed_rows(update, seed: int) -> list[torch.Tensor]:
+    """Seed ``seed``'s parameters, Adam moments and step counts, as copies."""
+    out = [t[seed].clone() for t in update.parts.model.flat_groups]
+    for state in update.parts.optimizer.state:
+        out += [state["step"][seed].clone(), *(t[seed].clone() for t in state["exp_avg"] + state["exp_avg_sq"])]
+    return out
+
+
+@pytest.mark.parametrize("algo", SECOND_ORDER)
+def test_each_seed_of_the_group_update_is_its_single_seed_update(algo):
+    nets = [networks(seed) for seed in SEEDS]
+    batches = [batch(seed, triple[0]) for seed, triple in zip(SEEDS, nets)]
+    update, lam, violation = group_update(algo, nets)
+    result = update(stacked(batches), lam, violation, torch.ones(len(SEEDS), dtype=torch.bool))
+    assert not result.diverged.any()
+    model = update.parts.model
+    for index in range(len(SEEDS)):
+        expected, single_nets = single_update(algo, index, nets[index], batches[index])
+        assert list(result.metrics) == list(expected)  # the single-seed names, in its order
+        for name, value in expected.items():
+            got = result.metrics[name][index].item()
+            if name in DISCRETE:
+                assert got == value, name
+            else:
+                assert got == pytest.approx(value, rel=1e-4, abs=1e-6), name
+        exported = model.export_seed(index, SPEC)
+        torch.testing.assert_close(flat(exported[:1]), flat(single_nets[:1]), rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(flat(exported[1:]), flat(single_nets[1:]), rtol=0, atol=1e-5)
+    assert not update.parts.optimizer.state[0]["step"].any()  # the actor's Adam group never moved
+    if algo in ("trpo_lag", "rcpo"):  # the Lagrangian advantage: each seed its own multiplier
+        assert lam[0] > lam[1] > 0
+    if algo == "cpo":  # one seed infeasible, one feasible: each its own CPO case from its own violation
+        assert result.metrics["Misc/CPOCase"][0] != result.metrics["Misc/CPOCase"][1]
+
+
+def test_a_frozen_seed_is_not_touched_and_the_live_ones_move_as_in_a_full_group():
+    seeds, costs = (3, 5, 11), (40.0, 30.0, 10.0)
+    nets = [networks(seed) for seed in seeds]
+    data = stacked([batch(seed, triple[0]) for seed, triple in zip(seeds, nets)])
+    full, lam, violation = group_update("cpo", nets, costs, seeds)
+    full(data, lam, violation, torch.ones(3, dtype=torch.bool))
+
+    frozen, lam, violation = group_update("cpo", nets, costs, seeds)
+    with torch.no_grad():
+        frozen.parts.model.flat_actor[1] = math.nan  # as a seed found non-finite at the start of an epoch
+    before = seed_rows(frozen, 1)
+    result = frozen(data, lam, violation, torch.tensor([True, False, True]))
+    assert not result.diverged.any()
+    after = seed_rows(frozen, 1)
+    assert after[0].isnan().all()
+    for mine, saved in zip(after[1:], before[1:]):
+        assert torch.equal(mine, saved)
+    assert math.isnan(result.metrics["Misc/xHx"][1]) and result.metrics["Train/StopIter"].tolist() == [3, 0, 3]
+    for seed in (0, 2):
+        for mine, theirs in zip(seed_rows(frozen, seed), seed_rows(full, seed)):
+            torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-7)
+
+
+def test_a_seed_whose_trust_region_step_turns_non_finite_is_put_back_and_flagged():
+    nets = [networks(seed) for seed in SEEDS]
+    batches = [batch(seed, triple[0]) for seed, triple in zip(SEEDS, nets)]
+    clean, lam, violation = group_update("rcpo", nets)
+    clean(stacked(batches), lam, violation, torch.ones(2, dtype=torch.bool))
+
+    broken, lam, violation = group_update("rcpo", nets)
+    data = stacked(batches)
+    data["advantage"][0, 7] = math.nan  # seed 0's gradient, hence its natural step, turns NaN
+    before = seed_rows(broken, 0)
+    result = broken(data, lam, violation, torch.ones(2, dtype=torch.bool))
+    assert result.diverged.tolist() == [True, False]
+    assert result.metrics["Train/StopIter"].tolist() == [0, 3]  # no critic pass for a NaN actor
+    for restored, saved in zip(seed_rows(broken, 0), before):
+        assert torch.equal(restored, saved)
+    for mine, alone in zip(seed_rows(broken, 1), seed_rows(clean, 1)):
+        assert torch.equal(mine, alone)
