@@ -92,7 +92,7 @@ def _figure(title: str) -> tuple[plt.Figure, tuple[Axes, Axes]]:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for ax, (_, panel_title, ylabel, _) in zip(axes, PANELS):
         ax.set(title=panel_title, xlabel="env steps", ylabel=ylabel)
-        ax.xaxis.set_major_locator(MaxNLocator(nbins=5))
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]))  # round ticks: 50k, 100k
         ax.xaxis.set_major_formatter(FuncFormatter(format_steps))
         ax.grid(alpha=0.3)
     fig.suptitle(title)
