@@ -18,7 +18,8 @@ one below, so the multipliers and CPO / PCPO's violations differ per seed):
   where every seed is live (rtol 1e-5: a two-row stack instead of three);
 * **divergence inside the step** (RCPO, whose natural step has no line search to refuse a non-finite
   candidate): the seed is flagged and put back bit for bit; the other seed moves bit for bit as in a
-  clean run.
+  clean run;
+* ``keep_freed_memory`` (what ``GroupTrainer`` applies at start-up) acts on Linux with glibc only.
 """
 
 from __future__ import annotations
@@ -192,3 +193,16 @@ def test_a_seed_whose_trust_region_step_turns_non_finite_is_put_back_and_flagged
         assert torch.equal(restored, saved)
     for mine, alone in zip(seed_rows(broken, 1), seed_rows(clean, 1)):
         assert torch.equal(mine, alone)
+
+
+def test_keep_freed_memory_applies_on_linux_glibc_only(monkeypatch):
+    import platform
+    import sys
+
+    from sg_torchrl.train import memory
+
+    on_glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert memory.keep_freed_memory() is on_glibc
+    assert memory.keep_freed_memory() is on_glibc  # idempotent (every GroupTrainer calls it)
+    monkeypatch.setattr(memory.sys, "platform", "darwin")
+    assert memory.keep_freed_memory() is False
