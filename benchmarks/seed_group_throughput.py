@@ -2,23 +2,31 @@
 
 A seed group (``sg-train --seeds``, :mod:`sg_torchrl.train.seed_group`) steps S seeds' simulators in
 one batched env and their networks as one stacked model, so what one seed costs should fall with S.
-This script trains PPO-Lag at the paper's settings (20,000 steps per epoch from 10 simulators per
-seed, 40 passes of minibatch 64, KL early stop 0.02) for ``--epochs`` epochs per configuration, in
-one run and one after the other:
+This script trains each algorithm of ``--algos`` (default PPO-Lag and CPO) at the paper's settings
+(20,000 steps per epoch from 10 simulators per seed; the algorithm's own update settings: PPO-Lag 40
+passes of minibatch 64 with KL early stop 0.02, CPO one trust-region step then 10 critic passes of
+minibatch 128) for ``--epochs`` epochs per configuration, in one run and one after the other:
 
 * ``Trainer``: today's single-seed trainer (eager), the baseline;
 * ``group S=k``: a seed group of seeds 0..k-1, eager, and with ``--compile true`` (the fused minibatch
-  losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling).
+  losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling). For
+  a second-order algorithm only the critics' passes compile: the stacked trust-region step
+  (:mod:`sg_torchrl.train.stacked_trust_region`: conjugate gradient, double backward, line search)
+  runs eagerly either way, and the table says so.
 
 Reported per env: CPU seconds (``time.process_time``, every thread of the process) per 1,000 env
 steps *per seed*, over all epochs and over the epochs after the first (steady state: no compiling,
 warm caches), the ratio of the baseline's steady figure to each configuration's (> 1: cheaper per
 seed than the single-seed trainer), the share of wall time spent collecting, and the passes the KL
-stop allowed (the mean over seeds: configurations that stop at different passes do different work).
-Every configuration runs with one torch thread, as ``sg-train`` does.
+stop allowed (the mean over seeds: configurations that stop at different passes do different work;
+second order: the critic passes, always all of them). Every configuration runs with one torch
+thread, as ``sg-train`` does, and with glibc told to keep freed memory
+(:func:`~sg_torchrl.train.memory.keep_freed_memory`, which every seed group applies at start-up and
+which stays for the process): set before the first row, so the single-seed baseline runs under the
+same allocator settings as the groups.
 
     python benchmarks/seed_group_throughput.py                      # the paper's settings (minutes per row)
-    python benchmarks/seed_group_throughput.py --epochs 3 --seeds 1 3
+    python benchmarks/seed_group_throughput.py --epochs 3 --seeds 1 3 --algos cpo
     python benchmarks/seed_group_throughput.py --quick              # a smoke test: small epochs, S = 1, 3
 """
 
@@ -32,10 +40,14 @@ from dataclasses import dataclass
 import torch
 
 from sg_torchrl.train import GroupTrainer, TrainConfig, Trainer
+from sg_torchrl.train.fused import FusedFirstOrderStep
+from sg_torchrl.train.memory import keep_freed_memory
 
 ENVS = ("SafetyHalfCheetahVelocity-v1", "SafetyPointGoal1-v0")
-PAPER = dict(steps_per_epoch=20_000, num_envs=10, update_iters=40, minibatch_size=64, target_kl=0.02)
-QUICK = dict(steps_per_epoch=1_000, num_envs=4, update_iters=4, minibatch_size=64, target_kl=0.02)
+ALGOS = ("ppo_lag", "cpo")
+# The update settings (passes, minibatch, KL stop) are each algorithm's paper defaults; --quick cuts the passes.
+PAPER = dict(steps_per_epoch=20_000, num_envs=10)
+QUICK = dict(steps_per_epoch=1_000, num_envs=4, update_iters=4)
 
 
 @dataclass
@@ -53,53 +65,73 @@ class Row:
         return sum(epochs) / (len(epochs) * self.seeds * settings["steps_per_epoch"] / 1000)
 
 
-def measure(env_id: str, seeds: int | None, compile: bool, settings: dict, epochs: int) -> Row:
-    """Train ``epochs`` epochs of PPO-Lag: the single-seed ``Trainer`` (``seeds`` None) or a group of ``seeds``."""
+def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: dict, epochs: int) -> Row:
+    """Train ``epochs`` epochs of ``algo``: the single-seed ``Trainer`` (``seeds`` None) or a group of ``seeds``.
+
+    Compiled graphs of earlier rows are dropped first (``torch._dynamo.reset``), so each row compiles as
+    a fresh ``sg-train`` process does: dynamo keys its cache on the loss function's code, and the rows'
+    different shapes together would pass its recompile limit, after which it silently runs eagerly.
+    """
+    torch._dynamo.reset()
     with tempfile.TemporaryDirectory() as tmp:
-        common = dict(algo="ppo_lag", env_id=env_id, total_steps=epochs * settings["steps_per_epoch"],
+        common = dict(algo=algo, env_id=env_id, total_steps=epochs * settings["steps_per_epoch"],
                       wandb="disabled", eval_episodes=0, progress=False, output_dir=tmp, compile=compile, **settings)
         if seeds is None:
             trainer, label, count = Trainer(TrainConfig(seed=0, **common)), "Trainer (single seed)", 1
         else:
             trainer = GroupTrainer(TrainConfig(seeds=list(range(seeds)), **common))
-            label, count = f"group S={seeds}" + (" compiled" if compile else ""), seeds
+            label, count = f"group S={seeds}", seeds
+            if compile:
+                label += " compiled" + (" (critic passes only; the trust-region step is eager)"
+                                        if trainer.cfg.second_order else "")
         cpu, rows = [], []
         for _ in range(epochs):
             start = time.process_time()
             rows.append(trainer.train_epoch())
             cpu.append(time.process_time() - start)
         error = None
-        if seeds is not None and compile:
-            step = getattr(trainer.group_update, "step", None)
-            error = getattr(step, "compile_error", None) or trainer.optimizer.compile_error
+        if seeds is not None and compile:  # the group update's fused steps, then the optimiser
+            steps = [part for part in vars(trainer.group_update).values() if isinstance(part, FusedFirstOrderStep)]
+            errors = [step.compile_error for step in steps if step.compile_error]
+            error = (errors or [trainer.optimizer.compile_error])[0]
     return Row(label, count, cpu, sum(r["Time/Rollout"] for r in rows),
                sum(r["Time/Rollout"] + r["Time/Update"] for r in rows),
                sum(r["Train/StopIter"] for r in rows) / epochs, error)
 
 
+def describe(algo: str, settings: dict) -> str:
+    """The update settings ``algo`` runs with (its defaults, as ``TrainConfig`` fills them in)."""
+    cfg = TrainConfig(algo=algo, **settings)
+    if cfg.second_order:
+        return (f"one trust-region step (KL {cfg.target_kl}), then {cfg.update_iters} critic passes of minibatch "
+                f"{cfg.minibatch_size}")
+    return f"{cfg.update_iters} passes of minibatch {cfg.minibatch_size}, KL stop {cfg.target_kl}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=list(ENVS))
+    parser.add_argument("--algos", nargs="+", default=list(ALGOS), help="algorithms (default: ppo_lag cpo)")
     parser.add_argument("--seeds", nargs="+", type=int, default=None, help="group sizes S (default 1 3 8; quick 1 3)")
     parser.add_argument("--epochs", type=int, default=2, help="epochs per configuration (the first is reported apart)")
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled groups")
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke test: {QUICK['steps_per_epoch']}-step epochs from {QUICK['num_envs']} simulators "
-                             f"per seed, {QUICK['update_iters']} passes, S = 1, 3")
+                             f"per seed, {QUICK['update_iters']} (critic) passes, S = 1, 3")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    kept = keep_freed_memory()  # what the first group would do: for every row alike
     settings = QUICK if args.quick else PAPER
     sizes = args.seeds or ([1, 3] if args.quick else [1, 3, 8])
     steady = slice(1, None) if args.epochs > 1 else slice(None)
-    print(f"PPO-Lag, {settings['steps_per_epoch']} steps per epoch from {settings['num_envs']} simulators per seed, "
-          f"{settings['update_iters']} passes of minibatch {settings['minibatch_size']}, KL stop "
-          f"{settings['target_kl']}; {args.epochs} epoch(s) per row; CPU s = time.process_time()\n")
-    for env_id in args.envs:
-        runs = [measure(env_id, None, False, settings, args.epochs)]
+    print(f"{settings['steps_per_epoch']} steps per epoch from {settings['num_envs']} simulators per seed; "
+          f"{args.epochs} epoch(s) per row; CPU s = time.process_time(); glibc keeps freed memory: {kept}\n")
+    for algo, env_id in ((algo, env_id) for algo in args.algos for env_id in args.envs):
+        runs = [measure(algo, env_id, None, False, settings, args.epochs)]
         for compile in ([False] if args.no_compile else [False, True]):
-            runs += [measure(env_id, size, compile, settings, args.epochs) for size in sizes]
+            runs += [measure(algo, env_id, size, compile, settings, args.epochs) for size in sizes]
         base = runs[0].per_seed_k(settings, runs[0].cpu[steady])
-        print(f"### {env_id}\n")
+        print(f"### {algo} on {env_id}: {describe(algo, settings)}\n")
         print("| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs Trainer "
               "| collection share of wall | passes per epoch |")
         print("|---|---|---|---|---|---|")
