@@ -7,7 +7,7 @@ This script trains each algorithm of ``--algos`` (default PPO-Lag and CPO) at th
 passes of minibatch 64 with KL early stop 0.02, CPO one trust-region step then 10 critic passes of
 minibatch 128) for ``--epochs`` epochs per configuration, in one run and one after the other:
 
-* ``Trainer``: today's single-seed trainer (eager), the baseline;
+* ``Trainer``: today's single-seed trainer, eager (the baseline of the ratios) and with ``--compile true``;
 * ``group S=k``: a seed group of seeds 0..k-1, eager, and with ``--compile true`` (the fused minibatch
   losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling). For
   a second-order algorithm only the critics' passes compile: the stacked trust-region step
@@ -21,9 +21,10 @@ seed than the single-seed trainer), the share of wall time spent collecting, and
 stop allowed (the mean over seeds: configurations that stop at different passes do different work;
 second order: the critic passes, always all of them). Every configuration runs with one torch
 thread, as ``sg-train`` does, and with glibc told to keep freed memory
-(:func:`~sg_torchrl.train.memory.keep_freed_memory`, which every seed group applies at start-up and
-which stays for the process): set before the first row, so the single-seed baseline runs under the
-same allocator settings as the groups.
+(:func:`~sg_torchrl.train.memory.keep_freed_memory`, which every seed group applies at start-up), so
+the single-seed baseline runs under the same allocator settings as the groups. Each row runs in a
+fresh (spawned) process, which also gives its peak resident memory (``ru_maxrss``: interpreter, torch
+and MuJoCo included), reported whole and per seed.
 
     python benchmarks/seed_group_throughput.py                      # the paper's settings (minutes per row)
     python benchmarks/seed_group_throughput.py --epochs 3 --seeds 1 3 --algos cpo
@@ -33,6 +34,8 @@ same allocator settings as the groups.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import resource
 import tempfile
 import time
 from dataclasses import dataclass
@@ -59,10 +62,18 @@ class Row:
     wall: float  # wall seconds, all epochs
     passes: float  # mean passes per epoch (mean over seeds)
     compile_error: str | None = None
+    peak_mib: float = float("nan")  # the row's process: peak resident memory (ru_maxrss)
 
     def per_seed_k(self, settings: dict, epochs: list[float]) -> float:
         """CPU seconds per 1,000 env steps per seed over ``epochs``."""
         return sum(epochs) / (len(epochs) * self.seeds * settings["steps_per_epoch"] / 1000)
+
+
+def measure_in_child(*args) -> Row:
+    """:func:`measure` in a fresh process (spawned), so that each row's peak memory is its own and it
+    compiles, allocates and warms up as a fresh ``sg-train`` process does."""
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply(measure, args)
 
 
 def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: dict, epochs: int) -> Row:
@@ -72,12 +83,15 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
     a fresh ``sg-train`` process does: dynamo keys its cache on the loss function's code, and the rows'
     different shapes together would pass its recompile limit, after which it silently runs eagerly.
     """
+    torch.set_num_threads(1)
+    keep_freed_memory()  # what a group does at start-up: for every row alike
     torch._dynamo.reset()
     with tempfile.TemporaryDirectory() as tmp:
         common = dict(algo=algo, env_id=env_id, total_steps=epochs * settings["steps_per_epoch"],
                       wandb="disabled", eval_episodes=0, progress=False, output_dir=tmp, compile=compile, **settings)
         if seeds is None:
-            trainer, label, count = Trainer(TrainConfig(seed=0, **common)), "Trainer (single seed)", 1
+            trainer, count = Trainer(TrainConfig(seed=0, **common)), 1
+            label = "Trainer (single seed)" + (" compiled" if compile else "")
         else:
             trainer = GroupTrainer(TrainConfig(seeds=list(range(seeds)), **common))
             label, count = f"group S={seeds}", seeds
@@ -96,7 +110,8 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
             error = (errors or [trainer.optimizer.compile_error])[0]
     return Row(label, count, cpu, sum(r["Time/Rollout"] for r in rows),
                sum(r["Time/Rollout"] + r["Time/Update"] for r in rows),
-               sum(r["Train/StopIter"] for r in rows) / epochs, error)
+               sum(r["Train/StopIter"] for r in rows) / epochs, error,
+               resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
 
 
 def describe(algo: str, settings: dict) -> str:
@@ -119,27 +134,28 @@ def main() -> None:
                         help=f"smoke test: {QUICK['steps_per_epoch']}-step epochs from {QUICK['num_envs']} simulators "
                              f"per seed, {QUICK['update_iters']} (critic) passes, S = 1, 3")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    kept = keep_freed_memory()  # what the first group would do: for every row alike
+    kept = keep_freed_memory()  # each row's process does the same
     settings = QUICK if args.quick else PAPER
     sizes = args.seeds or ([1, 3] if args.quick else [1, 3, 8])
     steady = slice(1, None) if args.epochs > 1 else slice(None)
     print(f"{settings['steps_per_epoch']} steps per epoch from {settings['num_envs']} simulators per seed; "
           f"{args.epochs} epoch(s) per row; CPU s = time.process_time(); glibc keeps freed memory: {kept}\n")
     for algo, env_id in ((algo, env_id) for algo in args.algos for env_id in args.envs):
-        runs = [measure(algo, env_id, None, False, settings, args.epochs)]
+        runs = []
         for compile in ([False] if args.no_compile else [False, True]):
-            runs += [measure(algo, env_id, size, compile, settings, args.epochs) for size in sizes]
+            runs.append(measure_in_child(algo, env_id, None, compile, settings, args.epochs))
+            runs += [measure_in_child(algo, env_id, size, compile, settings, args.epochs) for size in sizes]
         base = runs[0].per_seed_k(settings, runs[0].cpu[steady])
         print(f"### {algo} on {env_id}: {describe(algo, settings)}\n")
         print("| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs Trainer "
-              "| collection share of wall | passes per epoch |")
-        print("|---|---|---|---|---|---|")
+              "| collection share of wall | passes per epoch | peak MiB | peak MiB / seed |")
+        print("|---|---|---|---|---|---|---|---|")
         for row in runs:
             after = row.per_seed_k(settings, row.cpu[steady])
             note = f" (compile failed, eager: {row.compile_error})" if row.compile_error else ""
             print(f"| {row.label}{note} | {row.per_seed_k(settings, row.cpu):.3f} | {after:.3f} | {base / after:.2f}x "
-                  f"| {row.rollout / row.wall:.0%} | {row.passes:.1f} |")
+                  f"| {row.rollout / row.wall:.0%} | {row.passes:.1f} | {row.peak_mib:.0f} | "
+                  f"{row.peak_mib / row.seeds:.0f} |")
         print()
 
 
