@@ -1,5 +1,6 @@
 # The two commands a new user runs on a fresh machine:
-#   make run    trains PPO-Lag on the embedded default (no accounts, no servers)
+#   make run    trains a safe agent: PPO-Lag on SafetySwimmerVelocity-v1, seeds 0 1 2 in one process,
+#               about ten minutes on 2 cores (no accounts, no servers)
 #   make test   runs the default (fast) test suite
 # Both create .venv and install the package into it when missing.
 
@@ -26,9 +27,12 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install --quiet -e '.[test,warp]'
 	touch $(STAMP)
 
-# `make run` is the demo: each call starts it afresh in runs/make-run (--overwrite says so explicitly;
-# sg-train itself never replaces a run unasked). Continue an interrupted one with
-# `.venv/bin/sg-train --resume runs/make-run`.
+# `make run` is the demo, the `make-run` preset (sg_torchrl/train/config.py, where its choices are
+# explained): a seed group of three seeds that ends under the cost limit. It prints each seed's and the
+# mean EpRet / EpCost (training and evaluation) and draws runs/make-run/curves.png (every seed and the
+# mean, with the limit); each seed's run is in runs/make-run/seed-XXX/. Each call starts it afresh
+# (--overwrite says so explicitly; sg-train itself never replaces a run unasked). Continue an
+# interrupted one with `.venv/bin/sg-train --resume runs/make-run`.
 run: $(STAMP)
 	$(PY) -m sg_torchrl.train --preset make-run --overwrite
 

@@ -12,7 +12,7 @@ torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, TrainConfig, Trainer, main  # noqa: E402
-from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
+from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, SEED_GROUP_ALGORITHMS, parse_args  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
 
@@ -76,12 +76,16 @@ class TestConfig:
         assert cfg.normalize_obs is False and cfg.cost_limit == 10.0
         assert cfg.total_steps == 4_000  # from the preset
 
-    def test_make_run_preset_is_ppo_lag_on_point_goal1(self):
-        # `make run` (issue 3): PPO-Lag on SafetyPointGoal1-v0, whole epochs, a few minutes of CPU.
-        cfg = parse_args(["--preset", "make-run"])
-        assert (cfg.algo, cfg.env_id) == ("ppo_lag", "SafetyPointGoal1-v0")
-        assert cfg.env_id in sg_torchrl.list_envs()
-        assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.total_steps <= 300_000
+    def test_make_run_preset_is_a_seed_group(self):
+        # `make run` (issue 18 item 5): a group of several seeds of a first-order algorithm in one process,
+        # whole epochs, a few hundred thousand steps per seed, every seed's run in runs/make-run/seed-XXX.
+        cfg = parse_args(["--preset", "make-run"])  # a TrainConfig: validated when built
+        assert cfg.group and len(cfg.seeds) >= 3 and cfg.seed == cfg.seeds[0]
+        assert cfg.algo in SEED_GROUP_ALGORITHMS and not cfg.second_order and cfg.env_id in sg_torchrl.list_envs()
+        assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.total_steps <= 500_000
+        assert cfg.eval_episodes > 0 and cfg.cost_limit == 25.0
+        assert str(cfg.run_dir) == "runs/make-run" and cfg.seed_dir(cfg.seeds[1]).name == f"seed-{cfg.seeds[1]:03d}"
+        assert cfg.for_seed(cfg.seeds[1]).run_dir == cfg.seed_dir(cfg.seeds[1])  # each seed's own config validates
 
     def test_cli_reports_bad_value(self, capsys):
         assert main(["--num-envs", "3", "--steps-per-epoch", "1000"]) == 2
