@@ -169,6 +169,7 @@ def _print_group(cfg: TrainConfig, metrics: dict[str, Any]) -> None:
     print(f"  logs:       {run_dir}/seed-XXX/ (progress.csv, csv, summary.json, curves.png"
           + (", wandb)" if cfg.wandb != "disabled" else ")") + f", {run_dir}/summary.json")
     print(f"  checkpoint: {run_dir}/checkpoint.pt   (continue with: sg-train --resume {run_dir})")
+    print(f"  plot:       {run_dir}/curves.png   (every seed's return and cost, their mean and the cost limit)")
 
 
 def main(argv: list[str] | None = None) -> int:
