@@ -51,15 +51,16 @@ from torch import Tensor
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.second_order import Linearisation, natural_step_size
 from sg_torchrl.objectives.trust_region import (
+    CPORule,
     CPOStep,
     NaturalPolicyStep,
+    NaturalRule,
+    PCPORule,
     PCPOStep,
     Proposal,
+    TRPORule,
     TRPOStep,
     _per_sample,  # value reshaped to (S, N) per sample, refusing silent broadcasting
-    cpo_proposal,
-    natural_proposal,
-    pcpo_proposal,
 )
 from sg_torchrl.train.stacked import StackedActorCritic, gaussian_log_prob
 
@@ -520,53 +521,28 @@ class StackedTrustRegionStep(abc.ABC):
         return metrics
 
 
-class StackedNaturalPolicyStep(StackedTrustRegionStep):
+class StackedNaturalPolicyStep(NaturalRule, StackedTrustRegionStep):
     """:class:`~sg_torchrl.objectives.NaturalPolicyStep` for a seed group (NPG; RCPO with the Lagrangian advantage)."""
 
-    def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return natural_proposal(lin, cost_violation, self.target_kl)
 
-
-class StackedTRPOStep(StackedNaturalPolicyStep):
+class StackedTRPOStep(TRPORule, StackedNaturalPolicyStep):
     """:class:`~sg_torchrl.objectives.TRPOStep` for a seed group (TRPO; TRPO-Lag with the Lagrangian advantage)."""
 
-    default_line_search_steps = 15
 
-
-class StackedCPOStep(StackedTrustRegionStep):
+class StackedCPOStep(CPORule, StackedTrustRegionStep):
     """:class:`~sg_torchrl.objectives.CPOStep` for a seed group; each seed takes its own CPO case.
 
     Keyword Args:
         safepo_dual (bool): see :func:`~sg_torchrl.objectives.cpo_direction`. Defaults to ``False``.
     """
 
-    default_line_search_steps = 15
-    uses_cost = True
 
-    def __init__(self, model: StackedActorCritic, *, safepo_dual: bool = False, **kwargs) -> None:
-        super().__init__(model, **kwargs)
-        self.safepo_dual = bool(safepo_dual)
-
-    def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return cpo_proposal(lin, cost_violation, self.target_kl, safepo_dual=self.safepo_dual)
-
-
-class StackedPCPOStep(StackedTrustRegionStep):
+class StackedPCPOStep(PCPORule, StackedTrustRegionStep):
     """:class:`~sg_torchrl.objectives.PCPOStep` for a seed group.
 
     Keyword Args:
         use_hx_direction (bool): see :class:`~sg_torchrl.objectives.PCPOStep`. Defaults to ``False``.
     """
-
-    default_line_search_steps = 200
-    uses_cost = True
-
-    def __init__(self, model: StackedActorCritic, *, use_hx_direction: bool = False, **kwargs) -> None:
-        super().__init__(model, **kwargs)
-        self.use_hx_direction = bool(use_hx_direction)
-
-    def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return pcpo_proposal(lin, cost_violation, self.target_kl, use_hx=self.use_hx_direction)
 
 
 #: The group step of each single-seed step class (what an algorithm row names, e.g. ``TRPOStep``).
