@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import ClassVar, Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -28,7 +28,7 @@ from torch import Tensor
 from sg_torchrl.objectives.second_order import Linearisation, natural_step_size
 
 __all__ = [
-    "CPODirection", "CPORule", "NaturalRule", "PCPORule", "Proposal", "TRPORule", "cpo_direction", "cpo_proposal",
+    "TrustRegionOptions", "CPODirection", "CPORule", "NaturalRule", "PCPORule", "Proposal", "TRPORule", "cpo_direction", "cpo_proposal",
     "natural_proposal", "pcpo_direction", "pcpo_proposal",
 ]
 
@@ -223,6 +223,48 @@ def pcpo_proposal(lin: Linearisation, cost_violation: float, delta: float, *, us
     """:func:`pcpo_direction` with CPO's cost test and no reward test: the proposal of :class:`PCPOStep`."""
     direction = pcpo_direction(lin, cost_violation, delta, use_hx=use_hx)
     return Proposal(direction=direction, require_improvement=False, cost_tolerance=max(-cost_violation, 0.0))
+
+
+class TrustRegionOptions:
+    """The settings of a trust-region step engine, checked and stored once for the single-seed
+    :class:`~sg_torchrl.objectives.TrustRegionStep` and the seed group's stacked step.
+
+    Keyword Args:
+        target_kl (float): trust-region radius :math:`\\delta`. Defaults to ``0.01``.
+        cg_iters (int): conjugate-gradient iterations. Defaults to ``15``.
+        cg_damping (float): damping added to the Fisher-vector product. Defaults to ``0.1``.
+        line_search_steps (int, optional): backtracking trials; ``0`` applies the step without a line
+            search; ``None`` uses the method's default (:attr:`default_line_search_steps`).
+        step_fraction (float): backtracking shrink factor. Defaults to ``0.8``.
+        cg_residual_tol (float): CG residual tolerance. Defaults to ``1e-10``.
+        cg_eps (float): CG denominator guard. Defaults to ``1e-6``.
+        kl_action_reduction (str): ``"mean"`` (SafePO) or ``"sum"`` over action dims.
+    """
+
+    default_line_search_steps: ClassVar[int] = 0
+    uses_cost: ClassVar[bool] = False
+
+    def __init__(self, *, target_kl: float = 0.01, cg_iters: int = 15, cg_damping: float = 0.1,
+                 line_search_steps: int | None = None, step_fraction: float = 0.8, cg_residual_tol: float = 1e-10,
+                 cg_eps: float = 1e-6, kl_action_reduction: Literal["mean", "sum"] = "mean") -> None:
+        if line_search_steps is None:
+            line_search_steps = self.default_line_search_steps
+        if not target_kl > 0:
+            raise ValueError(f"target_kl must be > 0, got {target_kl}.")
+        if cg_iters < 1 or line_search_steps < 0:
+            raise ValueError(f"need cg_iters >= 1 and line_search_steps >= 0, got {cg_iters}, {line_search_steps}.")
+        if cg_damping < 0 or not 0.0 < step_fraction < 1.0:
+            raise ValueError(f"need cg_damping >= 0 and 0 < step_fraction < 1, got {cg_damping}, {step_fraction}.")
+        if kl_action_reduction not in ("mean", "sum"):
+            raise ValueError(f"kl_action_reduction must be 'mean' or 'sum', got {kl_action_reduction!r}.")
+        self.target_kl = float(target_kl)
+        self.cg_iters = int(cg_iters)
+        self.cg_damping = float(cg_damping)
+        self.line_search_steps = int(line_search_steps)
+        self.step_fraction = float(step_fraction)
+        self.cg_residual_tol = float(cg_residual_tol)
+        self.cg_eps = float(cg_eps)
+        self.kl_action_reduction = kl_action_reduction
 
 
 class NaturalRule:

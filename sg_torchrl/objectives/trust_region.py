@@ -58,7 +58,7 @@ from __future__ import annotations
 import abc
 import math
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -86,6 +86,7 @@ from sg_torchrl.objectives.step_rules import (  # re-exported: the step rules' h
     PCPORule,
     Proposal,
     TRPORule,
+    TrustRegionOptions,
     cpo_direction,
     cpo_proposal,
     natural_proposal,
@@ -255,7 +256,7 @@ class _Evaluation:
         return all(math.isfinite(v) for v in (self.reward, self.cost, self.kl))
 
 
-class TrustRegionStep(abc.ABC):
+class TrustRegionStep(TrustRegionOptions, abc.ABC):
     """Common body of the trust-region policy steps; subclasses only propose a direction.
 
     :meth:`step` (called by the trainer once per epoch on the whole flattened batch):
@@ -278,16 +279,10 @@ class TrustRegionStep(abc.ABC):
             in place (under :func:`torch.no_grad`).
 
     Keyword Args:
-        target_kl (float): trust-region size :math:`\\delta`. Defaults to ``0.01``.
-        cg_iters (int): conjugate-gradient iterations. Defaults to ``15``.
-        cg_damping (float): Fisher damping :math:`\\beta`. Defaults to ``0.1``.
-        line_search_steps (int, optional): backtracking trials; ``0`` applies the step without a
-            line search. ``None`` uses the class default.
-        step_fraction (float): backtracking shrink factor. Defaults to ``0.8``.
-        cg_residual_tol (float): CG residual tolerance. Defaults to ``1e-10``.
-        cg_eps (float): CG denominator guard. Defaults to ``1e-6``.
-        kl_action_reduction (str): ``"mean"`` (SafePO) or ``"sum"`` over action dims, see the module
-            docstring.
+        **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (``target_kl`` 0.01,
+            ``cg_iters`` 15, ``cg_damping`` 0.1, ``line_search_steps`` (``None``: the method's default),
+            ``step_fraction`` 0.8, ``cg_residual_tol``, ``cg_eps``, ``kl_action_reduction`` ``"mean"``, see
+            the module docstring).
 
     Returned metrics (SafePO's names): ``Misc/Alpha`` (:math:`\\sqrt{2\\delta/q}`),
     ``Misc/FinalStepNorm`` (norm of the proposed direction, 0 when rejected; SafePO's definition,
@@ -297,39 +292,10 @@ class TrustRegionStep(abc.ABC):
     plus ``Misc/cost_gradient_norm`` for the constrained steps and subclass extras.
     """
 
-    default_line_search_steps: ClassVar[int] = 0
-    uses_cost: ClassVar[bool] = False
-
-    def __init__(
-        self,
-        actor: ProbabilisticTensorDictSequential,
-        *,
-        target_kl: float = 0.01,
-        cg_iters: int = 15,
-        cg_damping: float = 0.1,
-        line_search_steps: int | None = None,
-        step_fraction: float = 0.8,
-        cg_residual_tol: float = 1e-10,
-        cg_eps: float = 1e-6,
-        kl_action_reduction: Literal["mean", "sum"] = "mean",
-    ) -> None:
-        if line_search_steps is None:
-            line_search_steps = self.default_line_search_steps
-        if not target_kl > 0:
-            raise ValueError(f"target_kl must be > 0, got {target_kl}.")
-        if cg_iters < 1 or line_search_steps < 0:
-            raise ValueError(f"need cg_iters >= 1 and line_search_steps >= 0, got {cg_iters}, {line_search_steps}.")
-        if cg_damping < 0 or not 0.0 < step_fraction < 1.0:
-            raise ValueError(f"need cg_damping >= 0 and 0 < step_fraction < 1, got {cg_damping}, {step_fraction}.")
-        self.loss = TrustRegionLoss(actor, kl_action_reduction=kl_action_reduction)
+    def __init__(self, actor: ProbabilisticTensorDictSequential, **options) -> None:
+        super().__init__(**options)
+        self.loss = TrustRegionLoss(actor, kl_action_reduction=self.kl_action_reduction)
         self.params = [p for p in actor.parameters() if p.requires_grad]
-        self.target_kl = float(target_kl)
-        self.cg_iters = int(cg_iters)
-        self.cg_damping = float(cg_damping)
-        self.line_search_steps = int(line_search_steps)
-        self.step_fraction = float(step_fraction)
-        self.cg_residual_tol = float(cg_residual_tol)
-        self.cg_eps = float(cg_eps)
 
     # ------------------------------------------------------------------ hook
     @abc.abstractmethod

@@ -43,7 +43,7 @@ import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -60,6 +60,7 @@ from sg_torchrl.objectives.trust_region import (
     Proposal,
     TRPORule,
     TRPOStep,
+    TrustRegionOptions,
     _per_sample,  # value reshaped to (S, N) per sample, refusing silent broadcasting
 )
 from sg_torchrl.train.stacked import StackedActorCritic, gaussian_log_prob
@@ -318,7 +319,7 @@ def _actor_rows(model: StackedActorCritic, rows: Tensor) -> StackedActorCritic:
                               scale_lb=model.scale_lb, device=weight.device, dtype=weight.dtype)
 
 
-class StackedTrustRegionStep(abc.ABC):
+class StackedTrustRegionStep(TrustRegionOptions, abc.ABC):
     """The trust-region step of every seed of a group; subclasses only name the per-seed proposal.
 
     :meth:`step` follows :meth:`~sg_torchrl.objectives.TrustRegionStep.step` for each row of
@@ -347,32 +348,9 @@ class StackedTrustRegionStep(abc.ABC):
     ``Misc/cost_gradient_norm`` and the proposal's extras such as ``Misc/CPOCase``).
     """
 
-    default_line_search_steps: ClassVar[int] = 0
-    uses_cost: ClassVar[bool] = False
-
-    def __init__(self, model: StackedActorCritic, *, target_kl: float = 0.01, cg_iters: int = 15,
-                 cg_damping: float = 0.1, line_search_steps: int | None = None, step_fraction: float = 0.8,
-                 cg_residual_tol: float = 1e-10, cg_eps: float = 1e-6,
-                 kl_action_reduction: Literal["mean", "sum"] = "mean") -> None:
-        if line_search_steps is None:
-            line_search_steps = self.default_line_search_steps
-        if not target_kl > 0:
-            raise ValueError(f"target_kl must be > 0, got {target_kl}.")
-        if cg_iters < 1 or line_search_steps < 0:
-            raise ValueError(f"need cg_iters >= 1 and line_search_steps >= 0, got {cg_iters}, {line_search_steps}.")
-        if cg_damping < 0 or not 0.0 < step_fraction < 1.0:
-            raise ValueError(f"need cg_damping >= 0 and 0 < step_fraction < 1, got {cg_damping}, {step_fraction}.")
-        if kl_action_reduction not in ("mean", "sum"):
-            raise ValueError(f"kl_action_reduction must be 'mean' or 'sum', got {kl_action_reduction!r}.")
+    def __init__(self, model: StackedActorCritic, **options) -> None:
+        super().__init__(**options)
         self.model = model
-        self.target_kl = float(target_kl)
-        self.cg_iters = int(cg_iters)
-        self.cg_damping = float(cg_damping)
-        self.line_search_steps = int(line_search_steps)
-        self.step_fraction = float(step_fraction)
-        self.cg_residual_tol = float(cg_residual_tol)
-        self.cg_eps = float(cg_eps)
-        self.kl_action_reduction = kl_action_reduction
 
     def for_rows(self, rows: Tensor) -> StackedTrustRegionStep:
         """This step (same class and options) on a copy of the actor rows ``rows`` alone.
