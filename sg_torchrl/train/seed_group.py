@@ -1,5 +1,12 @@
 """A seed group: S independent runs of one algorithm trained side by side in one process (``sg-train --seeds``).
 
+This module is the single-agent group (:class:`GroupTrainer`: stacked networks). Multi-agent groups
+(``--algo mappo|happo|mappo_lag|macpo --seeds ...``,
+:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`) keep one team and one round per
+seed: the per-seed updates run one after another, not stacked, while simulation and collection are
+batched as here. What both share (the seeds' records, epochs, logs, summaries, divergence freezing and
+checkpoint entries, the layout below) is :class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`.
+
 DESIGN.md ("Many seeds in one process"): SafePO's networks are so small that a gradient step is
 per-operator overhead, so S seeds whose networks are stacked along a leading seed dimension and
 stepped together cost little more than one. Nothing is shared between the seeds; seed ``s`` of a
@@ -28,8 +35,8 @@ generators and simulator blocks draw the same numbers, and the stacked actor com
 actions as for S = 1); across epochs the seeds' updates agree to float rounding (batched matmuls
 of the critics' one-wide output sum in another order for S = 1 and S > 1, about 1e-7).
 
-**Layout.** ``<output_dir>/<env_id>/<algo>/seeds-0-1-2/`` (or ``--run-name``) holds the group's
-``config.json`` and ``checkpoint.pt`` and one directory per seed::
+**Layout** (every seed group, single- or multi-agent). ``<output_dir>/<env_id>/<algo>/seeds-0-1-2/``
+(or ``--run-name``) holds the group's ``config.json`` and ``checkpoint.pt`` and one directory per seed::
 
     seeds-0-1-2/
       config.json  checkpoint.pt  summary.json   the group: its config, checkpoint, per-seed and mean summary
@@ -40,7 +47,8 @@ of the critics' one-wide output sum in another order for S = 1 and S > 1, about 
 ``--resume <group dir>`` continues the group, and a new group refuses a directory holding one
 unless ``--overwrite`` (the single-seed rules, :mod:`sg_torchrl.train.checkpoint`). The checkpoint
 keeps every seed's networks (as single-seed modules' state dicts), Adam rows, multiplier,
-normaliser row, generators and statistics under ``"seeds"`` (:func:`seed_entry` reads one out).
+normaliser row, generators and statistics under ``"seeds"``
+(:func:`~sg_torchrl.train.seed_runs.seed_entry` reads one out).
 
 **Divergence.** A seed whose parameters are not finite before an epoch, or whose update turns
 non-finite, is frozen (no more updates, multiplier or logs; its simulators idle with zero actions)
@@ -50,10 +58,6 @@ when none is left the run ends early.
 
 from __future__ import annotations
 
-import json
-import sys
-import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -63,10 +67,9 @@ from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, exploration_type
-from tqdm.auto import tqdm
 
 import sg_torchrl
-from sg_torchrl.collectors import EpisodeStats, RolloutCollector
+from sg_torchrl.collectors import RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae
 from sg_torchrl.train.algorithms import ALGORITHMS
@@ -74,12 +77,10 @@ from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
-from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
-from sg_torchrl.train.plot import plot_group_curves
+from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
 from sg_torchrl.train.stacked import StackedActorCritic
-from sg_torchrl.train.trainer import EpochTrainer, epoch_row, finished_episode_cost, open_run_logger, write_run_summary
 
 __all__ = ["GroupTrainer", "SeedRun", "StackedPolicy", "action_seed", "seed_entry"]
 
@@ -133,25 +134,7 @@ class StackedPolicy(TensorDictModuleBase):
         return tensordict
 
 
-@dataclass
-class SeedRun:
-    """One seed's own record in a group: its config and directory, episode statistics, row, logger, fate."""
-
-    seed: int
-    cfg: TrainConfig
-    stats: EpisodeStats = field(default_factory=EpisodeStats)
-    last_mean_cost: float = 0.0
-    last_row: dict[str, float] | None = None
-    logger: RunLogger | None = None
-    #: ``None`` while training; ``{"epoch": k, "reason": ...}`` once frozen.
-    diverged: dict[str, Any] | None = None
-
-    @property
-    def alive(self) -> bool:
-        return self.diverged is None
-
-
-class GroupTrainer(EpochTrainer):
+class GroupTrainer(SeedGroupTrainer):
     """Build and run a seed group (``cfg.seeds``) of a single-agent algorithm; see the module docstring.
 
     Args:
@@ -160,18 +143,19 @@ class GroupTrainer(EpochTrainer):
         checkpoint: a group checkpoint (:meth:`load_checkpoint`) to continue from.
 
     Raises:
-        ValueError: an algorithm without a group update, or observations that are not a flat vector.
+        ValueError: a multi-agent algorithm (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`
+            trains those), an algorithm without a group update, or observations that are not a flat vector.
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
-        if not cfg.group:
-            raise ValueError("GroupTrainer trains a seed group: give cfg.seeds")
+        if cfg.multi_agent:
+            raise ValueError(f"GroupTrainer trains the single-agent algorithms, not {cfg.algo!r} "
+                             f"(use MultiAgentGroupTrainer)")
         super().__init__(cfg)
         # glibc would hand the updates' MB-sized temporaries back to the OS after every use and fault them
         # in again: S = 3, 20,000 steps per seed, 350,000-600,000 minor faults per CPO update, 300,000 per
         # PPO-Lag update; kept, about none and 7-10 % less update CPU time, the same peak memory.
         keep_freed_memory()
-        self.seeds = list(cfg.seeds)
         self.algorithm = ALGORITHMS[cfg.algo]
         if self.algorithm.make_group_update is None:
             raise ValueError(f"{cfg.algo!r} is not yet in seed groups (no group update in the algorithm table)")
@@ -210,67 +194,9 @@ class GroupTrainer(EpochTrainer):
         self.runs = [SeedRun(seed, cfg.for_seed(seed)) for seed in self.seeds]
         self._start(checkpoint)
 
-    # ------------------------------------------------------------------ seeds
-    @property
-    def alive(self) -> Tensor:
-        """``(S,)`` bool: the seeds still training."""
-        return torch.tensor([run.alive for run in self.runs])
-
-    def _freeze(self, flags: list[bool], epoch: int, reason: str) -> None:
-        """Freeze the seeds flagged, diverged in ``epoch``: no more updates, multiplier or logs; say so on stderr."""
-        for run, flag in zip(self.runs, flags):
-            if flag and run.alive:
-                run.diverged = {"epoch": epoch, "reason": reason}
-                others = [str(r.seed) for r in self.runs if r.alive]
-                tqdm.write(f"sg-train: seed {run.seed} diverged in epoch {epoch} ({reason}); it is frozen, "
-                           f"{'seeds ' + ', '.join(others) + ' go on' if others else 'no seed is left'}",
-                           file=sys.stderr)
-        alive = self.alive
-        self.policy.frozen = None if bool(alive.all()) else ~alive
-
-    def _freeze_nonfinite(self) -> None:
-        """Freeze the live seeds whose parameters are not finite (set from outside, or loaded so)."""
-        bad = (self.alive & ~finite_seeds(self.model)).tolist()
-        if any(bad):
-            self._freeze(bad, self.epoch + 1, "non-finite parameters at the start of the epoch")
-
-    def _exhausted(self) -> bool:
-        """Freeze seeds with non-finite parameters first; then whether every seed is frozen."""
-        self._freeze_nonfinite()
-        return not any(run.alive for run in self.runs)
-
-    # ------------------------------------------------------------------ epochs
-    def _train_epoch(self) -> dict[str, float]:
-        """Collect every seed's simulators at once, update every live seed, build each seed's row.
-
-        Returns the mean of the live seeds' rows (the progress bar's figures); each seed's own row,
-        under the single-seed names, is in its :attr:`SeedRun.last_row`, logged by :meth:`_log_epoch`.
-        """
-        cfg = self.cfg
-        if self._exhausted():
-            raise RuntimeError("every seed of the group has diverged: nothing left to train")
-        start = time.perf_counter()
-        batch = self.collector.collect()
-        rollout_time = time.perf_counter() - start
-        training = [run for run in self.runs if run.alive]
-        for run, block in zip(self.runs, batch.split(cfg.num_envs, dim=0)):
-            if run.alive:
-                run.last_mean_cost = finished_episode_cost(run.stats, block, run.last_mean_cost)
-        update_start = time.perf_counter()
-        learned, diverged = self._learn(batch)
-        update_time = time.perf_counter() - update_start
-        self.epoch += 1
-        steps = batch.numel() // len(self.seeds)
-        self.total_steps += steps
-        epoch_time = time.perf_counter() - start
-        self.train_seconds += epoch_time
-        for run, row in zip(self.runs, learned):
-            if run.alive:
-                run.last_row = epoch_row(run.stats, run.last_mean_cost, self.epoch, self.total_steps, row,
-                                         rollout_time=rollout_time, update_time=update_time,
-                                         total_time=self.train_seconds, fps=steps / epoch_time)
-        self._freeze(diverged, self.epoch, "its update turned non-finite; kept at its parameters before that update")
-        return _mean_row([run.last_row for run in training])
+    # ------------------------------------------------------------------ seeds and epochs
+    def _finite_seeds(self) -> Tensor:
+        return finite_seeds(self.model)
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float]], list[bool]]:
         """Multipliers, advantages and the group update; each seed's learned metrics and whether it diverged.
@@ -333,20 +259,7 @@ class GroupTrainer(EpochTrainer):
         data["cost_advantage"] = cost_advantage - cost_advantage.mean((1, 2), keepdim=True)
         return data, raw
 
-    # ------------------------------------------------------------------ logs
-    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
-        """Each seed's directory: its single-seed ``config.json`` and its logger (cut back to the checkpoint)."""
-        for run in self.runs:
-            run.cfg.run_dir.mkdir(parents=True, exist_ok=True)
-            run.cfg.save(run.cfg.run_dir / "config.json")
-            run.logger = open_run_logger(run.cfg, checkpoint, run.last_row)
-
-    def _log_epoch(self, metrics: dict[str, float]) -> None:
-        """Each seed that trained this epoch logs its own row (a frozen seed's log ends with its last epoch)."""
-        for run in self.runs:
-            if run.last_row is not None and run.last_row["Train/Epoch"] == self.epoch:
-                run.logger.log(run.last_row, step=self.total_steps)
-
+    # ------------------------------------------------------------------ evaluation
     def _evaluate_seed(self, index: int) -> dict[str, float]:
         """Seed ``index``'s deterministic evaluation, its actor and normaliser, env seed + 10_000."""
         cfg, seed = self.cfg, self.seeds[index]
@@ -355,51 +268,11 @@ class GroupTrainer(EpochTrainer):
         return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes, seed=seed + 10_000, obs_norm=norm,
                                env_options=cfg.env_options)
 
-    def _evaluate(self) -> dict[str, float]:
-        """The live seeds' evaluations, averaged (:meth:`finish` evaluates and reports each seed)."""
-        return _mean_row([self._evaluate_seed(i) for i, run in enumerate(self.runs) if run.alive])
-
-    def finish(self) -> dict[str, float]:
-        """Each seed's evaluation, summary and plot in its directory; the group's ``summary.json``.
-
-        Returns the live seeds' mean summary, and every seed's summary and last row under
-        ``seed-XXX/<name>`` (what ``sg-train`` prints).
-        """
-        cfg = self.cfg
-        summaries: dict[int, dict[str, Any]] = {}
-        for index, run in enumerate(self.runs):
-            evaluation = self._evaluate_seed(index) if cfg.eval_episodes > 0 and run.alive else None
-            extra = {} if run.alive else {"Diverged": True, "DivergedEpoch": run.diverged["epoch"],
-                                          "DivergedReason": run.diverged["reason"]}
-            steps = self.total_steps if run.alive else int((run.last_row or {}).get("Train/TotalSteps", 0))
-            summaries[run.seed] = write_run_summary(run.cfg, run.logger, run.stats, evaluation, title=self.title,
-                                                    total_steps=steps, train_seconds=self.train_seconds, extra=extra)
-        mean = _mean_row([s for run, s in zip(self.runs, summaries.values()) if run.alive])
-        (cfg.run_dir / "summary.json").write_text(json.dumps(
-            {"seeds": {str(seed): summary for seed, summary in summaries.items()}, "mean": mean,
-             "diverged": [run.seed for run in self.runs if not run.alive], "Train/TotalSteps": self.total_steps,
-             "Time/Total": self.train_seconds}, indent=2))
-        # The group's figure: every seed's curves and their mean in one picture (seed-XXX/ holds each alone).
-        plot_group_curves({run.seed: run.logger.history() for run in self.runs}, cfg.run_dir / "curves.png",
-                          cost_limit=cfg.cost_limit,
-                          title=f"{self.title} on {cfg.env_id} (seeds {' '.join(map(str, self.seeds))})")
-        out: dict[str, Any] = dict(mean)
-        for run in self.runs:
-            prefix = f"seed-{run.seed:03d}/"
-            figures = {**(run.last_row or {}), **summaries[run.seed]}
-            out.update({prefix + name: value for name, value in figures.items()})
-        return out
-
     # ------------------------------------------------------------------ checkpoints
-    def _run_state(self) -> dict[str, Any]:
-        """Every seed's entry (:func:`seed_entry`): networks, optimiser rows, multiplier, normaliser, streams, logs."""
-        return {"seeds": [self._seed_state(index) for index in range(len(self.seeds))]}
-
     def _seed_state(self, index: int) -> dict[str, Any]:
-        run = self.runs[index]
+        """Seed ``index``'s networks (as single-seed modules' state dicts), Adam rows, multiplier, normaliser row, generators."""
         actor, critic, cost_critic = self.model.export_seed(index, self.base_env.action_spec)
         return {
-            "seed": run.seed,
             "networks": {"actor": actor.state_dict(), "critic": critic.state_dict(),
                          "cost_critic": cost_critic.state_dict()},
             # Adam's rows of the flat groups (actor, critics): per group the step count and both moments.
@@ -411,70 +284,21 @@ class GroupTrainer(EpochTrainer):
             "obs_norm": None if self.obs_norm is None else self.obs_norm.group_state_dict(index),
             "minibatch_rng": self.shuffler.generators[index].get_state(),
             "action_rng": self.action_generators[index].get_state(),
-            "stats": run.stats.state_dict(),
-            "last_mean_cost": run.last_mean_cost,
-            "progress_row": None if run.last_row is None else {k: float(v) for k, v in run.last_row.items()},
-            "diverged": run.diverged,
         }
 
     @torch.no_grad()
-    def _load_run_state(self, state: dict[str, Any]) -> None:
-        entries = state["seeds"]
-        if [entry["seed"] for entry in entries] != self.seeds:
-            raise ValueError(f"the checkpoint holds seeds {[e['seed'] for e in entries]}, this group {self.seeds}")
-        for index, (run, entry) in enumerate(zip(self.runs, entries)):
-            triple = self.model.export_seed(index, self.base_env.action_spec)
-            for module, name in zip(triple, ("actor", "critic", "cost_critic")):
-                module.load_state_dict(entry["networks"][name])
-            self.model.load_seed(index, *triple)
-            for group_state, saved in zip(self.optimizer.state, entry["optimizer"], strict=True):
-                group_state["step"][index] = saved["step"]
-                for name in ("exp_avg", "exp_avg_sq"):
-                    for tensor, row in zip(group_state[name], saved[name], strict=True):
-                        tensor[index].copy_(row)
-            self.multipliers[index].load_state_dict(entry["multiplier"])
-            if self.obs_norm is not None:
-                self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
-            self.shuffler.generators[index].set_state(entry["minibatch_rng"])
-            self.action_generators[index].set_state(entry["action_rng"])
-            run.stats.load_state_dict(entry["stats"])
-            run.last_mean_cost = entry["last_mean_cost"]
-            run.last_row = entry["progress_row"]
-            run.diverged = entry["diverged"]
-        alive = self.alive
-        self.policy.frozen = None if bool(alive.all()) else ~alive
-
-    def _algorithm_state(self) -> dict[str, Any]:
-        return {"seed_group": {"seeds": list(self.seeds)}}  # the per-seed state is in "seeds" (:meth:`_run_state`)
-
-    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
-        if "seed_group" not in state:
-            raise ValueError("not a seed group's checkpoint (no 'seed_group' entry)")
-
-
-def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
-    """Seed ``seed``'s entry of a group checkpoint (``EpochTrainer.load_checkpoint(path)``), with its config.
-
-    The entry holds what that seed's run needs to be used alone: ``"config"`` (its single-seed config
-    as a dict), ``"networks"`` (``actor`` / ``critic`` / ``cost_critic`` state dicts of the modules
-    ``make_actor_critics`` builds), ``"obs_norm"`` (an ungrouped ``RunningObservationNorm`` state
-    dict, or ``None``), ``"multiplier"``, ``"optimizer"`` (its Adam rows of the flat actor and critic
-    buffers), its generators' states, episode statistics and ``"diverged"``.
-
-    Raises:
-        KeyError: the checkpoint is not a group's, or does not hold ``seed``.
-    """
-    entries = checkpoint.get("seeds") or []
-    for entry in entries:
-        if entry["seed"] == seed:
-            cfg = TrainConfig(**checkpoint["config"]).for_seed(seed)
-            return {**entry, "config": cfg.to_dict()}
-    raise KeyError(f"seed {seed} is not in this checkpoint (seeds: {[entry['seed'] for entry in entries]})")
-
-
-def _mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
-    """The mean of each numeric entry over ``rows`` (an empty dict for none)."""
-    if not rows:
-        return {}
-    return {name: sum(row[name] for row in rows) / len(rows) for name, value in rows[0].items()
-            if isinstance(value, (int, float)) and not isinstance(value, bool)}
+    def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
+        triple = self.model.export_seed(index, self.base_env.action_spec)
+        for module, name in zip(triple, ("actor", "critic", "cost_critic")):
+            module.load_state_dict(entry["networks"][name])
+        self.model.load_seed(index, *triple)
+        for group_state, saved in zip(self.optimizer.state, entry["optimizer"], strict=True):
+            group_state["step"][index] = saved["step"]
+            for name in ("exp_avg", "exp_avg_sq"):
+                for tensor, row in zip(group_state[name], saved[name], strict=True):
+                    tensor[index].copy_(row)
+        self.multipliers[index].load_state_dict(entry["multiplier"])
+        if self.obs_norm is not None:
+            self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
+        self.shuffler.generators[index].set_state(entry["minibatch_rng"])
+        self.action_generators[index].set_state(entry["action_rng"])
