@@ -12,7 +12,8 @@ hands the flat batch to the algorithm's :class:`PolicyUpdate`:
   actor on the whole batch (:mod:`sg_torchrl.objectives.trust_region`), then minibatch passes on
   the two critics only.
 
-All three share :func:`minibatch_passes`, the one minibatch loop of the package. Passes over the
+All three go through :func:`minibatch_passes`, the trainer's form of the package's one minibatch
+loop (:func:`sg_torchrl.objectives.passes.run_passes`, which the multi-agent rounds share). Passes over the
 whole batch that need no gradient (the critics' values for GAE, the KL early stop, CUP's stage-one
 policy) go through :func:`forward_in_chunks`, so a batch of images is converted to float one slice at a time.
 """
@@ -29,13 +30,14 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from sg_torchrl.objectives import gaussian_kl
+from sg_torchrl.objectives.passes import (
+    ClipGroup, GradientStep, LossFn, PassesReport, run_passes, shuffled_slices,
+)
 
 __all__ = [
     "FirstOrderUpdate", "PolicyUpdate", "TrustRegionUpdate", "TwoStageUpdate", "UpdateParts", "forward_in_chunks",
     "loss_inputs", "minibatch_passes", "write_values",
 ]
-
-LossFn = Callable[[TensorDictBase], dict[str, Tensor]]
 
 
 @torch.no_grad()
@@ -168,40 +170,24 @@ def minibatch_passes(
     passes: int,
     minibatch_size: int,
     stop: Callable[[], float] | None = None,
-) -> tuple[int, float, dict[str, float]]:
-    """Up to ``passes`` shuffled passes of one gradient step per minibatch on the sum of ``terms``.
+) -> PassesReport:
+    """The trainer's passes of the shared loop (:func:`~sg_torchrl.objectives.passes.run_passes`).
 
-    After each pass ``stop()`` (a KL) is compared with ``parts.target_kl`` and the loop ends once it
-    is exceeded, SafePO's early stop. Gradients of ``parameters`` are norm-clipped at
-    ``parts.max_grad_norm`` before each optimiser step.
+    Up to ``passes`` shuffled passes (a fresh permutation from ``parts.rng`` per pass, slices of
+    ``minibatch_size``) of one step of ``parts.optimizer`` per minibatch on the sum of ``terms``,
+    with the gradients of ``parameters`` norm-clipped together at ``parts.max_grad_norm``. After
+    each pass ``stop()`` (a KL) is compared with ``parts.target_kl`` and the loop ends once it is
+    exceeded, SafePO's early stop. Minibatches are gathered from :func:`loss_inputs` only (not the
+    whole shuffled batch at once: with images and their ``"next"`` frames, that copy alone is
+    hundreds of MB per pass), and the loss runs through :meth:`UpdateParts.loss_step`.
 
     Returns:
         ``(passes run, last stop() value or 0, mean of each term over the steps)``.
     """
-    size = data.numel()
-    data = loss_inputs(loss_fn, data)
-    loss_fn = parts.loss_step(loss_fn)
-    sums = dict.fromkeys(terms, 0.0)
-    steps, kl, done = 0, 0.0, 0
-    for done in range(1, passes + 1):
-        # Gather each minibatch from the shuffled order (not the whole shuffled batch at once: with
-        # images and their "next" frames, that copy alone is hundreds of MB per pass).
-        order = torch.randperm(size, generator=parts.rng)
-        for start in range(0, size, minibatch_size):
-            out = loss_fn(data[order[start : start + minibatch_size]])
-            total = sum(out[name] for name in terms)
-            parts.optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            torch.nn.utils.clip_grad_norm_(parameters, parts.max_grad_norm, foreach=True)
-            parts.optimizer.step()
-            for name in terms:
-                sums[name] += out[name].item()
-            steps += 1
-        if stop is not None:
-            kl = stop()
-            if kl > parts.target_kl:
-                break
-    return done, kl, {name: total / max(steps, 1) for name, total in sums.items()}
+    step = GradientStep(parts.loss_step(loss_fn), parts.optimizer, tuple(terms), (ClipGroup(parameters),),
+                        parts.max_grad_norm, foreach=True)
+    return run_passes(loss_inputs(loss_fn, data), step, passes=passes, order=shuffled_slices(minibatch_size),
+                      generator=parts.rng, metrics=terms, stop=stop, target_kl=parts.target_kl)
 
 
 def _critic_parameters(parts: UpdateParts) -> list[Tensor]:

@@ -40,7 +40,8 @@ from tensordict.nn import ProbabilisticTensorDictSequential
 from torch import Tensor
 
 from sg_torchrl.objectives.multi_agent.networks import MultiAgentNetworks
-from sg_torchrl.objectives.multi_agent.updates import MultiAgentUpdate
+from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS, MultiAgentUpdate
+from sg_torchrl.objectives.passes import run_passes, shuffled_chunks
 from sg_torchrl.objectives.second_order import Linearisation
 from sg_torchrl.objectives.trust_region import CPOStep, Proposal
 
@@ -178,7 +179,7 @@ class MACPOUpdate(MultiAgentUpdate):
         metrics = dict(self.steps[agent].step(view, weight * view.get("advantage"), weight * view.get("cost_advantage"), c))
         with torch.no_grad():
             ratio = (self._log_prob(agent, view) - view.get("action_log_prob")).exp().mean()
-        metrics.update(self._critic_epochs(agent, view, self.critic_epochs, self.num_minibatches))
+        metrics.update(self._critic_epochs(agent, view))
         metrics.update({
             "Misc/Entropy": float(self.networks.agent_entropy(agent)),
             "Misc/Ratio": float(ratio),
@@ -186,3 +187,9 @@ class MACPOUpdate(MultiAgentUpdate):
             "Misc/ConstraintValue": c,
         })
         return metrics
+
+    def _critic_epochs(self, agent: int, view: TensorDictBase) -> dict[str, float]:
+        """``critic_epochs`` passes of ``num_minibatches`` Adam steps on the agent's two critics, no early stop."""
+        step = self._gradient_step(agent, self.losses[agent].critic_losses, ("loss_critic", "loss_cost_critic"), actor=False)
+        return run_passes(view, step, passes=self.critic_epochs, order=shuffled_chunks(self.num_minibatches),
+                          generator=self.generator, metrics=CRITIC_METRICS).means

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import abc
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -64,8 +64,12 @@ from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
 from sg_torchrl.objectives.multi_agent.networks import MultiAgentNetworks
 from sg_torchrl.objectives.multi_agent.sequential import SequentialAgentUpdate, SequentialResult
 from sg_torchrl.objectives.multipliers import Multiplier, NoMultiplier
+from sg_torchrl.objectives.passes import ClipGroup, GradientStep, LossFn, run_passes, shuffled_chunks
 
 __all__ = ["HAPPOUpdate", "MAPPOLagUpdate", "MAPPOUpdate", "MultiAgentPPOUpdate", "MultiAgentUpdate"]
+
+#: The critics' losses averaged over an agent's steps, by SafePO's metric names.
+CRITIC_METRICS = {"Loss/Loss_reward_critic": "loss_critic", "Loss/Loss_cost_critic": "loss_cost_critic"}
 
 
 class MultiAgentUpdate(abc.ABC):
@@ -221,42 +225,20 @@ class MultiAgentUpdate(abc.ABC):
         return metrics
 
     # ------------------------------------------------------------------ shared pieces
-    def _minibatches(self, size: int, num_minibatches: int) -> Iterator[Tensor | None]:
-        if num_minibatches == 1:
-            yield None
-            return
-        order = torch.randperm(size, generator=self.generator)
-        yield from order.chunk(num_minibatches)
+    def _gradient_step(self, agent: int, loss_fn: LossFn, terms: Sequence[str], *, actor: bool,
+              after_step: Callable[[Mapping[str, Tensor]], None] | None = None) -> GradientStep:
+        """One Adam step of the agent's optimiser on ``terms``, gradients clipped per network (SafePO).
 
-    def _clip(self, agent: int, *, actor: bool) -> tuple[float, float]:
-        """Clips the agent's gradients per network; returns the reward- and cost-critic gradient norms."""
+        The actor (when ``actor``), the reward critic and the cost critic are clipped separately
+        at ``max_grad_norm``; the critics' pre-clip norms are reported as
+        ``Misc/Reward_critic_norm`` and ``Misc/Cost_critic_norm``.
+        """
         actor_params, reward_params, cost_params = self._networks_params[agent]
+        groups = (ClipGroup(reward_params, "Misc/Reward_critic_norm"), ClipGroup(cost_params, "Misc/Cost_critic_norm"))
         if actor:
-            torch.nn.utils.clip_grad_norm_(actor_params, self.max_grad_norm)
-        reward = torch.nn.utils.clip_grad_norm_(reward_params, self.max_grad_norm)
-        cost = torch.nn.utils.clip_grad_norm_(cost_params, self.max_grad_norm)
-        return float(reward), float(cost)
-
-    def _critic_epochs(
-        self, agent: int, view: TensorDictBase, epochs: int, num_minibatches: int
-    ) -> dict[str, float]:
-        """``epochs`` passes of Adam steps on the agent's two critics only (MACPO)."""
-        loss, optimizer = self.losses[agent], self.optimizers[agent]
-        sums: dict[str, float] = defaultdict(float)
-        steps = 0
-        for _ in range(epochs):
-            for index in self._minibatches(view.batch_size[0], num_minibatches):
-                out = loss.critic_losses(view if index is None else view[index])
-                optimizer.zero_grad(set_to_none=True)
-                (out["loss_critic"] + out["loss_cost_critic"]).backward()
-                reward_norm, cost_norm = self._clip(agent, actor=False)
-                optimizer.step()
-                sums["Loss/Loss_reward_critic"] += out["loss_critic"].item()
-                sums["Loss/Loss_cost_critic"] += out["loss_cost_critic"].item()
-                sums["Misc/Reward_critic_norm"] += reward_norm
-                sums["Misc/Cost_critic_norm"] += cost_norm
-                steps += 1
-        return {name: total / max(steps, 1) for name, total in sums.items()}
+            groups = (ClipGroup(actor_params), *groups)
+        return GradientStep(loss_fn, self.optimizers[agent], tuple(terms), groups, self.max_grad_norm,
+                            after_step=after_step)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
@@ -328,38 +310,24 @@ class MultiAgentPPOUpdate(MultiAgentUpdate):
         return [actor, *super()._param_groups(agent, critic_lr)]
 
     def _update_agent(self, agent: int, view: TensorDictBase, factor: Tensor, episode_cost: float) -> dict[str, float]:
-        loss, optimizer, multiplier = self.losses[agent], self.optimizers[agent], self.multipliers[agent]
+        loss, multiplier = self.losses[agent], self.multipliers[agent]
         if self.weighted:
             view.set(loss.tensor_keys.factor, factor)
         actor = self.networks.agent_actor(agent)
         with torch.no_grad():
             old = actor.get_dist(view.select(*actor.in_keys))
             old_loc, old_scale = old.mean, old.stddev
-        sums: dict[str, float] = defaultdict(float)
-        steps, epochs_run, kl = 0, 0, 0.0
-        for epochs_run in range(1, self.epochs + 1):
-            for index in self._minibatches(view.batch_size[0], self.num_minibatches):
-                out = loss(view if index is None else view[index])
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_cost_critic"]
-                if "loss_entropy" in out.keys():
-                    total = total + out["loss_entropy"]
-                optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                reward_norm, cost_norm = self._clip(agent, actor=True)
-                optimizer.step()
-                if self.steps_multiplier:
-                    multiplier.update(episode_cost, cost_surrogate=out["cost_surrogate"])
-                for name, key in (("Loss/Loss_actor", "loss_objective"), ("Loss/Loss_reward_critic", "loss_critic"),
-                                  ("Loss/Loss_cost_critic", "loss_cost_critic"), ("Misc/Ratio", "mean_ratio")):
-                    sums[name] += out[key].item()
-                sums["Misc/Reward_critic_norm"] += reward_norm
-                sums["Misc/Cost_critic_norm"] += cost_norm
-                steps += 1
-            if self.target_kl is not None or epochs_run == self.epochs:
-                kl = self._kl(agent, view, old_loc, old_scale)
-                if self.target_kl is not None and kl > self.target_kl:
-                    break
-        metrics = {name: total / steps for name, total in sums.items()}
+        # the loss has a ``loss_entropy`` output exactly when its entropy bonus is on
+        terms = ("loss_objective", "loss_critic", "loss_cost_critic", *(("loss_entropy",) if loss.entropy_bonus else ()))
+        after_step = None
+        if self.steps_multiplier:  # MAPPO-Lag: the multiplier moves after every minibatch step
+            after_step = lambda out: multiplier.update(episode_cost, cost_surrogate=out["cost_surrogate"])  # noqa: E731
+        epochs_run, kl, metrics = run_passes(
+            view, self._gradient_step(agent, loss, terms, actor=True, after_step=after_step), passes=self.epochs,
+            order=shuffled_chunks(self.num_minibatches), generator=self.generator,
+            metrics={"Loss/Loss_actor": "loss_objective", **CRITIC_METRICS, "Misc/Ratio": "mean_ratio"},
+            stop=lambda: self._kl(agent, view, old_loc, old_scale), target_kl=self.target_kl,
+        )
         metrics.update({
             "Misc/Entropy": float(self.networks.agent_entropy(agent)),
             "Misc/Factor": float(factor.mean()),
