@@ -9,6 +9,10 @@
   and PPO is ``PPOLagLoss(..., multiplier=NoMultiplier())``.
 * :class:`PGLoss`, :class:`FOCOPSLoss`, :class:`CUPLoss`: the other first-order SafePO losses.
 * :func:`gaussian_kl`: closed-form KL between diagonal Gaussian policies (KL early stop).
+* :func:`run_passes`, :class:`GradientStep`, :class:`ClipGroup` and the minibatch orders
+  (:func:`shuffled_slices`, :func:`shuffled_chunks`, :func:`whole_batch`): the one minibatch update
+  loop that the single-agent trainer and the multi-agent rounds share
+  (:mod:`sg_torchrl.objectives.passes`).
 * :class:`NaturalPolicyStep`, :class:`TRPOStep`, :class:`CPOStep`, :class:`PCPOStep`: trust-region
   policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) over :class:`TrustRegionLoss` and the
   second-order tools of :mod:`sg_torchrl.objectives.second_order`.
@@ -23,6 +27,15 @@ from sg_torchrl.objectives.multipliers import (
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
 from sg_torchrl.objectives.first_order import CUPLoss, FOCOPSLoss, PGLoss
 from sg_torchrl.objectives.value import AdvantageEstimation, make_cost_gae, make_gae, normalize_advantages
+from sg_torchrl.objectives.passes import (
+    ClipGroup,
+    GradientStep,
+    PassesReport,
+    run_passes,
+    shuffled_chunks,
+    shuffled_slices,
+    whole_batch,
+)
 from sg_torchrl.objectives.second_order import (
     backtracking_line_search,
     conjugate_gradient,
@@ -61,6 +74,13 @@ __all__ = [
     "make_cost_gae",
     "make_gae",
     "normalize_advantages",
+    "ClipGroup",
+    "GradientStep",
+    "PassesReport",
+    "run_passes",
+    "shuffled_chunks",
+    "shuffled_slices",
+    "whole_batch",
     "backtracking_line_search",
     "conjugate_gradient",
     "FisherVectorProduct",

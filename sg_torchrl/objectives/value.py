@@ -41,9 +41,12 @@ __all__ = ["AdvantageEstimation", "make_gae", "make_cost_gae", "normalize_advant
 
 
 def _keys_beside(
-    value_network: TensorDictModuleBase | None, names: Mapping[str, str]
+    value_network: TensorDictModuleBase | None, names: Mapping[str, str], group: str | None = None
 ) -> dict[str, NestedKey]:
     """GAE keys for ``names`` (estimator key -> entry name), placed beside the critic's output.
+
+    With ``group`` every key, the value's included, is ``(group, name)`` instead (the multi-agent
+    factories name the group rather than reading it from the critic).
 
     The value key is the critic's out-key whose last element is ``names["value"]`` (or its only
     out-key); every other entry goes under the same prefix. A top-level critic therefore gets the
@@ -52,6 +55,8 @@ def _keys_beside(
     where the per-agent signals and flags live in the group. TorchRL's ``GAE`` validates the value
     key against the critic's out-keys, so the plain default would fail for a nested critic.
     """
+    if group is not None:
+        return {name: unravel_key((group, entry)) for name, entry in names.items()}
     value: NestedKey = names["value"]
     out_keys = [unravel_key(key) for key in getattr(value_network, "out_keys", None) or []]
     if out_keys and value not in out_keys:
@@ -79,6 +84,8 @@ def make_gae(
     gamma: float = 0.99,
     lmbda: float = 0.95,
     keys: Mapping[str, NestedKey] | None = None,
+    group: str | None = None,
+    estimator: type[GAE] = GAE,
     **gae_kwargs: Any,
 ) -> GAE:
     """Builds the reward GAE with TorchRL's default keys.
@@ -99,15 +106,20 @@ def make_gae(
         keys (mapping, optional): estimator keys to set instead of the defaults (``reward``,
             ``value``, ``advantage``, ``value_target``, ``done``, ``terminated``), applied in one
             ``set_keys`` call. Defaults to ``None``.
-        **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE` (e.g. ``time_dim``,
-            ``vectorized``, ``device``).
+        group (str, optional): put every default key under ``group`` (``(group, "reward")``,
+            ``(group, "state_value")``, ...) whatever the critic's out-key. Defaults to ``None``
+            (beside the critic's output).
+        estimator (type): the GAE class, e.g. :class:`~torchrl.objectives.value.MultiAgentGAE`
+            (per-agent values over team-level signals, broadcast along the agent dim). Defaults
+            to :class:`~torchrl.objectives.value.GAE`.
+        **gae_kwargs: forwarded to ``estimator`` (e.g. ``time_dim``, ``vectorized``, ``device``,
+            ``average_gae``).
 
     Returns:
         A :class:`~torchrl.objectives.value.GAE` module.
     """
-    gae = GAE(gamma=gamma, lmbda=lmbda, value_network=value_network, **gae_kwargs)
-    gae.set_keys(**{**_keys_beside(value_network, _REWARD_NAMES), **(keys or {})})
-    return gae
+    return _build(estimator, value_network, _REWARD_NAMES, gamma=gamma, lmbda=lmbda, keys=keys, group=group,
+                  **gae_kwargs)
 
 
 def make_cost_gae(
@@ -116,6 +128,8 @@ def make_cost_gae(
     gamma: float = 0.99,
     lmbda: float = 0.95,
     keys: Mapping[str, NestedKey] | None = None,
+    group: str | None = None,
+    estimator: type[GAE] = GAE,
     **gae_kwargs: Any,
 ) -> GAE:
     """Builds the cost GAE: a :class:`~torchrl.objectives.value.GAE` over the cost signal.
@@ -145,15 +159,29 @@ def make_cost_gae(
         keys (mapping, optional): estimator keys to set instead of the defaults (``reward``,
             ``value``, ``advantage``, ``value_target``, ``done``, ``terminated``). Defaults to
             ``None``.
-        **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.GAE`.
+        group (str, optional), estimator (type): as in :func:`make_gae`.
+        **gae_kwargs: forwarded to ``estimator``.
 
     Returns:
         A :class:`~torchrl.objectives.value.GAE` module with the cost keys.
     """
-    gae = GAE(gamma=gamma, lmbda=lmbda, value_network=cost_value_network, **gae_kwargs)
-    gae.set_keys(**{**_keys_beside(cost_value_network, _COST_NAMES), **(keys or {})})
-    return gae
+    return _build(estimator, cost_value_network, _COST_NAMES, gamma=gamma, lmbda=lmbda, keys=keys, group=group,
+                  **gae_kwargs)
 
+
+def _build(
+    estimator: type[GAE],
+    value_network: TensorDictModuleBase | None,
+    names: Mapping[str, str],
+    *,
+    keys: Mapping[str, NestedKey] | None,
+    group: str | None,
+    **gae_kwargs: Any,
+) -> GAE:
+    """``estimator`` over ``value_network`` with the keys ``names`` placed (:func:`_keys_beside`), ``keys`` on top."""
+    gae = estimator(value_network=value_network, **gae_kwargs)
+    gae.set_keys(**{**_keys_beside(value_network, names, group), **(keys or {})})
+    return gae
 
 
 @torch.no_grad()

@@ -7,7 +7,8 @@ global ``"state"`` for the centralised critics):
   one cost critic per agent (TorchRL :class:`~torchrl.modules.MultiAgentMLP` s without parameter
   sharing, :class:`PerAgentMLP`), group-wise for collection and per agent for the updates;
 * :func:`make_multi_agent_gae`, :func:`make_multi_agent_cost_gae`: per-agent reward and cost GAE
-  (TorchRL's :class:`~torchrl.objectives.value.MultiAgentGAE`), standardised per agent;
+  (:func:`~sg_torchrl.objectives.make_gae` / :func:`~sg_torchrl.objectives.make_cost_gae` with TorchRL's
+  :class:`~torchrl.objectives.value.MultiAgentGAE` over the group keys), standardised per agent;
 * :class:`SequentialAgentUpdate`: the random-order, one-agent-at-a-time round with HAPPO's running
   ratio product :math:`M` (Kuba et al. 2022), the one piece every algorithm below runs through;
 * :class:`AgentPPOLoss`: one agent's factor-weighted clipped PPO with reward and cost critics
@@ -17,7 +18,8 @@ global ``"state"`` for the centralised critics):
 * the rounds, ``update(batch, mean_episode_cost) -> dict[str, float]``: :class:`MAPPOUpdate`
   (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate` and
   :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPOStep` is the single-agent
-  :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy).
+  :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy). Their minibatch epochs
+  are the single-agent trainer's loop, :func:`~sg_torchrl.objectives.run_passes`.
 """
 
 from sg_torchrl.objectives.multi_agent.advantages import (

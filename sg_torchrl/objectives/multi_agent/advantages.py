@@ -1,8 +1,10 @@
 """Per-agent reward and cost advantages, and one agent's flat view of a group batch.
 
 Every agent has its own reward critic and cost critic, so each gets its own Generalized Advantage
-Estimates (Schulman et al. 2016) of the team reward and of its own cost. Both are TorchRL's
-:class:`~torchrl.objectives.value.MultiAgentGAE` over the group keys: it broadcasts team-level
+Estimates (Schulman et al. 2016) of the team reward and of its own cost. Both are the single-agent
+factories :func:`~sg_torchrl.objectives.make_gae` / :func:`~sg_torchrl.objectives.make_cost_gae`
+(the package's one GAE home) with every key under the group and TorchRL's
+:class:`~torchrl.objectives.value.MultiAgentGAE` as the estimator: it broadcasts team-level
 signals (a root ``"done"``, a shared reward) along the agent dim and leaves per-agent ones
 (``("agents", "cost")``, ``("agents", "done")``) as they are. Termination stops the bootstrap,
 truncation bootstraps from the critic at the final state (the paper's, and TorchRL's, handling;
@@ -25,34 +27,9 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.value import MultiAgentGAE
 
+from sg_torchrl.objectives.value import make_cost_gae, make_gae
+
 __all__ = ["AGENT_VIEW_KEYS", "agent_view", "make_multi_agent_cost_gae", "make_multi_agent_gae"]
-
-
-def _make(
-    value_network: TensorDictModuleBase,
-    group: str,
-    *,
-    signal: str,
-    value: str,
-    advantage: str,
-    value_target: str,
-    gamma: float,
-    lmbda: float,
-    standardize: bool,
-    **gae_kwargs: Any,
-) -> MultiAgentGAE:
-    gae = MultiAgentGAE(
-        gamma=gamma, lmbda=lmbda, value_network=value_network, average_gae=standardize, **gae_kwargs
-    )
-    gae.set_keys(
-        reward=(group, signal),
-        done=(group, "done"),
-        terminated=(group, "terminated"),
-        value=(group, value),
-        advantage=(group, advantage),
-        value_target=(group, value_target),
-    )
-    return gae
 
 
 def make_multi_agent_gae(
@@ -79,8 +56,8 @@ def make_multi_agent_gae(
         **gae_kwargs: forwarded to :class:`~torchrl.objectives.value.MultiAgentGAE`
             (``time_dim``, ``device``, ...).
     """
-    return _make(reward_critic, group, signal="reward", value="state_value", advantage="advantage",
-                 value_target="value_target", gamma=gamma, lmbda=lmbda, standardize=standardize, **gae_kwargs)
+    return make_gae(reward_critic, gamma=gamma, lmbda=lmbda, group=group, estimator=MultiAgentGAE,
+                    average_gae=standardize, **gae_kwargs)
 
 
 def make_multi_agent_cost_gae(
@@ -98,8 +75,8 @@ def make_multi_agent_cost_gae(
     ``(group, "cost_value")``. Same options as :func:`make_multi_agent_gae`; the cost advantage is
     standardised too by default (SafePO's multi-agent trainers).
     """
-    return _make(cost_critic, group, signal="cost", value="cost_value", advantage="cost_advantage",
-                 value_target="cost_value_target", gamma=gamma, lmbda=lmbda, standardize=standardize, **gae_kwargs)
+    return make_cost_gae(cost_critic, gamma=gamma, lmbda=lmbda, group=group, estimator=MultiAgentGAE,
+                         average_gae=standardize, **gae_kwargs)
 
 
 #: Group entries an agent's update reads (``state_value`` / ``cost_value`` only with value clipping).
