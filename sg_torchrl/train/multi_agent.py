@@ -15,6 +15,11 @@ TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). 
 4. log team metrics under SafePO's names (means over agents) and the same per agent
    (``Loss/Loss_actor/agent0``, ``Train/LagrangeMultiplier/agent1``, ...), checkpoint.
 
+One run's networks, GAEs and round are a :class:`MultiAgentTeam`, built and updated by the same code
+for a single-seed run and for each seed of a seed group (``--seeds``,
+:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: one team and one round per seed,
+the rounds run one after another, simulation and collection batched).
+
 Episode statistics are the team's: the return of the shared reward and the team cost (the root
 ``"cost"``; on the velocity tasks every agent pays the same indicator).
 
@@ -38,6 +43,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 import sg_torchrl
@@ -59,7 +65,10 @@ from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.trainer import EpochTrainer
 
-__all__ = ["MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTrainer", "num_minibatches"]
+__all__ = [
+    "MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "MultiAgentTrainer", "num_minibatches",
+    "observation_norms",
+]
 
 MakeUpdate = Callable[[MultiAgentNetworks, TrainConfig, torch.Generator], MultiAgentUpdate]
 
@@ -116,22 +125,70 @@ MULTI_AGENT_ALGORITHMS: dict[str, MultiAgentAlgorithm] = {
 }
 
 
-def observation_norms(env: EnvBase, group: str = GROUP) -> list[RunningObservationNorm]:
-    """Running normalisers of ``(group, "observation")`` (statistics per agent and feature) and ``"state"``."""
+def observation_norms(env: EnvBase, group: str = GROUP, *, groups: int | None = None) -> list[RunningObservationNorm]:
+    """Running normalisers of ``(group, "observation")`` (statistics per agent and feature) and ``"state"``.
+
+    ``groups``: one row of statistics per block of simulators (a seed group's seeds,
+    :class:`~sg_torchrl.envs.normalization.RunningObservationNorm`).
+    """
     observation = env.observation_spec[group, "observation"].shape[-2:]
     state = env.observation_spec["state"].shape[-1:]
     return [
-        RunningObservationNorm(observation, in_keys=[(group, "observation")]),
-        RunningObservationNorm(state, in_keys=["state"]),
+        RunningObservationNorm(observation, in_keys=[(group, "observation")], groups=groups),
+        RunningObservationNorm(state, in_keys=["state"], groups=groups),
     ]
+
+
+@dataclass
+class MultiAgentTeam:
+    """One multi-agent run's learning parts: the team's networks, both GAEs and the algorithm's round.
+
+    Built by :meth:`build` for the single-seed :class:`MultiAgentTrainer` and for each seed of a
+    seed group (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`) alike, so a
+    seed's team is its single-seed run's. :meth:`learn` is one epoch's update of the team.
+    """
+
+    networks: MultiAgentNetworks
+    reward_gae: TensorDictModuleBase
+    cost_gae: TensorDictModuleBase
+    #: Agent orders and minibatch shuffles; its state is part of the round's state dict.
+    update_rng: torch.Generator
+    policy_update: MultiAgentUpdate
+
+    @classmethod
+    def build(cls, env: EnvBase, cfg: TrainConfig) -> MultiAgentTeam:
+        """The team of ``cfg.algo`` for ``env``'s agents; the round's generator is seeded with ``cfg.seed``.
+
+        The networks are initialised from the global torch RNG (as it stands: the caller seeds it).
+        """
+        networks = make_multi_agent_networks(
+            env.observation_dim, env.action_sizes, env.state_dim, hidden_sizes=cfg.network_sizes, group=GROUP
+        )
+        update_rng = torch.Generator().manual_seed(cfg.seed)
+        return cls(
+            networks=networks,
+            reward_gae=make_multi_agent_gae(networks.reward_critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda),
+            cost_gae=make_multi_agent_cost_gae(networks.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda),
+            update_rng=update_rng,
+            policy_update=MULTI_AGENT_ALGORITHMS[cfg.algo].make_update(networks, cfg, update_rng),
+        )
+
+    def learn(self, batch: TensorDictBase, mean_episode_cost: float, actor_lr: float) -> dict[str, float]:
+        """Per-agent GAEs on the ``(N, T)`` batch, then the round (which steps MAPPO-Lag's multipliers)."""
+        with torch.no_grad():
+            self.reward_gae(batch)
+            self.cost_gae(batch)
+        info = self.policy_update(batch, mean_episode_cost)
+        return {"Train/LagrangeMultiplier": info.pop("Train/LagrangeMultiplier"), "Train/LR": actor_lr, **info}
 
 
 class MultiAgentTrainer(EpochTrainer):
     """Build everything a multi-agent run needs from a :class:`TrainConfig` and run its epochs.
 
-    Attributes: ``networks`` (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentNetworks`: one
-    actor, reward critic and cost critic per agent), ``policy_update`` (the algorithm's round),
-    ``reward_gae`` / ``cost_gae``, ``env`` / ``base_env``, ``collector``, ``stats``.
+    Attributes: ``team`` (:class:`MultiAgentTeam`) and its parts ``networks``
+    (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentNetworks`: one actor, reward critic and cost
+    critic per agent), ``policy_update`` (the algorithm's round), ``reward_gae`` / ``cost_gae``;
+    ``env`` / ``base_env``, ``obs_norms``, ``collector``, ``stats``.
 
     Args:
         cfg: the experiment (a multi-agent ``algo`` and env id).
@@ -148,31 +205,18 @@ class MultiAgentTrainer(EpochTrainer):
         self.obs_norms = observation_norms(self.base_env) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
 
-        base = self.base_env
-        self.networks = make_multi_agent_networks(
-            base.observation_dim, base.action_sizes, base.state_dim, hidden_sizes=cfg.network_sizes, group=GROUP
-        )
-        self.reward_gae = make_multi_agent_gae(self.networks.reward_critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
-        self.cost_gae = make_multi_agent_cost_gae(self.networks.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
-        # Agent orders and minibatch shuffles; its state is part of the round's state dict.
-        self.update_rng = torch.Generator().manual_seed(cfg.seed)
-        self.policy_update = self.algorithm.make_update(self.networks, cfg, self.update_rng)
+        team = MultiAgentTeam.build(self.base_env, cfg)
+        self.networks, self.reward_gae, self.cost_gae = team.networks, team.reward_gae, team.cost_gae
+        self.update_rng, self.policy_update = team.update_rng, team.policy_update
+        self.team = team
         self.collector = RolloutCollector(self.env, self.networks.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
         self.stats = EpisodeStats(reward_key=("next", GROUP, "reward"), agent_dim=-2)
         self._start(checkpoint)
 
     # ------------------------------------------------------------------ epochs
     def _learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """Per-agent GAEs on the ``(N, T)`` batch, then the algorithm's round (which steps MAPPO-Lag's multipliers)."""
-        with torch.no_grad():
-            self.reward_gae(batch)
-            self.cost_gae(batch)
-        info = self.policy_update(batch, self._last_mean_cost)
-        return {
-            "Train/LagrangeMultiplier": info.pop("Train/LagrangeMultiplier"),
-            "Train/LR": self.cfg.actor_lr,
-            **info,
-        }
+        """Per-agent GAEs on the ``(N, T)`` batch, then the algorithm's round (:meth:`MultiAgentTeam.learn`)."""
+        return self.team.learn(batch, self._last_mean_cost, self.cfg.actor_lr)
 
     def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
