@@ -13,7 +13,9 @@ batched env, seed ``s``'s simulators as the ``s``-th of S equal contiguous block
 (:func:`sg_torchrl.envs.base.block_seeds`). With ``groups=S`` the normaliser keeps one row of
 statistics per block: block ``s`` of every batch updates row ``s`` only, by the same rule, and is
 normalised by it, so a seed's observations are normalised exactly as its single-seed run's (the
-reductions run per block, in the same order, with bit-identical results).
+reductions run per block, in the same order, with bit-identical results). The feature shape may have
+several dims: a multi-agent group normalises ``("agents", "observation")`` with ``shape=(n_agents,
+features)``, statistics per seed, agent and feature.
 
 Freezing is a flag of its own, not ``nn.Module.training``: TorchRL puts every transform in eval
 mode when it is attached to a ``TransformedEnv`` (or appended to a ``Compose``), so a
@@ -36,7 +38,8 @@ class RunningObservationNorm(Transform):
     """Normalise ``in_keys`` by running statistics over every batch dimension (or per block of simulators).
 
     Args:
-        shape: the trailing feature shape of the normalised entry (e.g. ``(17,)``).
+        shape: the trailing feature shape of the normalised entry (e.g. ``(17,)``, or ``(n_agents, 12)``
+            for per-agent statistics of a multi-agent observation).
         in_keys: entries to normalise in place (default ``["observation"]``).
         epsilon: added to the variance before the square root.
         initial_count: pseudo-count of the initial (mean 0, variance 1) statistics.

@@ -3,8 +3,9 @@
 Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. The twelve
 single-agent algorithms run in :class:`Trainer`, the four multi-agent ones (``--algo mappo``,
 ``happo``, ``mappo_lag``, ``macpo`` on a multi-agent env id) in :class:`MultiAgentTrainer`, and a seed
-group (``--seeds 0 1 2``: several seeds of a first-order algorithm side by side in one process) in
-:class:`~sg_torchrl.train.seed_group.GroupTrainer`.
+group (``--seeds 0 1 2``: several seeds of one algorithm side by side in one process) in
+:class:`~sg_torchrl.train.seed_group.GroupTrainer` (single agent) or
+:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` (multi agent).
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
@@ -34,6 +35,7 @@ _HEAVY = {
     "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
     "EpochTrainer": "sg_torchrl.train.trainer",
     "GroupTrainer": "sg_torchrl.train.seed_group",
+    "MultiAgentGroupTrainer": "sg_torchrl.train.multi_agent_group",
     "Trainer": "sg_torchrl.train.trainer",
 }
 
@@ -46,15 +48,19 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
-    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentTrainer",
-    "TrainConfig", "Trainer",
+    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentGroupTrainer",
+    "MultiAgentTrainer", "TrainConfig", "Trainer",
     "TrainingInterrupted", "algorithm_title", "main", "train", "trainer_class",
 ]
 
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
-    """:class:`GroupTrainer` for a seed group, :class:`MultiAgentTrainer` for the multi-agent algorithms,
-    :class:`Trainer` for the rest."""
+    """For a seed group :class:`MultiAgentGroupTrainer` (multi-agent algorithms) or :class:`GroupTrainer`;
+    else :class:`MultiAgentTrainer` for the multi-agent algorithms, :class:`Trainer` for the rest."""
+    if cfg.group and cfg.multi_agent:
+        from sg_torchrl.train.multi_agent_group import MultiAgentGroupTrainer
+
+        return MultiAgentGroupTrainer
     if cfg.group:
         from sg_torchrl.train.seed_group import GroupTrainer
 

@@ -27,12 +27,13 @@ holds, with a CNN encoder before ``hidden_sizes`` when there are images
 (:mod:`sg_torchrl.train.models`), and ``normalize_obs`` applies to the flat vector only. The
 ``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU.
 
-**Seed groups.** ``seeds`` (``--seeds 0 1 2``) trains S seeds side by side in one process
-(:mod:`sg_torchrl.train.seed_group`), each exactly as its single-seed run with that ``seed`` would
-train: ``num_envs``, ``steps_per_epoch`` and ``total_steps`` are per seed. ``--seeds 0`` is a group
-of one; ``--seed`` and ``--seeds`` together are refused. Groups train the single-agent algorithms of
-:data:`SEED_GROUP_ALGORITHMS` (all twelve, first and second order) on flat-vector observations;
-multi-agent algorithms and pixel observations are refused here, before anything is built.
+**Seed groups.** ``seeds`` (``--seeds 0 1 2``) trains S seeds side by side in one process, each
+exactly as its single-seed run with that ``seed`` would train: ``num_envs``, ``steps_per_epoch`` and
+``total_steps`` are per seed. ``--seeds 0`` is a group of one; ``--seed`` and ``--seeds`` together are
+refused. Groups train the single-agent algorithms of :data:`SEED_GROUP_ALGORITHMS` (all twelve, first
+and second order; networks stacked, :mod:`sg_torchrl.train.seed_group`) and the four multi-agent ones
+(one round per seed, :mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations; pixel
+observations are refused here, before anything is built.
 
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
@@ -67,10 +68,12 @@ ALGORITHM_NAMES: tuple[str, ...] = get_args(SingleAgentAlgorithmName)
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = get_args(MultiAgentAlgorithmName)
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
 SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"})
-#: Algorithms a seed group (``--seeds``) can train: the rows of ``sg_torchrl.train.algorithms.ALGORITHMS``
-#: that have a ``make_group_update`` (``tests/test_seed_group.py`` checks that the two agree): every
-#: single-agent algorithm, the second-order ones through ``sg_torchrl.train.stacked_trust_region``. Kept
-#: here, free of torch, so that the command line refuses the others in a second.
+#: The single-agent algorithms a seed group (``--seeds``) can train: the rows of
+#: ``sg_torchrl.train.algorithms.ALGORITHMS`` that have a ``make_group_update`` (``tests/test_seed_group.py``
+#: checks that the two agree): every single-agent algorithm, the second-order ones through
+#: ``sg_torchrl.train.stacked_trust_region``. Every multi-agent algorithm trains in groups as well, with
+#: one round per seed (``sg_torchrl.train.multi_agent_group``), so they are not listed here. Kept here,
+#: free of torch, so that the command line refuses the others in a second.
 SEED_GROUP_ALGORITHMS = frozenset(ALGORITHM_NAMES)
 
 _SINGLE_AGENT_DEFAULTS = dict(
@@ -131,7 +134,7 @@ class TrainConfig:
     seeds: list[int] = _opt(
         (), "train a seed group: these seeds side by side in one process (e.g. 0 1 2), each exactly as its "
         "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
-        "group's directory; single-agent algorithms on flat observations")
+        "group's directory; every algorithm, on flat observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
     steps_per_epoch: int | None = _opt(
@@ -217,7 +220,7 @@ class TrainConfig:
 
     @property
     def group(self) -> bool:
-        """Whether this is a seed group (``seeds`` given; :mod:`sg_torchrl.train.seed_group`)."""
+        """Whether this is a seed group (``seeds`` given; :mod:`sg_torchrl.train.seed_runs`)."""
         return bool(self.seeds)
 
     @property
@@ -282,8 +285,9 @@ class TrainConfig:
         self._validate_checkpointing()
 
     def _validate_seeds(self) -> None:
-        """A seed group's seeds: distinct, >= 0, agreeing with ``seed``, and an algorithm and observation
-        a group can train (:data:`SEED_GROUP_ALGORITHMS`, flat vectors)."""
+        """A seed group's seeds: distinct, >= 0, agreeing with ``seed``, and an algorithm a group can train
+        (every multi-agent one; the single-agent ones of :data:`SEED_GROUP_ALGORITHMS`). Pixel observations
+        are refused by :meth:`_validate_observation_mode`."""
         if not self.seeds:
             return
         if min(self.seeds) < 0:
@@ -295,10 +299,7 @@ class TrainConfig:
         if self.seed != self.seeds[0]:
             raise ValueError(f"config: seed ({self.seed}) and seeds ({self.seeds}) disagree: a seed group's seed is "
                              f"its first seed; give seeds alone")
-        if self.multi_agent:
-            raise ValueError(f"config: seed groups do not train multi-agent algorithms yet ({self.algo!r}); run one "
-                             f"seed per process (--seed) instead")
-        if self.algo not in SEED_GROUP_ALGORITHMS:
+        if not self.multi_agent and self.algo not in SEED_GROUP_ALGORITHMS:
             raise ValueError(f"config: the algorithm {self.algo!r} is not in seed groups (--seeds trains "
                              f"{', '.join(sorted(SEED_GROUP_ALGORITHMS))}); run one seed per process (--seed) instead")
 

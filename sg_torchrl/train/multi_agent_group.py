@@ -1,0 +1,247 @@
+"""A seed group of a multi-agent algorithm: S runs of MAPPO, HAPPO, MAPPO-Lag or MACPO in one process.
+
+``sg-train --algo mappo_lag --seeds 0 1 2`` trains S seeds side by side, each exactly as its
+single-seed :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer` run with that seed (``--seed s``):
+
+* **simulators**: one batched env of ``S * num_envs`` simulators, seed ``s``'s the ``s``-th block of
+  ``num_envs``, seeded as a ``num_envs``-simulator env with seed ``s`` (``sg_torchrl.make(...,
+  seed=[s0, s1, ...])``), collected at once by one :class:`~sg_torchrl.collectors.RolloutCollector`;
+* **team**: per seed its own :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` (networks, both
+  GAEs, the algorithm's round with its optimisers, multipliers, value normalisers and generator),
+  built by the code the single-seed run builds its team with, after ``torch.manual_seed(s)`` as that
+  run's :class:`~sg_torchrl.train.trainer.EpochTrainer` seeds torch;
+* **observation normalisers**: one row of running statistics per seed for ``("agents",
+  "observation")`` (per agent and feature) and ``"state"`` (``RunningObservationNorm(groups=S)``);
+* **global torch RNG**: the single-seed run draws its action noise from the global torch RNG (the
+  networks' initialisation too, which is why ``manual_seed(s)`` comes first). The group keeps one
+  torch RNG state per seed (:class:`SeedStreams`) and swaps it in around everything of that seed's that
+  could draw from the global RNG: its actor's call in collection (:class:`SeedBlockPolicy`), its
+  update and its evaluation. Nothing else in a multi-agent run draws from it (the simulators and the
+  rounds use generators of their own);
+* **update**: per live seed, its GAEs on its block of the batch and its round,
+  ``round(block, mean_episode_cost)`` (:meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.learn`).
+
+Unlike the single-agent group (:mod:`sg_torchrl.train.seed_group`), the seeds' networks are not
+stacked: **the per-seed rounds run one after another**, while simulation and collection are
+batched. (A round updates one agent at a time in a random order with a line search or KL stop per
+agent, which does not stack as the single-agent minibatch step does.) So a seed's trajectories,
+metrics and parameters are bit for bit those of its single-seed run, for every epoch.
+
+Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
+update turn non-finite is put back to its parameters before that update and frozen; its simulators
+idle with zero actions; the others go on) are those of every seed group
+(:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`). A seed's checkpoint entry under ``"seeds"``
+(:func:`~sg_torchrl.train.seed_runs.seed_entry`) holds its single-seed run's algorithm entries under the
+same names (``"networks"``, ``"update"``, ``"obs_norms"`` as ungrouped normalisers' state dicts,
+``"torch_rng"``) and its own record.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import Tensor
+from torchrl.envs import Compose, EnvBase, TransformedEnv
+
+import sg_torchrl
+from sg_torchrl.collectors import EpisodeStats, RolloutCollector
+from sg_torchrl.envs.multi_agent import GROUP
+from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.evaluate import evaluate_policy
+from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTeam, observation_norms
+from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun
+
+__all__ = ["MultiAgentGroupTrainer", "SeedBlockPolicy", "SeedStreams"]
+
+
+class SeedStreams:
+    """One global-torch-RNG state per seed, swapped in around that seed's work (:meth:`use`).
+
+    ``states[s]`` is seed ``s``'s ``torch.get_rng_state()`` between its uses; the global state
+    outside any :meth:`use` is left as it was.
+    """
+
+    def __init__(self, states: Sequence[Tensor]) -> None:
+        self.states = [state.clone() for state in states]
+
+    @contextlib.contextmanager
+    def use(self, index: int) -> Iterator[None]:
+        """Run the block with seed ``index``'s RNG state as the global one; keep what it drew."""
+        outer = torch.get_rng_state()
+        torch.set_rng_state(self.states[index])
+        try:
+            yield
+        finally:
+            self.states[index] = torch.get_rng_state()
+            torch.set_rng_state(outer)
+
+
+class SeedBlockPolicy(TensorDictModuleBase):
+    """The seeds' team actors as one TensorDict policy of the group's batched env (what the collector calls).
+
+    Splits the ``S * N`` simulators into the S seed blocks of ``num_envs`` along dim 0, runs seed
+    ``s``'s actor on block ``s`` (its noise from the global RNG swapped to seed ``s``'s state,
+    :class:`SeedStreams`), and writes every block's ``(group, "loc" | "scale" | "action" |
+    "action_log_prob")`` back in order. Seeds in :attr:`frozen` act with zeros (``loc`` 0, ``scale``
+    1, log-probability 0) and their actors are not called: a diverged seed's actions may not be
+    finite, which the env refuses.
+    """
+
+    def __init__(self, actors: Sequence[TensorDictModuleBase], streams: SeedStreams, num_envs: int,
+                 action_shape: Sequence[int], group: str = GROUP) -> None:
+        super().__init__()
+        self._actors = tuple(actors)  # the teams' modules, not registered here
+        self.streams = streams
+        self.num_envs = num_envs
+        self.action_shape = tuple(action_shape)  # (n_agents, padded action size)
+        self.in_keys = [(group, "observation")]
+        self.out_keys = [(group, name) for name in ("loc", "scale", "action", "action_log_prob")]
+        #: ``(S,)`` bool of the seeds acting with zeros, or ``None`` when every seed acts.
+        self.frozen: Tensor | None = None
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        inputs = tensordict.select(*self.in_keys)
+        outputs: list[list[Tensor]] = [[] for _ in self.out_keys]
+        for index, actor in enumerate(self._actors):
+            block = inputs[index * self.num_envs:(index + 1) * self.num_envs]
+            if self.frozen is not None and bool(self.frozen[index]):
+                values = self._idle(block.get(self.in_keys[0]))
+            else:
+                with self.streams.use(index):
+                    block = actor(block)
+                values = [block.get(key) for key in self.out_keys]
+            for out, value in zip(outputs, values):
+                out.append(value)
+        for key, blocks in zip(self.out_keys, outputs):
+            tensordict.set(key, torch.cat(blocks))
+        return tensordict
+
+    def _idle(self, observation: Tensor) -> list[Tensor]:
+        """A frozen seed's outputs: zero means and actions, unit scales, zero log-probabilities."""
+        zeros = observation.new_zeros(observation.shape[0], *self.action_shape)
+        return [zeros, torch.ones_like(zeros), zeros.clone(), zeros.new_zeros(zeros.shape[:-1])]
+
+
+class MultiAgentGroupTrainer(SeedGroupTrainer):
+    """Build and run a seed group (``cfg.seeds``) of a multi-agent algorithm; see the module docstring.
+
+    Attributes: ``teams`` (one :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` per seed),
+    ``obs_norms`` (grouped normalisers, a row per seed), ``streams`` (each seed's torch RNG state),
+    ``policy``, ``collector``, ``env`` / ``base_env``, ``runs``.
+
+    Args:
+        cfg: the group's config (a multi-agent ``algo``, ``seeds`` set; ``num_envs``,
+            ``steps_per_epoch``, ``total_steps`` per seed).
+        checkpoint: a group checkpoint (:meth:`load_checkpoint`) to continue from.
+
+    Raises:
+        ValueError: not a multi-agent algorithm, or not a seed group.
+    """
+
+    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
+        if not cfg.multi_agent:
+            raise ValueError(f"MultiAgentGroupTrainer trains the multi-agent algorithms, not {cfg.algo!r} "
+                             f"(use GroupTrainer)")
+        super().__init__(cfg)
+        self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
+        self.title = self.algorithm.title
+        groups = len(self.seeds)
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs, seed=self.seeds,
+                                        **cfg.env_options)
+        self.obs_norms = observation_norms(self.base_env, groups=groups) if cfg.normalize_obs else []
+        self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
+        self.runs = [SeedRun(seed, cfg.for_seed(seed), stats=EpisodeStats(reward_key=("next", GROUP, "reward"),
+                                                                          agent_dim=-2))
+                     for seed in self.seeds]
+        self.teams: list[MultiAgentTeam] = []
+        states = []
+        for run in self.runs:  # each seed's team as its single-seed run builds it, from torch.manual_seed(seed)
+            torch.manual_seed(run.seed)
+            self.teams.append(MultiAgentTeam.build(self.base_env, run.cfg))
+            states.append(torch.get_rng_state())  # where that run's action noise starts
+        self.streams = SeedStreams(states)
+        action_shape = self.base_env.full_action_spec[GROUP, "action"].shape[-2:]
+        self.policy = SeedBlockPolicy([team.networks.actor for team in self.teams], self.streams, cfg.num_envs,
+                                      action_shape)
+        self.collector = RolloutCollector(self.env, self.policy, steps=cfg.steps_per_epoch // cfg.num_envs)
+        self._start(checkpoint)
+
+    # ------------------------------------------------------------------ seeds and epochs
+    def _finite_seeds(self) -> Tensor:
+        return torch.tensor([_finite(list(team.networks.parameters())) for team in self.teams])
+
+    def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float] | None], list[bool]]:
+        """Each live seed's GAEs and round on its block, one seed after another.
+
+        A seed whose networks or round state (optimiser moments, multipliers, value normalisers) turn
+        non-finite is put back to its state before the round and flagged (:meth:`_train_epoch`
+        freezes it).
+        """
+        rows: list[dict[str, float] | None] = []
+        diverged: list[bool] = []
+        for index, (run, team, block) in enumerate(zip(self.runs, self.teams, batch.split(self.cfg.num_envs, 0))):
+            if not run.alive:
+                rows.append(None)
+                diverged.append(False)
+                continue
+            before = _team_state(team)
+            with self.streams.use(index):
+                rows.append(team.learn(block, run.last_mean_cost, self.cfg.actor_lr))
+            bad = not _finite(_team_state(team, copy_=False))
+            if bad:
+                team.networks.load_state_dict(before["networks"])
+                team.policy_update.load_state_dict(before["update"])
+            diverged.append(bad)
+        return rows, diverged
+
+    # ------------------------------------------------------------------ evaluation
+    def _evaluate_seed(self, index: int) -> dict[str, float]:
+        """Seed ``index``'s deterministic evaluation: its actor and normaliser rows, env seed + 10_000."""
+        cfg, seed = self.cfg, self.seeds[index]
+        norms = [norm.group_copy(index) for norm in self.obs_norms]
+        with self.streams.use(index):
+            return evaluate_policy(cfg.env_id, self.teams[index].networks.actor, cfg.eval_episodes,
+                                   seed=seed + 10_000, obs_norm=norms, env_options=cfg.env_options)
+
+    # ------------------------------------------------------------------ checkpoints
+    def _seed_state(self, index: int) -> dict[str, Any]:
+        """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG."""
+        team = self.teams[index]
+        return {
+            "networks": team.networks.state_dict(),
+            "update": team.policy_update.state_dict(),
+            "obs_norms": [norm.group_state_dict(index) for norm in self.obs_norms],
+            "torch_rng": self.streams.states[index].clone(),
+        }
+
+    def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
+        team = self.teams[index]
+        team.networks.load_state_dict(entry["networks"])
+        team.policy_update.load_state_dict(entry["update"])
+        for norm, state in zip(self.obs_norms, entry["obs_norms"], strict=True):
+            norm.load_group_state_dict(index, state)
+        self.streams.states[index] = entry["torch_rng"].clone()
+
+
+def _team_state(team: MultiAgentTeam, copy_: bool = True) -> dict[str, Any]:
+    """The team's networks and round state dicts (deep copies unless ``copy_`` is false)."""
+    state = {"networks": team.networks.state_dict(), "update": team.policy_update.state_dict()}
+    return copy.deepcopy(state) if copy_ else state
+
+
+def _finite(value: Any) -> bool:
+    """Whether every floating-point tensor in ``value`` (nested dicts, lists, tuples) is finite."""
+    if isinstance(value, Tensor):
+        return not value.is_floating_point() or bool(torch.isfinite(value).all())
+    if isinstance(value, dict):
+        return all(_finite(item) for item in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_finite(item) for item in value)
+    return True
