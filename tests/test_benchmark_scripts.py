@@ -1,0 +1,39 @@
+"""Benchmark scripts that run in seconds: they run, report the rows they promise and refuse what they cannot do."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _run(script: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(BENCHMARKS / script), *args], cwd=BENCHMARKS, capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given when CUDA is missing")
+def test_group_step_device_needs_cuda_or_allow_cpu():
+    result = _run("group_step_device.py")
+    assert result.returncode != 0
+    assert "no CUDA device" in result.stderr
+
+
+def test_group_step_device_cpu_rows(tmp_path):
+    out = tmp_path / "rows.json"
+    result = _run("group_step_device.py", "--allow-cpu", "--seeds", "1", "--cpu-seeds", "1", "2", "--steps", "2",
+                  "--repeats", "1", "--warmup", "1", "--json", str(out))
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(out.read_text())["results"]
+    cpu = [row for row in rows if row["device"] == "cpu"]
+    assert [row["seeds"] for row in cpu] == [1, 2]
+    for row in cpu:
+        assert row["ms_per_step"] > 0
+        assert row["ms_per_seed"] == pytest.approx(row["ms_per_step"] / row["seeds"])
+    assert "| SafetyHalfCheetahVelocity-v1 | cpu | 2 |" in result.stdout
