@@ -29,6 +29,11 @@ and MuJoCo included), reported whole and per seed.
     python benchmarks/seed_group_throughput.py                      # the paper's settings (minutes per row)
     python benchmarks/seed_group_throughput.py --epochs 3 --seeds 1 3 --algos cpo
     python benchmarks/seed_group_throughput.py --quick              # a smoke test: small epochs, S = 1, 3
+    python benchmarks/seed_group_throughput.py --multi-agent        # MAPPO-Lag on Safety2x3HalfCheetahVelocity-v0
+
+Multi-agent rows (``--multi-agent``) compare ``MultiAgentTrainer`` with multi-agent seed groups
+(:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: simulators and collection batched
+over the seeds, each seed's round run after the others'), eager, at the paper's multi-agent settings.
 """
 
 from __future__ import annotations
@@ -42,21 +47,27 @@ from dataclasses import dataclass
 
 import torch
 
-from sg_torchrl.train import GroupTrainer, TrainConfig, Trainer
+from sg_torchrl.train import TrainConfig, Trainer, trainer_class
 from sg_torchrl.train.fused import FusedFirstOrderStep
 from sg_torchrl.train.memory import keep_freed_memory
 
 ENVS = ("SafetyHalfCheetahVelocity-v1", "SafetyPointGoal1-v0")
 ALGOS = ("ppo_lag", "cpo")
+#: Multi-agent rows (``--multi-agent``): MAPPO-Lag on the two-agent HalfCheetah partition.
+MULTI_AGENT = (("mappo_lag", "Safety2x3HalfCheetahVelocity-v0"),)
 # The update settings (passes, minibatch, KL stop) are each algorithm's paper defaults; --quick cuts the passes.
 PAPER = dict(steps_per_epoch=20_000, num_envs=10)
 QUICK = dict(steps_per_epoch=1_000, num_envs=4, update_iters=4)
+# Multi-agent: the paper's multi-agent settings are TrainConfig's defaults for those algorithms.
+MULTI_AGENT_PAPER: dict = {}
+MULTI_AGENT_QUICK = dict(steps_per_epoch=1_000, num_envs=4, update_iters=2)
 
 
 @dataclass
 class Row:
     label: str
     seeds: int
+    steps_per_epoch: int  # env steps per epoch per seed
     cpu: list[float]  # CPU seconds per epoch
     rollout: float  # wall seconds collecting, all epochs
     wall: float  # wall seconds, all epochs
@@ -64,9 +75,9 @@ class Row:
     compile_error: str | None = None
     peak_mib: float = float("nan")  # the row's process: peak resident memory (ru_maxrss)
 
-    def per_seed_k(self, settings: dict, epochs: list[float]) -> float:
+    def per_seed_k(self, epochs: list[float]) -> float:
         """CPU seconds per 1,000 env steps per seed over ``epochs``."""
-        return sum(epochs) / (len(epochs) * self.seeds * settings["steps_per_epoch"] / 1000)
+        return sum(epochs) / (len(epochs) * self.seeds * self.steps_per_epoch / 1000)
 
 
 def measure_in_child(*args) -> Row:
@@ -77,7 +88,7 @@ def measure_in_child(*args) -> Row:
 
 
 def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: dict, epochs: int) -> Row:
-    """Train ``epochs`` epochs of ``algo``: the single-seed ``Trainer`` (``seeds`` None) or a group of ``seeds``.
+    """Train ``epochs`` epochs of ``algo``: its single-seed trainer (``seeds`` None) or a group of ``seeds``.
 
     Compiled graphs of earlier rows are dropped first (``torch._dynamo.reset``), so each row compiles as
     a fresh ``sg-train`` process does: dynamo keys its cache on the loss function's code, and the rows'
@@ -87,13 +98,16 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
     keep_freed_memory()  # what a group does at start-up: for every row alike
     torch._dynamo.reset()
     with tempfile.TemporaryDirectory() as tmp:
-        common = dict(algo=algo, env_id=env_id, total_steps=epochs * settings["steps_per_epoch"],
-                      wandb="disabled", eval_episodes=0, progress=False, output_dir=tmp, compile=compile, **settings)
+        steps = settings.get("steps_per_epoch", TrainConfig(algo=algo, env_id=env_id).steps_per_epoch)
+        common = dict(algo=algo, env_id=env_id, total_steps=epochs * steps, wandb="disabled", eval_episodes=0,
+                      progress=False, output_dir=tmp, compile=compile, **settings)
         if seeds is None:
-            trainer, count = Trainer(TrainConfig(seed=0, **common)), 1
-            label = "Trainer (single seed)" + (" compiled" if compile else "")
+            cfg = TrainConfig(seed=0, **common)
+            trainer, count = trainer_class(cfg)(cfg), 1
+            label = f"{type(trainer).__name__} (single seed)" + (" compiled" if compile else "")
         else:
-            trainer = GroupTrainer(TrainConfig(seeds=list(range(seeds)), **common))
+            cfg = TrainConfig(seeds=list(range(seeds)), **common)
+            trainer = trainer_class(cfg)(cfg)
             label, count = f"group S={seeds}", seeds
             if compile:
                 label += " compiled" + (" (critic passes only; the trust-region step is eager)"
@@ -104,19 +118,22 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
             rows.append(trainer.train_epoch())
             cpu.append(time.process_time() - start)
         error = None
-        if seeds is not None and compile:  # the group update's fused steps, then the optimiser
+        if seeds is not None and compile and hasattr(trainer, "group_update"):  # fused steps, then the optimiser
             steps = [part for part in vars(trainer.group_update).values() if isinstance(part, FusedFirstOrderStep)]
             errors = [step.compile_error for step in steps if step.compile_error]
             error = (errors or [trainer.optimizer.compile_error])[0]
-    return Row(label, count, cpu, sum(r["Time/Rollout"] for r in rows),
+    return Row(label, count, steps, cpu, sum(r["Time/Rollout"] for r in rows),
                sum(r["Time/Rollout"] + r["Time/Update"] for r in rows),
-               sum(r["Train/StopIter"] for r in rows) / epochs, error,
+               sum(r.get("Train/StopIter", float("nan")) for r in rows) / epochs, error,
                resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
 
 
-def describe(algo: str, settings: dict) -> str:
+def describe(algo: str, env_id: str, settings: dict) -> str:
     """The update settings ``algo`` runs with (its defaults, as ``TrainConfig`` fills them in)."""
-    cfg = TrainConfig(algo=algo, **settings)
+    cfg = TrainConfig(algo=algo, env_id=env_id, **settings)
+    if cfg.multi_agent:
+        return (f"{cfg.steps_per_epoch} steps per epoch from {cfg.num_envs} simulators per seed; per agent "
+                f"{cfg.update_iters} epochs, KL stop {cfg.target_kl}")
     if cfg.second_order:
         return (f"one trust-region step (KL {cfg.target_kl}), then {cfg.update_iters} critic passes of minibatch "
                 f"{cfg.minibatch_size}")
@@ -130,30 +147,36 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=None, help="group sizes S (default 1 3 8; quick 1 3)")
     parser.add_argument("--epochs", type=int, default=2, help="epochs per configuration (the first is reported apart)")
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled groups")
+    parser.add_argument("--multi-agent", action="store_true",
+                        help="the multi-agent rows instead (MAPPO-Lag on Safety2x3HalfCheetahVelocity-v0, eager: "
+                             "multi-agent runs do not compile)")
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke test: {QUICK['steps_per_epoch']}-step epochs from {QUICK['num_envs']} simulators "
                              f"per seed, {QUICK['update_iters']} (critic) passes, S = 1, 3")
     args = parser.parse_args()
     kept = keep_freed_memory()  # each row's process does the same
-    settings = QUICK if args.quick else PAPER
+    pairs = list(MULTI_AGENT) if args.multi_agent else [(algo, env_id) for algo in args.algos for env_id in args.envs]
+    if args.multi_agent:
+        settings = MULTI_AGENT_QUICK if args.quick else MULTI_AGENT_PAPER
+    else:
+        settings = QUICK if args.quick else PAPER
     sizes = args.seeds or ([1, 3] if args.quick else [1, 3, 8])
     steady = slice(1, None) if args.epochs > 1 else slice(None)
-    print(f"{settings['steps_per_epoch']} steps per epoch from {settings['num_envs']} simulators per seed; "
-          f"{args.epochs} epoch(s) per row; CPU s = time.process_time(); glibc keeps freed memory: {kept}\n")
-    for algo, env_id in ((algo, env_id) for algo in args.algos for env_id in args.envs):
+    print(f"{args.epochs} epoch(s) per row; CPU s = time.process_time(); glibc keeps freed memory: {kept}\n")
+    for algo, env_id in pairs:
         runs = []
-        for compile in ([False] if args.no_compile else [False, True]):
+        for compile in ([False] if args.no_compile or args.multi_agent else [False, True]):
             runs.append(measure_in_child(algo, env_id, None, compile, settings, args.epochs))
             runs += [measure_in_child(algo, env_id, size, compile, settings, args.epochs) for size in sizes]
-        base = runs[0].per_seed_k(settings, runs[0].cpu[steady])
-        print(f"### {algo} on {env_id}: {describe(algo, settings)}\n")
-        print("| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs Trainer "
+        base = runs[0].per_seed_k(runs[0].cpu[steady])
+        print(f"### {algo} on {env_id}: {describe(algo, env_id, settings)}\n")
+        print("| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs single seed "
               "| collection share of wall | passes per epoch | peak MiB | peak MiB / seed |")
         print("|---|---|---|---|---|---|---|---|")
         for row in runs:
-            after = row.per_seed_k(settings, row.cpu[steady])
+            after = row.per_seed_k(row.cpu[steady])
             note = f" (compile failed, eager: {row.compile_error})" if row.compile_error else ""
-            print(f"| {row.label}{note} | {row.per_seed_k(settings, row.cpu):.3f} | {after:.3f} | {base / after:.2f}x "
+            print(f"| {row.label}{note} | {row.per_seed_k(row.cpu):.3f} | {after:.3f} | {base / after:.2f}x "
                   f"| {row.rollout / row.wall:.0%} | {row.passes:.1f} | {row.peak_mib:.0f} | "
                   f"{row.peak_mib / row.seeds:.0f} |")
         print()
