@@ -225,8 +225,10 @@ class MultiAgentUpdate(abc.ABC):
         return metrics
 
     # ------------------------------------------------------------------ shared pieces
-    def _gradient_step(self, agent: int, loss_fn: LossFn, terms: Sequence[str], *, actor: bool,
-              after_step: Callable[[Mapping[str, Tensor]], None] | None = None) -> GradientStep:
+    def _gradient_step(
+        self, agent: int, loss_fn: LossFn, terms: Sequence[str], *, actor: bool,
+        after_step: Callable[[Mapping[str, Tensor]], None] | None = None,
+    ) -> GradientStep:
         """One Adam step of the agent's optimiser on ``terms``, gradients clipped per network (SafePO).
 
         The actor (when ``actor``), the reward critic and the cost critic are clipped separately
