@@ -3,9 +3,12 @@
 Reward per step: ``(d_prev - d) * 1.0`` with ``d`` the planar distance from the robot to the goal
 button (the goal marker sits on it), plus ``1.0`` when any robot geom touches the goal button.
 Then the goal button is drawn again uniformly among the four (it may repeat), the marker moves
-onto it and a 10-step timer restarts; a reset does the same. While the timer is non-zero the
-``buttons_lidar`` entry reads all zeros and wrong buttons cost nothing. The timer counts down
-once per step, after reward and cost. Episodes last 1000 steps and never terminate early.
+onto it and a 10-step timer restarts. While the timer is non-zero the ``buttons_lidar`` entry
+reads all zeros and wrong buttons cost nothing. The timer counts down once per step, after reward
+and cost. A reset draws a goal button too but leaves the timer at 0, as the original does (its
+``reset`` draws the goal, which starts the timer, then ``specific_reset`` zeroes it): the buttons
+are seen in the first observation and a wrong press costs from the first step. Episodes last
+1000 steps and never terminate early.
 
 Levels: 0 the four buttons (unconstrained) and the marker in +-1; 1 in +-1.5 adds 4 hazards and
 4 gremlins and constrains the buttons; 2 in +-1.8 has 8 hazards and 6 gremlins. Observation:
@@ -44,6 +47,7 @@ class ButtonTask(GoalTask):
     def reset(self, env: NavigationEnv, indices: np.ndarray) -> None:
         for index in indices:
             self._press(env, int(index))
+        self.buttons.timer[indices] = 0  # no resampling delay at the start of an episode
         super().reset(env, indices)
 
     def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
