@@ -93,3 +93,58 @@ def test_button_timer_still_restarts_after_a_goal():
         assert (obs[0, env.observation_slices["buttons_lidar"]] == 0).all()
     finally:
         env.close()
+
+
+# ---------------------------------------------------------------------------- velocity: unit quaternion after reset
+# Safety-Gymnasium 1.0.0 ran on MuJoCo 2.3.3, whose mj_forward normalised qpos quaternions in place: the reset
+# noise lands on the torso quaternion, and the first observation holds it scaled to unit length.
+QUATERNION_IDS = ("SafetyAntVelocity-v0", "SafetyAntVelocity-v1", "SafetyHumanoidVelocity-v0",
+                  "SafetyHumanoidVelocity-v1", "Safety2x4AntVelocity-v0", "Safety4x2AntVelocity-v0",
+                  "Safety9|8HumanoidVelocity-v0")
+
+
+@pytest.mark.parametrize("env_id", QUATERNION_IDS)
+def test_velocity_first_quaternion_is_unit(env_id):
+    env = sg_torchrl.make(env_id, num_envs=16, seed=11)
+    try:
+        key = "state" if "state" in env.reset().keys() else "observation"
+        for _ in range(8):  # 128 draws of the reset noise
+            td = env.reset()
+            quat = td[key][:, 1:5].double()  # after the torso height: qpos[3:7]
+            np.testing.assert_allclose(quat.norm(dim=1).numpy(), 1.0, atol=1e-6)  # float32 observation
+            qpos = env.physics.qpos()[:, 3:7]
+            np.testing.assert_allclose(np.linalg.norm(qpos, axis=1), 1.0, atol=1e-12)
+            np.testing.assert_allclose(quat.numpy(), qpos, atol=1e-6)
+            assert (np.abs(qpos - (1.0, 0.0, 0.0, 0.0)) > 1e-4).any(axis=1).all()  # the noise is still there
+    finally:
+        env.close()
+
+
+def test_velocity_quaternion_is_the_normalised_noisy_one():
+    # Same generator draws as the env, by hand: gymnasium v4's qpos noise, then q / |q| (only the quaternion moves).
+    from sg_torchrl.envs.velocity.env import normalize_quaternions, quaternion_addresses
+
+    env = sg_torchrl.make("SafetyAntVelocity-v1", num_envs=1, seed=5)
+    try:
+        env.reset()
+        scale = env.robot.reset_noise_scale
+        rng = np.random.default_rng()
+        rng.bit_generator.state = env._rngs[0].bit_generator.state
+        noisy = env.physics.model.qpos0 + rng.uniform(-scale, scale, size=env.physics.model.nq)
+        env.reset()
+        expected = noisy.copy()[None]
+        normalize_quaternions(expected, quaternion_addresses(env.physics.model))
+        assert quaternion_addresses(env.physics.model).tolist() == [3]
+        np.testing.assert_allclose(env.physics.qpos()[0], expected[0], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(expected[0, 3:7], noisy[3:7] / np.linalg.norm(noisy[3:7]), atol=1e-15)
+        np.testing.assert_array_equal(np.delete(expected[0], range(3, 7)), np.delete(noisy, range(3, 7)))
+    finally:
+        env.close()
+
+
+def test_normalize_quaternions_degenerate_is_identity():
+    from sg_torchrl.envs.velocity.env import normalize_quaternions
+
+    qpos = np.array([[9.0, 0.0, 0.0, 0.0, 0.0, 7.0], [9.0, 0.0, 3.0, 0.0, 4.0, 7.0]])
+    normalize_quaternions(qpos, np.array([1]))
+    np.testing.assert_allclose(qpos, [[9.0, 1.0, 0.0, 0.0, 0.0, 7.0], [9.0, 0.0, 0.6, 0.0, 0.8, 7.0]])
