@@ -148,3 +148,90 @@ def test_normalize_quaternions_degenerate_is_identity():
     qpos = np.array([[9.0, 0.0, 0.0, 0.0, 0.0, 7.0], [9.0, 0.0, 3.0, 0.0, 4.0, 7.0]])
     normalize_quaternions(qpos, np.array([1]))
     np.testing.assert_allclose(qpos, [[9.0, 1.0, 0.0, 0.0, 0.0, 7.0], [9.0, 0.0, 0.6, 0.0, 0.8, 7.0]])
+
+
+# ---------------------------------------------------------------------------- velocity: gymnasium's info terms
+# Keys and order probed from safety-gymnasium 1.0.0 (its velocity envs' step builds gymnasium v4's info).
+_PLANAR = ["x_position", "y_position", "distance_from_origin", "x_velocity", "y_velocity", "forward_reward"]
+INFO_KEYS = {
+    "HalfCheetah": ["x_position", "x_velocity", "reward_run", "reward_ctrl"],
+    "Hopper": ["x_position", "x_velocity"],
+    "Walker2d": ["x_position", "x_velocity"],
+    "Swimmer": ["reward_fwd", "reward_ctrl", *_PLANAR],
+    "Ant": ["reward_forward", "reward_ctrl", "reward_survive", *_PLANAR],
+    "Humanoid": ["reward_linvel", "reward_quadctrl", "reward_alive", *_PLANAR],
+}
+FORWARD = {"HalfCheetah": "reward_run", "Swimmer": "reward_fwd", "Ant": "reward_forward", "Humanoid": "reward_linvel"}
+CTRL = {"HalfCheetah": "reward_ctrl", "Swimmer": "reward_ctrl", "Ant": "reward_ctrl", "Humanoid": "reward_quadctrl"}
+HEALTHY = {"Ant": "reward_survive", "Humanoid": "reward_alive"}
+
+
+@pytest.mark.parametrize("robot", sorted(INFO_KEYS))
+def test_velocity_info_terms_match_gymnasium_v4(robot):
+    import gymnasium
+
+    reference = gymnasium.make(f"{robot}-v4").unwrapped
+    reference.reset(seed=3)
+    env = sg_torchrl.make(f"Safety{robot}Velocity-v1", num_envs=1, seed=0)
+    try:
+        assert list(env.info_keys) == INFO_KEYS[robot]
+        env.reset()
+        env.physics.reset([0], reference.data.qpos.copy()[None], reference.data.qvel.copy()[None])
+        generator = torch.Generator().manual_seed(4)
+        high = env.action_spec.space.high
+        for t in range(15):
+            action = (2 * torch.rand(high.shape, generator=generator) - 1) * high  # float32-representable
+            _, ref_reward, ref_terminated, _, ref_info = reference.step(action[0].double().numpy())
+            nxt = env.step(TensorDict({"action": action}, batch_size=env.batch_size))["next"]
+            info = env.step_info(0)
+            assert list(info) == INFO_KEYS[robot] and all(type(v) is float for v in info.values())
+            for key in INFO_KEYS[robot]:
+                np.testing.assert_allclose(info[key], ref_info[key], rtol=1e-5, atol=1e-7, err_msg=f"{key}, step {t}")
+            # The terms are the reward's own: forward + healthy + ctrl (+ nothing else), and the cost's velocity.
+            if robot in FORWARD:
+                total = info[FORWARD[robot]] + info.get(HEALTHY.get(robot), 0.0) + info[CTRL[robot]]
+                assert nxt["reward"].item() == pytest.approx(total, rel=1e-6, abs=1e-6)
+            speed = np.hypot(info["x_velocity"], info["y_velocity"]) if "y_velocity" in info else info["x_velocity"]
+            if robot == "Swimmer":  # v1 prices the x velocity
+                speed = info["x_velocity"]
+            assert speed == pytest.approx(env.last_velocity[0], rel=1e-12)
+            if ref_terminated:
+                break
+        assert t >= 5
+    finally:
+        reference.close()
+        env.close()
+
+
+def test_velocity_step_info_batched_and_untouched_by_reset():
+    env = sg_torchrl.make("SafetyAntVelocity-v0", num_envs=3, seed=1)
+    try:
+        env.reset()
+        assert all((value == 0).all() for key, value in env.step_info().items() if key != "reward_survive")
+        env.rollout(4)
+        batched = env.step_info()
+        assert list(batched) == INFO_KEYS["Ant"] and all(v.shape == (3,) and v.dtype == np.float64 for v in batched.values())
+        for i in range(3):
+            assert env.step_info(i) == {key: float(value[i]) for key, value in batched.items()}
+        np.testing.assert_array_equal(batched["reward_survive"], 1.0)
+        np.testing.assert_allclose(batched["distance_from_origin"], np.hypot(batched["x_position"], batched["y_position"]))
+        np.testing.assert_array_equal(batched["forward_reward"], batched["reward_forward"])
+        batched["x_velocity"][:] = 99.0  # fresh arrays: the env's buffers are untouched
+        assert env.step_info(0)["x_velocity"] != 99.0
+        env.reset()
+        assert env.step_info(1) == {key: float(value[1]) for key, value in env.step_info().items()}
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ["Safety2x4AntVelocity-v0", "Safety2x3HalfCheetahVelocity-v0"])
+def test_multi_agent_velocity_step_info(env_id):
+    env = sg_torchrl.make(env_id, num_envs=2, seed=0)
+    try:
+        env.rollout(3)
+        info = env.step_info(0)
+        robot = env.robot.name
+        assert list(info) == INFO_KEYS[robot]
+        assert info["x_velocity"] == env._velocity[0, 0]
+    finally:
+        env.close()

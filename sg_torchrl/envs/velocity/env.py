@@ -22,7 +22,27 @@ from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 
-__all__ = ["VelocityEnv", "normalize_quaternions", "quaternion_addresses"]
+__all__ = ["INFO_TERMS", "VelocityEnv", "normalize_quaternions", "quaternion_addresses"]
+
+#: What each ``info`` key of the velocity tasks holds (one name per quantity, several keys per
+#: quantity because gymnasium's v4 robots name their reward terms differently).
+INFO_TERMS: dict[str, str] = {
+    "x_position": "position x after the step (what the velocity differentiates)",
+    "y_position": "position y after the step",
+    "distance_from_origin": "planar norm of the position after the step",
+    "x_velocity": "x velocity over the step",
+    "y_velocity": "y velocity over the step",
+    "forward_reward": "forward reward term (weight times x velocity)",
+    "reward_run": "forward reward term (HalfCheetah)",
+    "reward_fwd": "forward reward term (Swimmer)",
+    "reward_forward": "forward reward term (Ant)",
+    "reward_linvel": "forward reward term (Humanoid)",
+    "reward_ctrl": "minus the control penalty",
+    "reward_quadctrl": "minus the control penalty (Humanoid)",
+    "reward_survive": "healthy reward (Ant)",
+    "reward_alive": "healthy reward (Humanoid)",
+}
+_FORWARD = ("forward_reward", "reward_run", "reward_fwd", "reward_forward", "reward_linvel")
 
 
 def quaternion_addresses(model: mujoco.MjModel) -> np.ndarray:
@@ -71,9 +91,11 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
-    The single constraint is ``("cost_info", "velocity")``. ``info``-like diagnostics are
-    available as attributes after a step: :attr:`last_velocity` (the measured speed, ``(N,)``;
-    overwritten in place by every step, copy it to keep it).
+    The single constraint is ``("cost_info", "velocity")``. Diagnostics of the last step:
+    :attr:`last_velocity` (the measured speed, ``(N,)``; overwritten in place by every step, copy it
+    to keep it), and :meth:`step_info`, the terms Safety-Gymnasium's ``info`` holds for this robot
+    (:attr:`info_keys`; ``x_velocity``, ``reward_ctrl``, ...), from the very numbers the reward and
+    cost were computed from.
     """
 
     def __init__(
@@ -125,6 +147,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self._torso_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         self._body_mass = model.body_mass[:, None] / model.body_mass.sum()
         self._position_before = np.zeros((num_envs, 2 if spec.planar else 1))
+        self._position_after = np.zeros_like(self._position_before)
+        self._penalty_ctrl = np.zeros(num_envs)  # the last step's control penalty (step_info)
         self.last_velocity = np.zeros(num_envs)
         self._velocity = np.zeros((num_envs, 2))
         # Hot-path buffers are filled in place: assigning an attribute of an EnvBase (an nn.Module)
@@ -186,7 +210,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
     def _advance(self, action: np.ndarray) -> None:
         self.physics.step(action, self.frame_skip)
         width = self._position_before.shape[1]
-        np.subtract(self._position(), self._position_before, out=self._velocity[:, :width])
+        self._position_after[:] = self._position()
+        np.subtract(self._position_after, self._position_before, out=self._velocity[:, :width])
         self._velocity[:, :width] /= self._dt
 
     def _observe(self) -> np.ndarray:
@@ -209,8 +234,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
         # gymnasium v4 penalises the action as given (MuJoCo clamps it only inside the physics).
         spec = self.robot
-        penalty_ctrl = spec.ctrl_cost_weight * np.square(action).sum(axis=1)
-        return spec.forward_reward_weight * self._velocity[:, 0] + spec.healthy_reward - penalty_ctrl
+        np.multiply(spec.ctrl_cost_weight, np.square(action).sum(axis=1), out=self._penalty_ctrl)
+        return spec.forward_reward_weight * self._velocity[:, 0] + spec.healthy_reward - self._penalty_ctrl
 
     def _compute_cost(self) -> dict[str, np.ndarray]:
         if self._planar_cost:
@@ -224,6 +249,45 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         if health is None:
             return np.zeros(self.num_envs, dtype=bool)
         return ~health(self.physics.qpos(), self.physics.qvel())
+
+    # ------------------------------------------------------------------ info
+    @property
+    def info_keys(self) -> tuple[str, ...]:
+        """The keys of :meth:`step_info`: Safety-Gymnasium 1.0.0's ``info`` keys for this robot, in its order."""
+        return self.robot.info_keys
+
+    def step_info(self, index: int | None = None) -> dict[str, np.ndarray] | dict[str, float]:
+        """Gymnasium's ``info`` terms of the last step (:attr:`info_keys`; meanings in :data:`INFO_TERMS`).
+
+        Why: training scripts written for Safety-Gymnasium log them (``x_velocity``, ``reward_ctrl``,
+        ...); the gymnasium façade adds them to its ``info``. They are derived from the buffers the
+        last step's reward and cost were computed from, so ``reward`` equals the sum of the reward
+        terms (forward + healthy + ctrl) and the cost is ``speed > threshold`` of these velocities.
+
+        Args:
+            index: one simulator: a dict of Python floats, as one gymnasium env's ``info``.
+                ``None``: every simulator, a dict of fresh ``(N,)`` float64 arrays.
+
+        Before the first step the measured terms are zeros; a reset does not change them (gymnasium's
+        ``reset`` returns an empty ``info``).
+        """
+        spec, rows = self.robot, slice(None) if index is None else index
+        position, velocity = self._position_after[rows], self._velocity[rows]
+        values: dict[str, Any] = {}
+        for key in spec.info_keys:
+            if key in _FORWARD:
+                value = spec.forward_reward_weight * velocity[..., 0]
+            elif key in ("reward_ctrl", "reward_quadctrl"):
+                value = -self._penalty_ctrl[rows]
+            elif key in ("reward_survive", "reward_alive"):
+                value = np.full_like(self._penalty_ctrl[rows], spec.healthy_reward)
+            elif key == "distance_from_origin":
+                value = np.linalg.norm(position, axis=-1)
+            else:  # x_position, y_position, x_velocity, y_velocity
+                source = position if key.endswith("position") else velocity
+                value = source[..., 0 if key.startswith("x") else 1]
+            values[key] = float(value) if index is not None else np.array(value, dtype=np.float64)
+        return values
 
     def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
         """The cost this task assigns to a measured velocity (for documentation and tests)."""

@@ -87,6 +87,8 @@ class LocomotionRobot:
         thresholds: Safety-Gymnasium's cost threshold per env version.
         planar_cost_versions: versions whose cost uses the planar speed instead of the signed
             x velocity (Ant, Humanoid; Swimmer only in v0).
+        info_keys: the ``info`` keys Safety-Gymnasium 1.0.0 returns after a step, in its order
+            (gymnasium v4's, per robot; their meaning is :data:`~sg_torchrl.envs.velocity.env.INFO_TERMS`).
     """
 
     name: str
@@ -105,7 +107,11 @@ class LocomotionRobot:
     health: HealthCheck | None = None
     extra_observations: tuple[str, ...] = ()
     planar_cost_versions: frozenset[int] = field(default_factory=frozenset)
+    info_keys: tuple[str, ...] = ("x_position", "x_velocity")
 
+
+# The position terms that Safety-Gymnasium's planar robots (Swimmer, Ant, Humanoid) add to ``info``.
+_PLANAR_INFO = ("x_position", "y_position", "distance_from_origin", "x_velocity", "y_velocity", "forward_reward")
 
 ROBOTS: dict[str, LocomotionRobot] = {
     robot.name: robot
@@ -114,6 +120,7 @@ ROBOTS: dict[str, LocomotionRobot] = {
             name="HalfCheetah", xml_file="half_cheetah.xml", frame_skip=5, qpos_skip=1,
             forward_reward_weight=1.0, ctrl_cost_weight=0.1, reset_noise_scale=0.1, qvel_noise="normal",
             thresholds={0: 2.8795, 1: 3.2096},
+            info_keys=("x_position", "x_velocity", "reward_run", "reward_ctrl"),
         ),
         LocomotionRobot(
             name="Hopper", xml_file="hopper.xml", frame_skip=4, qpos_skip=1, qvel_clip=10.0,
@@ -132,12 +139,14 @@ ROBOTS: dict[str, LocomotionRobot] = {
             name="Swimmer", xml_file="swimmer.xml", frame_skip=4, qpos_skip=2, planar=True,
             forward_reward_weight=1.0, ctrl_cost_weight=1e-4, reset_noise_scale=0.1,
             thresholds={0: 0.04845, 1: 0.2282}, planar_cost_versions=frozenset({0}),
+            info_keys=("reward_fwd", "reward_ctrl", *_PLANAR_INFO),
         ),
         LocomotionRobot(
             name="Ant", xml_file="ant.xml", frame_skip=5, qpos_skip=2, planar=True, position_source="torso",
             forward_reward_weight=1.0, ctrl_cost_weight=0.5, healthy_reward=1.0, reset_noise_scale=0.1,
             qvel_noise="normal", health=HealthCheck(z_index=2, z_range=(0.2, 1.0), inclusive=True),
             thresholds={0: 2.5745, 1: 2.6222}, planar_cost_versions=frozenset({0, 1}),
+            info_keys=("reward_forward", "reward_ctrl", "reward_survive", *_PLANAR_INFO),
         ),
         LocomotionRobot(
             name="Humanoid", xml_file="humanoid.xml", frame_skip=5, qpos_skip=2, planar=True,
@@ -145,6 +154,7 @@ ROBOTS: dict[str, LocomotionRobot] = {
             reset_noise_scale=1e-2, health=HealthCheck(z_index=2, z_range=(1.0, 2.0)),
             extra_observations=("cinert", "cvel", "qfrc_actuator", "cfrc_ext"),
             thresholds={0: 2.3475, 1: 1.4149}, planar_cost_versions=frozenset({0, 1}),
+            info_keys=("reward_linvel", "reward_quadctrl", "reward_alive", *_PLANAR_INFO),
         ),
     )
 }
