@@ -33,13 +33,18 @@ API
   ``action_space.shape``, or that is not finite, raises ``ValueError``; an option the env does not
   take raises ``TypeError`` worded as Python words it (``... got an unexpected keyword argument
   'frameskip'``), which TorchRL's ``GymEnv`` relies on to drop its ``frameskip``. Actions outside the bounds
-  are clipped, as in Safety-Gymnasium. ``render_mode`` other than ``None`` and ``"rgb_array"``
-  raises ``NotImplementedError``. Using a closed env raises
-  ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
-* Rendering: with ``render_mode="rgb_array"``, ``render()`` returns the simulator as an
-  ``(height, width, 3)`` ``uint8`` array seen by a camera that follows the robot (headless, EGL or
-  OSMesa; see :mod:`sg_torchrl.envs.rendering`). Options ``width``, ``height`` (default 256) and
-  ``camera`` (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
+  are clipped, as in Safety-Gymnasium. An unknown ``render_mode`` raises ``ValueError``. Using a
+  closed env raises ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
+* ``reset(seed=None, options=None)``: ``options`` (a dict, or ``None``) is accepted and ignored, as
+  by Safety-Gymnasium's own envs; anything else raises ``TypeError``.
+* Rendering: gymnasium's render modes, ``"rgb_array"``, ``"depth_array"``, ``"rgb_array_list"``,
+  ``"depth_array_list"`` and ``"human"`` (headless except ``human``, which needs a display and
+  pygame and otherwise fails at construction naming the reason), see :mod:`sg_torchrl.render_modes`.
+  The default camera follows the robot; options ``width``, ``height`` (default 256) and ``camera``
+  (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
+* ``copy.deepcopy(env)`` builds a new env with the same id and options and loads the simulator's
+  state into it (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state`: physics, random streams, step
+  counter, layout): the copy's next step, given the same action, equals the original's.
 * Pixel observations (the ``...Vision-v0`` ids, or ``obs_mode="rgb"`` etc.): ``obs`` is a dict,
   ``"vision"`` ``(H, W, 3)`` ``uint8`` (Safety-Gymnasium's key and channels-last layout), ``"depth"``
   ``(H, W, 1)`` ``float32`` metres (RGB-D modes) and ``"observation"`` (``vector+`` modes), under a
@@ -72,8 +77,9 @@ a 6-tuple env fails with "too many values to unpack"). Hence:
 
 Speed
 -----
-For a plain :class:`~sg_torchrl.envs.base.SafeEnv` the step runs the env's numpy hooks directly
-(the same sequence as ``SafeEnv._step``, without building TensorDicts), which saves about
+For a plain :class:`~sg_torchrl.envs.base.SafeEnv` the step runs the env's public numpy interface
+(:meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays` and ``aggregate_cost``: the body of its TorchRL
+step without building TensorDicts), which saves about
 90-110 us per step compared with ``env.step(td)`` on one simulator (HalfCheetah: 157 -> 66 us, of
 which MuJoCo takes 36 us; 2-core CPU machine); envs that override ``_step`` (or are not a
 ``SafeEnv``) go through the public TorchRL ``step``. Both paths give identical data (tested).
@@ -81,6 +87,7 @@ which MuJoCo takes 36 us; 2-core CPU machine); envs that override ``_step`` (or 
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import gymnasium
@@ -92,6 +99,7 @@ from tensordict import TensorDict
 from sg_torchrl.envs.base import SafeEnv
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
+from sg_torchrl.render_modes import RENDER_MODES, RENDER_OPTIONS, FrameSource, split_render_options
 
 __all__ = [
     "EpisodeEndedError",
@@ -148,7 +156,8 @@ def make(
             implies ``cost_in_info=True``).
         cost_in_info: ``False``: Safety-Gymnasium's 6-tuple step (:class:`SafetyGymnasiumEnv`).
             ``True``: gymnasium's 5-tuple with ``info["cost"]`` (:class:`GymnasiumEnv`).
-        render_mode: ``None`` or ``"rgb_array"`` (then ``width``, ``height``, ``camera`` options too).
+        render_mode: ``None`` or one of :data:`~sg_torchrl.render_modes.RENDER_MODES` (then
+            ``width``, ``height``, ``camera`` / ``camera_name`` / ``camera_id`` options too).
         **options: sg_torchrl options, e.g. ``max_episode_steps=500`` (``None``: no internal limit),
             ``cost_mode="raw"``, ``seed=0`` (seed at construction; ``reset(seed=...)`` also works).
 
@@ -175,21 +184,17 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     Args:
         env_id: an id of :func:`sg_torchrl.list_envs`.
-        render_mode: ``None`` or ``"rgb_array"``.
-        **options: sg_torchrl options (see :func:`make`).
+        render_mode: ``None`` or one of :data:`~sg_torchrl.render_modes.RENDER_MODES`.
+        **options: sg_torchrl options and render options (see :func:`make`).
 
     The wrapped TorchRL env is :attr:`torchrl_env` (``batch_size=[1]``).
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
+    metadata = {"render_modes": list(RENDER_MODES)}
 
     def __init__(self, env_id: str, render_mode: str | None = None, **options: Any) -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise NotImplementedError(
-                f"render_mode={render_mode!r} is not supported: sg_torchrl envs render headless "
-                "(pass render_mode='rgb_array' or None)"
-            )
-        render_options = {key: options.pop(key) for key in _RENDER_OPTIONS if key in options}
+        self._options = dict(options)  # what a deepcopy rebuilds the env from
+        render_options = split_render_options(options)
         if "num_envs" in options:
             raise TypeError(
                 "the gymnasium façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N) "
@@ -204,9 +209,11 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         self.render_mode = render_mode
         env = make_torchrl_env(env_id, num_envs=1, **options)
         self._env = env
-        self._render_options = _render_options(env, render_mode, render_options)
-        if render_mode is not None:
-            self.metadata = {**self.metadata, "render_fps": round(1.0 / (env.frame_skip * env.physics.timestep))}
+        fps = 30.0
+        if render_mode is not None and hasattr(env, "physics"):
+            fps = 1.0 / (env.frame_skip * env.physics.timestep)
+            self.metadata = {**self.metadata, "render_fps": round(fps)}
+        self._frames = FrameSource(env, render_mode, render_options, fps=fps) if render_mode is not None else None
         observation_spec = env.observation_spec
         self._pixels = "pixels" in observation_spec.keys()
         self.observation_space = _observation_space(observation_spec)
@@ -249,35 +256,65 @@ class SafetyGymnasiumEnv(gymnasium.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream."""
+        """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream.
+
+        ``options`` (a dict or ``None``) is accepted and ignored, as Safety-Gymnasium's envs do.
+        """
         self._check_open()
-        if options:
-            raise ValueError(f"reset options are not supported, got {sorted(options)}")
+        if options is not None and not isinstance(options, dict):
+            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
         super().reset(seed=seed)  # seeds self.np_random and validates the seed
         if seed is not None:
             self._env.set_seed(int(seed), static_seed=True)
         td = self._env.reset()
         self._needs_reset = False
+        if self._frames is not None:
+            self._frames.after_reset()
         return self._observation(td), {}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """Advance one step: ``(obs, reward, cost, terminated, truncated, info)``."""
         return self._transition(action)
 
-    def render(self) -> np.ndarray | None:
-        """The simulator as an ``(height, width, 3)`` ``uint8`` array (``render_mode="rgb_array"``)."""
+    def render(self) -> np.ndarray | list[np.ndarray] | None:
+        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
+        ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
         self._check_open()
-        if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' to make")
+        if self._frames is None:
+            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
+                                  f"(or one of {list(RENDER_MODES)}) to make")
             return None
-        return self._env.render(0, **self._render_options)
+        return self._frames.render()
 
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
         if not self._closed:
             self._closed = True
             self._needs_reset = True  # so that step() reaches the closed-env check
+            if self._frames is not None:
+                self._frames.close()
             self._env.close(raise_if_closed=False)
+
+    def __deepcopy__(self, memo: dict) -> SafetyGymnasiumEnv:
+        """A new env with the same id and options whose simulator continues exactly from this one's.
+
+        The simulator's state (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state`) is loaded into the
+        copy, so the same action gives both the same next step. Render frames collected so far
+        (``*_list`` modes) are copied; the copy opens its own renderer and window.
+        """
+        self._check_open()
+        if not hasattr(self._env, "sim_state"):
+            raise TypeError(f"{self.env_id}: {type(self._env).__name__} cannot snapshot its simulator")
+        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
+        memo[id(self)] = clone
+        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        clone._needs_reset = self._needs_reset
+        clone._np_random = copy.deepcopy(self._np_random, memo)
+        clone._np_random_seed = self._np_random_seed
+        clone.spec = copy.deepcopy(self.spec, memo)
+        if self._frames is not None:
+            clone._frames._frames = [frame.copy() for frame in self._frames._frames]
+        return clone
 
     # ------------------------------------------------------------------ internals
     def _check_open(self) -> None:
@@ -309,14 +346,16 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         else:
             out = self._torchrl_step(action32)
         self._needs_reset = out[3] or out[4]
+        if self._frames is not None:
+            self._frames.after_step()
         return out
 
     def _fast_step(self, action32: np.ndarray):
-        """``SafeEnv._transition_arrays`` (the body of ``SafeEnv._step``), emitting the values
-        ``SafeEnv._pack`` would emit (float32 rounding included) without building TensorDicts."""
+        """The env's public numpy step (:meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays`), emitting
+        the values its TorchRL step would emit (float32 rounding included) without TensorDicts."""
         env = self._env
-        observation, reward, costs, terminated, truncated = env._transition_arrays(action32.astype(np.float64))
-        cost, cost_info = env._aggregate_cost(costs)
+        observation, reward, costs, terminated, truncated = env.step_arrays(action32.astype(np.float64))
+        cost, cost_info = env.aggregate_cost(costs)
         cost = float(np.float32(cost[0]))
         info = {key: float(np.float32(cost_info[name][0])) for key, name in zip(self._info_keys, self._constraints)}
         info["cost_sum"] = cost
@@ -353,9 +392,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         return f"{type(self).__name__}({self.env_id!r})"
 
 
-_RENDER_OPTIONS = ("width", "height", "camera", "camera_name", "camera_id")
-
-
 def _check_options(env_id: str, options: dict[str, Any]) -> None:
     """Reject options ``env_id`` does not take, in Python's own words for an unknown keyword.
 
@@ -369,7 +405,7 @@ def _check_options(env_id: str, options: dict[str, Any]) -> None:
     accepted = [*accepted, "seed", "device"]  # what sg_torchrl.make takes besides the env's own options
     unknown = [key for key in options if key not in accepted]
     if unknown:
-        takes = ", ".join([*accepted, *_RENDER_OPTIONS])
+        takes = ", ".join([*accepted, *RENDER_OPTIONS])
         raise TypeError(f"make() got an unexpected keyword argument {unknown[0]!r} "
                         f"({env_id} takes {takes}; unknown: {', '.join(map(repr, unknown))})")
 
@@ -396,18 +432,6 @@ def _observation_space(observation_spec) -> spaces.Space:
         entries["depth"] = spaces.Box(float(box.low.min()), float(box.high.max()), shape=(height, width, 1),
                                       dtype=np.float32)
     return spaces.Dict(entries)
-
-
-def _render_options(env, render_mode: str | None, options: dict[str, Any]) -> dict[str, Any]:
-    """The keyword arguments of ``env.render`` from the façade's render options."""
-    if render_mode is None:  # ignored without a render mode, as Safety-Gymnasium does
-        return {}
-    if not hasattr(env, "render"):
-        raise NotImplementedError(f"{type(env).__name__} cannot render (render_mode={render_mode!r})")
-    cameras = [value for key in ("camera", "camera_name", "camera_id") if (value := options.pop(key, None)) is not None]
-    if len(cameras) > 1:
-        raise TypeError("pass only one of camera, camera_name, camera_id")
-    return {**options, "camera": cameras[0] if cameras else None}
 
 
 class GymnasiumEnv(SafetyGymnasiumEnv):

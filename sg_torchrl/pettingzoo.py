@@ -26,6 +26,8 @@ API
   infos; ``options`` are accepted and ignored (as MaMuJoCo's v4 robots do). ``state()`` is the
   global state (the env's ``"state"``: the robot's v4 observation, or the MultiGoal joint observation;
   ``float64``), ``state_space`` its box.
+* Rendering: gymnasium's render modes and options, as in :mod:`sg_torchrl.gym`
+  (:mod:`sg_torchrl.render_modes`). ``copy.deepcopy(env)`` copies the simulator's state, as there.
 * :class:`CostInInfoParallelEnv` (``make(env_id, cost_in_info=True)``): the standard PettingZoo
   **5-tuple** ``(observations, rewards, terminations, truncations, infos)`` with each agent's cost in
   ``infos[agent]["cost"]``. This is the variant that passes ``pettingzoo.test.parallel_api_test``,
@@ -44,13 +46,15 @@ API
 Speed
 -----
 For the envs built on :class:`~sg_torchrl.envs.multi_agent.AgentGroupMixin` (every registered
-multi-agent env) the step runs the env's numpy hooks directly (the sequence of the mixin's ``_step``,
+multi-agent env) the step runs the env's public numpy interface (``robot_control``,
+:meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays`, ``output_arrays``: the mixin's TorchRL step
 without building TensorDicts), as the gymnasium façade does; other multi-agent envs (or subclasses
 that override ``_step``) go through the public TorchRL ``step``. Both give identical data.
 """
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import gymnasium
@@ -64,7 +68,8 @@ from sg_torchrl.envs.multi_agent import GROUP as _GROUP
 from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
-from sg_torchrl.gym import _RENDER_OPTIONS, EpisodeEndedError, _render_options
+from sg_torchrl.gym import EpisodeEndedError
+from sg_torchrl.render_modes import RENDER_MODES, FrameSource, split_render_options
 
 __all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
 
@@ -77,7 +82,8 @@ def make(env_id: str, *, cost_in_info: bool = False, render_mode: str | None = N
             (``sg_torchrl.list_envs(family="multi_agent_velocity")``, ``family="multi_agent_navigation"``).
         cost_in_info: ``False``: Safety-Gymnasium's 6-tuple step (:class:`SafeParallelEnv`);
             ``True``: PettingZoo's 5-tuple with ``infos[agent]["cost"]`` (:class:`CostInInfoParallelEnv`).
-        render_mode: ``None`` or ``"rgb_array"`` (then ``width``, ``height``, ``camera`` options too).
+        render_mode: ``None`` or one of :data:`~sg_torchrl.render_modes.RENDER_MODES` (then ``width``,
+            ``height``, ``camera`` / ``camera_name`` / ``camera_id`` options too).
         **options: sg_torchrl options, e.g. ``max_episode_steps=500``, ``cost_mode="raw"``, ``seed=0``.
     """
     cls = CostInInfoParallelEnv if cost_in_info else SafeParallelEnv
@@ -89,31 +95,27 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
 
     Args:
         env_id: a multi-agent id of :func:`sg_torchrl.list_envs`.
-        render_mode: ``None`` or ``"rgb_array"``.
-        **options: sg_torchrl options (see :func:`make`).
+        render_mode: ``None`` or one of :data:`~sg_torchrl.render_modes.RENDER_MODES`.
+        **options: sg_torchrl options and render options (see :func:`make`).
 
     The wrapped TorchRL env is :attr:`torchrl_env` (``batch_size=[1]``).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "name": "sg_torchrl", "is_parallelizable": True}
+    metadata = {"render_modes": list(RENDER_MODES), "name": "sg_torchrl", "is_parallelizable": True}
 
     def __init__(self, env_id: str, render_mode: str | None = None, **options: Any) -> None:
         if not registry_entry(env_id).multi_agent:
             raise ValueError(f"{env_id!r} is a single-agent env: use sg_torchrl.gym.make({env_id!r})")
-        if render_mode not in (None, "rgb_array"):
-            raise NotImplementedError(
-                f"render_mode={render_mode!r} is not supported: sg_torchrl envs render headless "
-                "(pass render_mode='rgb_array' or None)"
-            )
         if "num_envs" in options:
             raise TypeError("the PettingZoo façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N)")
-        render_options = {key: options.pop(key) for key in _RENDER_OPTIONS if key in options}
+        self._options = dict(options)  # what a deepcopy rebuilds the env from
+        render_options = split_render_options(options)
         env = make_torchrl_env(env_id, num_envs=1, **options)
         self._env = env
         self.env_id = env_id
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "name": env_id}
-        self._render_options = _render_options(env, render_mode, render_options)
+        self._frames = FrameSource(env, render_mode, render_options) if render_mode is not None else None
         self.possible_agents = list(env.agent_names)
         self.agents: list[str] = []
         self._sizes = dict(zip(self.possible_agents, env.observation_sizes))
@@ -153,12 +155,17 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
-        """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream."""
+        """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream.
+        ``options`` (a dict or ``None``) is accepted and ignored."""
         self._check_open()
+        if options is not None and not isinstance(options, dict):
+            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
         if seed is not None:
             self._env.set_seed(int(seed), static_seed=True)
         arrays = self._env.reset().numpy()
         self.agents = list(self.possible_agents)
+        if self._frames is not None:
+            self._frames.after_reset()
         return self._observations(arrays), {agent: {} for agent in self.agents}
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict, dict]:
@@ -169,20 +176,34 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         """The global state after the last ``reset``/``step`` (the env's ``"state"``)."""
         return self._state.copy()
 
-    def render(self) -> np.ndarray | None:
-        """The simulator as an ``(height, width, 3)`` ``uint8`` array (``render_mode="rgb_array"``)."""
+    def render(self) -> np.ndarray | list[np.ndarray] | None:
+        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`), or ``None``."""
         self._check_open()
-        if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' to make")
+        if self._frames is None:
+            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
+                                  f"(or one of {list(RENDER_MODES)}) to make")
             return None
-        return self._env.render(0, **self._render_options)
+        return self._frames.render()
 
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
         if not self._closed:
             self._closed = True
             self.agents = []
+            if self._frames is not None:
+                self._frames.close()
             self._env.close(raise_if_closed=False)
+
+    def __deepcopy__(self, memo: dict) -> SafeParallelEnv:
+        """A new env with the same id and options whose simulator continues exactly from this one's
+        (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state` loaded into the copy)."""
+        self._check_open()
+        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
+        memo[id(self)] = clone
+        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        clone.agents = list(self.agents)
+        clone._state = self._state.copy()
+        return clone
 
     # ------------------------------------------------------------------ internals
     def _check_open(self) -> None:
@@ -191,7 +212,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
 
     def _observations(self, arrays: dict) -> dict[str, np.ndarray]:
         """Per-agent ``float64`` observations (true sizes) from the env's output (as nested numpy
-        dicts, see ``AgentGroupMixin._output_arrays``); records the state."""
+        dicts, see :meth:`~sg_torchrl.envs.base.SafeEnv.output_arrays`); records the state."""
         group = arrays[_GROUP]["observation"][0].astype(np.float64)
         self._state = arrays["state"][0].astype(np.float64)
         return {agent: group[i, : self._sizes[agent]] for i, agent in enumerate(self.possible_agents)}
@@ -228,7 +249,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
             )
         env, action = self._env, self._group_action(actions)
         if self._fast:
-            out = env._output_arrays(*env._transition_arrays(env.robot_control(action)))
+            out = env.output_arrays(*env.step_arrays(env.robot_control(action)))
         else:
             td = TensorDict({(_GROUP, "action"): torch.from_numpy(action).to(env.device)}, batch_size=env.batch_size)
             out = env.step(td).get("next").cpu().numpy()
@@ -252,6 +273,8 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         infos = {agent: {**info, "cost_sum": costs[agent]} for agent, info in zip(agents, cost_info)}
         if any(terminated) or any(truncated):
             self.agents = []
+        if self._frames is not None:
+            self._frames.after_step()
         return observations, rewards, costs, terminations, truncations, infos
 
     def __repr__(self) -> str:

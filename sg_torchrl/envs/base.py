@@ -298,6 +298,62 @@ class SafeEnv(EnvBase, abc.ABC):
             return self._isolate(diverged, observation, reward, costs, terminated, truncated)
         return observation, reward, costs, terminated, truncated
 
+    # ------------------------------------------------------------------ numpy interface (façades)
+    # The gymnasium / PettingZoo façades and sg_torchrl.safety_gymnasium step one simulator at a time,
+    # where building TensorDicts costs more than the physics. These public methods give them the
+    # TorchRL step's own data as numpy arrays; they are thin, documented faces of the private hot
+    # path above, which stays free to change.
+    def step_arrays(self, action: np.ndarray) -> tuple:
+        """One batched step on numpy arrays: the TorchRL ``step`` without TensorDicts.
+
+        Args:
+            action: the ``(N, act_dim)`` float64 action (the caller has checked its shape and that
+                it is finite; it is clipped to the bounds here, as in ``step``).
+
+        Returns:
+            ``(observation, reward, costs, terminated, truncated)``: ``observation`` ``(N, obs_dim)``,
+            ``reward`` ``(N,)`` (or ``(N, A)`` per agent), ``costs`` the raw per-constraint costs
+            (turn them into the emitted ``cost`` / ``cost_info`` with :meth:`aggregate_cost`), the
+            flags ``(N,)`` bool. The values are float64: the TorchRL step emits them as float32.
+            The arrays may be buffers that the next step overwrites: copy what you keep.
+        """
+        return self._transition_arrays(action)
+
+    def aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """``(cost, cost_info)`` of raw per-constraint ``costs`` under :attr:`cost_mode`: the total the
+        env emits as ``cost`` and the per-constraint entries of ``cost_info`` (indicators by default)."""
+        return self._aggregate_cost(costs)
+
+    def output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
+        """The step's output, as :meth:`step` would emit it under ``"next"``, as nested numpy arrays.
+
+        Takes :meth:`step_arrays`' tuple (``reward=None``: a reset's output, without ``reward``) and
+        returns what ``env.step(td)["next"].numpy()`` would hold (float32 values, ``(N, 1)`` columns,
+        ``cost_info`` as a nested dict); multi-agent envs add their group and ``state`` in their own
+        layout. Every array is fresh. Envs whose observations are not only the flat vector (pixels,
+        :mod:`sg_torchrl.envs.vision`) emit more entries than this: step those through ``step``.
+        """
+        own_layout = getattr(self, "_output_arrays", None)  # multi-agent envs (AgentGroupMixin)
+        if own_layout is not None:
+            return own_layout(observation, reward, costs, terminated, truncated)
+        cost, cost_info = self._aggregate_cost(costs)
+        n = self.num_envs
+
+        def column(values, dtype: type) -> np.ndarray:
+            return np.array(values, dtype=dtype).reshape(n, -1)
+
+        out = {
+            "observation": column(observation, np.float32),
+            "cost": column(cost, np.float32),
+            "cost_info": {name: column(value, np.float32) for name, value in cost_info.items()},
+            "terminated": column(terminated, np.bool_),
+            "truncated": column(truncated, np.bool_),
+            "done": column(np.logical_or(terminated, truncated), np.bool_),
+        }
+        if reward is not None:
+            out["reward"] = column(reward, np.float32)
+        return out
+
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # EnvBase reshapes the reward to its spec and fills in missing done flags here, walking the
         # specs on every step. ``_pack`` already emits the reward and every done flag with their
