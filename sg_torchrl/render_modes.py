@@ -115,7 +115,8 @@ class FrameSource:
         if not self._depth:
             return self._env.render(0, self.width, self.height, self.camera)
         depth, (near, far) = self.metric_depth()
-        return (far * (depth - near) / (depth * (far - near))).astype(np.float32)
+        buffer = far * (depth - near) / (depth * (far - near))
+        return np.clip(buffer, 0.0, 1.0, out=buffer).astype(np.float32, copy=False)  # float32 rounding at the planes
 
     def metric_depth(self) -> tuple[np.ndarray, tuple[float, float]]:
         """``(depth, (near, far))``: the depth image in metres along the optical axis and the
