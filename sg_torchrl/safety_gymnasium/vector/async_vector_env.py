@@ -20,7 +20,7 @@ from typing import Any
 import cloudpickle
 import gymnasium
 
-from sg_torchrl.safety_gymnasium.vector.utils import autoreset_step
+from sg_torchrl.safety_gymnasium.vector.utils import autoreset_step, set_wrapper_attr, wrapper_attr
 from sg_torchrl.safety_gymnasium.vector.vector_env import SafeVectorEnv
 
 __all__ = ["SafetyAsyncVectorEnv", "default_context"]
@@ -67,10 +67,10 @@ def _worker(index: int, env_fn: _Pickled, pipe, parent_pipe) -> None:
                     result = env.render()
                 elif command == "call":
                     name, args, kwargs = data
-                    attribute = getattr(env, name)
+                    attribute = wrapper_attr(env, name)
                     result = attribute(*args, **kwargs) if callable(attribute) else attribute
                 elif command == "setattr":
-                    setattr(env, *data)
+                    set_wrapper_attr(env, *data)
                     result = None
                 elif command == "close":
                     pipe.send((None, True))

@@ -7,7 +7,7 @@ from typing import Any
 
 import gymnasium
 
-from sg_torchrl.safety_gymnasium.vector.utils import autoreset_step
+from sg_torchrl.safety_gymnasium.vector.utils import autoreset_step, set_wrapper_attr, wrapper_attr
 from sg_torchrl.safety_gymnasium.vector.vector_env import SafeVectorEnv
 
 __all__ = ["SafetySyncVectorEnv"]
@@ -52,11 +52,12 @@ class SafetySyncVectorEnv(SafeVectorEnv):
         return [env.render() for env in self.envs]
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple:
-        """Call method ``name`` of every env (or read attribute ``name``): a tuple of the results."""
+        """Call method ``name`` of every env (or read attribute ``name``; through wrappers, as
+        gymnasium 0.28's wrappers forwarded attributes): a tuple of the results."""
         self._check_open()
         results = []
         for env in self.envs:
-            attribute = getattr(env, name)
+            attribute = wrapper_attr(env, name)
             results.append(attribute(*args, **kwargs) if callable(attribute) else attribute)
         return tuple(results)
 
@@ -68,7 +69,7 @@ class SafetySyncVectorEnv(SafeVectorEnv):
         if len(values) != self.num_envs:
             raise ValueError(f"{len(values)} values for {self.num_envs} envs")
         for env, value in zip(self.envs, values):
-            setattr(env, name, value)
+            set_wrapper_attr(env, name, value)
 
     def _close_envs(self) -> None:
         for env in self.envs:

@@ -43,8 +43,8 @@ def env_step_passive_checker(env: Any, action: Any) -> tuple:
     if not isinstance(result, tuple):
         raise TypeError(f"step() must return a tuple, got {type(result)}")
     if len(result) != 6:
-        raise ValueError(f"step() must return (obs, reward, cost, terminated, truncated, info), "
-                         f"got {len(result)} elements")
+        raise ValueError(f"step() must return the 6 elements (obs, reward, cost, terminated, truncated, info), "
+                         f"got {len(result)}")
     obs, reward, cost, terminated, truncated, info = result
     for name, flag in (("terminated", terminated), ("truncated", truncated)):
         if not isinstance(flag, (bool, np.bool_)):

@@ -8,7 +8,7 @@ import numpy as np
 
 from sg_torchrl.safety_gymnasium.vector.utils.tile_images import tile_images
 
-__all__ = ["add_info", "autoreset_step", "tile_images"]
+__all__ = ["add_info", "autoreset_step", "set_wrapper_attr", "tile_images", "wrapper_attr"]
 
 
 def add_info(infos: dict[str, Any], info: dict[str, Any], env_index: int, num_envs: int) -> dict[str, Any]:
@@ -48,3 +48,22 @@ def autoreset_step(env: Any, action: Any) -> tuple:
         info["final_observation"] = final_obs
         info["final_info"] = final_info
     return obs, reward, cost, terminated, truncated, info
+
+
+def wrapper_attr(env: Any, name: str) -> Any:
+    """Attribute ``name`` of ``env`` or of the first env inside its wrappers that has it.
+
+    Gymnasium 0.28's wrappers forwarded unknown attributes to the env inside; gymnasium 1.x's do not
+    (``get_wrapper_attr`` does): the vector envs' ``call`` / ``get_attr`` read through it.
+    """
+    getter = getattr(env, "get_wrapper_attr", None)
+    return getter(name) if getter is not None else getattr(env, name)
+
+
+def set_wrapper_attr(env: Any, name: str, value: Any) -> None:
+    """Set attribute ``name`` where :func:`wrapper_attr` finds it (else on ``env`` itself)."""
+    setter = getattr(env, "set_wrapper_attr", None)
+    if setter is not None:
+        setter(name, value)
+    else:
+        setattr(env, name, value)
