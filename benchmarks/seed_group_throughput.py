@@ -7,7 +7,9 @@ This script trains each algorithm of ``--algos`` (default PPO-Lag and CPO) at th
 passes of minibatch 64 with KL early stop 0.02, CPO one trust-region step then 10 critic passes of
 minibatch 128) for ``--epochs`` epochs per configuration, in one run and one after the other:
 
-* ``Trainer``: today's single-seed trainer, eager (the baseline of the ratios) and with ``--compile true``;
+* ``Trainer``: the single-seed ``LossModule`` engine (``sg-train --engine loss-module``), eager (the
+  baseline of the ratios) and with ``--compile true``; ``sg-train --seed s`` runs by default on the fused
+  engine, which is the ``group S=1`` row's code in the single-seed layout;
 * ``group S=k``: a seed group of seeds 0..k-1, eager, and with ``--compile true`` (the fused minibatch
   losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling). For
   a second-order algorithm only the critics' passes compile: the stacked trust-region step
@@ -48,6 +50,7 @@ from dataclasses import dataclass
 import torch
 
 from sg_torchrl.train import TrainConfig, Trainer, trainer_class
+from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES
 from sg_torchrl.train.fused import FusedFirstOrderStep
 from sg_torchrl.train.memory import keep_freed_memory
 
@@ -101,8 +104,9 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
         steps = settings.get("steps_per_epoch", TrainConfig(algo=algo, env_id=env_id).steps_per_epoch)
         common = dict(algo=algo, env_id=env_id, total_steps=epochs * steps, wandb="disabled", eval_episodes=0,
                       progress=False, output_dir=tmp, compile=compile, **settings)
-        if seeds is None:
-            cfg = TrainConfig(seed=0, **common)
+        if seeds is None:  # the baseline: Trainer, the LossModule engine (sg-train's default for one seed is fused)
+            engine = None if algo in MULTI_AGENT_ALGORITHM_NAMES else "loss-module"
+            cfg = TrainConfig(seed=0, engine=engine, **common)
             trainer, count = trainer_class(cfg)(cfg), 1
             label = f"{type(trainer).__name__} (single seed)" + (" compiled" if compile else "")
         else:

@@ -104,14 +104,15 @@ def test_the_previous_handlers_come_back(tmp_path):
 
 
 def test_sg_train_exits_with_the_signal_code_and_says_how_to_resume(tmp_path, monkeypatch, capsys):
-    train_epoch = Trainer.train_epoch
+    # The loop every trainer shares: whichever engine the command line picks (fused by default) stops the same way.
+    train_epoch = EpochTrainer.train_epoch
 
     def train_epoch_with_sigterm(self) -> dict[str, float]:
         if self.epoch == 0:
             send_to_this_thread(signal.SIGTERM)
         return train_epoch(self)
 
-    monkeypatch.setattr(Trainer, "train_epoch", train_epoch_with_sigterm)
+    monkeypatch.setattr(EpochTrainer, "train_epoch", train_epoch_with_sigterm)
     argv = ["--env-id", "SafetyHalfCheetahVelocity-v1", "--num-envs", "2", "--steps-per-epoch", "200",
             "--total-steps", "600", "--update-iters", "1", "--eval-episodes", "0", "--wandb", "disabled",
             "--progress", "false", "--output-dir", str(tmp_path), "--run-name", "run"]

@@ -35,6 +35,14 @@ and second order; networks stacked, :mod:`sg_torchrl.train.seed_group`) and the 
 (one round per seed, :mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations; pixel
 observations are refused here, before anything is built.
 
+**Engines.** ``engine`` (``--engine``) chooses how one seed of a single-agent algorithm trains:
+``"fused"``, the seed-group engine with that one seed (stacked networks, one fused minibatch step;
+:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`, which writes the single-seed layout), or
+``"loss-module"``, the :class:`~sg_torchrl.train.trainer.Trainer` that steps TorchRL ``LossModule`` s, the
+reference path. Unset, it is filled when the config is built: fused on flat-vector observations,
+loss-module on pixel observations (which the fused engine does not read); so ``config.json`` and the
+checkpoint say which engine ran. Multi-agent algorithms leave it unset (``None``).
+
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
 match.
@@ -50,17 +58,21 @@ from pathlib import Path
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from sg_torchrl.train.presets import PRESETS
 from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
-    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER", "SEED_GROUP_ALGORITHMS",
-    "TrainConfig", "PRESETS", "parse_args",
+    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "ENGINES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER",
+    "SEED_GROUP_ALGORITHMS", "TrainConfig", "PRESETS", "parse_args",
 ]
 
 SingleAgentAlgorithmName = Literal[
     "pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"
 ]
 MultiAgentAlgorithmName = Literal["mappo", "happo", "mappo_lag", "macpo"]
+EngineName = Literal["fused", "loss-module"]
+#: The single-agent training engines (``--engine``; :func:`sg_torchrl.train.trainer_class` maps them to trainers).
+ENGINES: tuple[str, ...] = get_args(EngineName)
 AlgorithmName = Literal[SingleAgentAlgorithmName, MultiAgentAlgorithmName]
 #: The single-agent algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
 ALGORITHM_NAMES: tuple[str, ...] = get_args(SingleAgentAlgorithmName)
@@ -203,6 +215,14 @@ class TrainConfig:
     compile: bool = _opt(
         False, "single-agent: torch.compile the minibatch losses (about 2x faster first-order updates on a CPU after "
         "tens of seconds of compiling; same algorithm, float rounding differs from eager)")
+    engine: EngineName | None = _opt(
+        None, "single-agent training engine. fused: the seed-group engine with one seed (stacked networks, one fused "
+        "minibatch step; 1.6-1.7x less CPU per env step), the same run as seed s of --seeds s, written as a --seed "
+        "run; loss-module: Trainer, which steps TorchRL's LossModules (PPOLagLoss, ...), the reference path users "
+        "compose in their own code. Unset: fused on flat-vector observations, loss-module on pixel observations "
+        "(the fused engine reads flat vectors only). Seed groups are fused; multi-agent algorithms have their own "
+        "trainers and take no engine. A resumed run keeps the engine that wrote its checkpoint",
+        shown_default="fused; loss-module for pixel observations")
 
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
@@ -212,6 +232,8 @@ class TrainConfig:
             seeds = self.seeds
             self.seed = seeds[0] if isinstance(seeds, list) and seeds and type(seeds[0]) is int else 0
         self.validate()
+        if self.engine is None and not self.multi_agent:  # the choice is written down (config.json, checkpoints)
+            self.engine = "fused" if self.observation_mode == "vector" else "loss-module"
 
     @property
     def second_order(self) -> bool:
@@ -282,6 +304,7 @@ class TrainConfig:
             )
         self._validate_env_options()
         self._validate_observation_mode()
+        self._validate_engine()
         self._validate_checkpointing()
 
     def _validate_seeds(self) -> None:
@@ -346,8 +369,8 @@ class TrainConfig:
         forward pass. ``obs_mode`` and ``image_size`` are valid values here (:meth:`_validate_env_options`)."""
         from sg_torchrl.envs.registry import registry_entry
 
-        options = {**registry_entry(self.env_id).options, **self.env_options}
-        obs_mode, image_size = options.get("obs_mode", "vector"), options.get("image_size")
+        obs_mode, image_size = self.observation_mode, {**registry_entry(self.env_id).options,
+                                                       **self.env_options}.get("image_size")
         if obs_mode == "vector":  # every other mode holds images
             return
         if self.seeds:
@@ -362,6 +385,30 @@ class TrainConfig:
                 f"{DEFAULT_CNN.kernel_sizes}, strides {DEFAULT_CNN.strides}): use image_size >= {smallest} "
                 f"(the Vision ids default to 64)"
             )
+
+    def _validate_engine(self) -> None:
+        """``engine``, when given: a single-agent choice (multi-agent algorithms have their own trainers), fused
+        for a seed group (the group engine is the fused one), and not fused on pixel observations (its stacked
+        networks read a flat vector). Unset, :meth:`__post_init__` picks the engine that fits."""
+        if self.engine is None:
+            return
+        if self.multi_agent:
+            raise ValueError(f"config: engine chooses how a single-agent algorithm trains; {self.algo!r} is a "
+                             f"multi-agent algorithm with its own trainer: leave engine unset")
+        if self.seeds and self.engine != "fused":
+            raise ValueError(f"config: seed groups (seeds) train on the fused engine; engine {self.engine!r} "
+                             f"(Trainer) runs one seed per process: give --seed instead of --seeds")
+        if self.engine == "fused" and self.observation_mode != "vector":
+            raise ValueError(f"config: engine 'fused' trains on flat-vector observations; {self.env_id} with "
+                             f"obs_mode={self.observation_mode!r} emits images: give engine loss-module, or leave "
+                             f"engine unset (pixel observations then train on loss-module)")
+
+    @property
+    def observation_mode(self) -> str:
+        """The env's ``obs_mode`` (its registry default, or ``env_options``'): ``"vector"`` or a mode with images."""
+        from sg_torchrl.envs.registry import registry_entry
+
+        return {**registry_entry(self.env_id).options, **self.env_options}.get("obs_mode", "vector")
 
     def _validate_env_kind(self) -> None:
         """``env_id`` is registered (else :class:`~sg_torchrl.envs.UnknownEnvError`, a ``ValueError`` naming
@@ -438,61 +485,6 @@ class TrainConfig:
         path.write_text(json.dumps(self.to_dict(), indent=2))
 
 
-PRESETS: dict[str, dict[str, Any]] = {
-    # `make run` (issue 18 item 5): a safe agent in about ten minutes on 2 cores. A seed group
-    # (sg_torchrl.train.seed_group): PPO-Lag on SafetySwimmerVelocity-v1, seeds 0 1 2 side by side in
-    # one process, 300,000 steps each. The swimmer pays cost 1 for every step faster than its velocity
-    # threshold (limit 25 per 1000-step episode) and starts far over it (EpCost about 290 at random),
-    # so the curve shows the constraint being learned. The paper's hyper-parameters except two:
-    # * 10,000-step epochs (paper 20,000): twice the multiplier and policy updates per sample; each of
-    #   the 10 simulators still ends one episode per epoch, so J_c is fresh at every multiplier update;
-    # * Lagrange lr 0.3 (paper 0.035): Adam moves lambda by about lr per epoch while the cost stays over
-    #   the limit, whatever the size of the violation, and hardly at all once the violation is small
-    #   next to the early ones. With these epochs, after 30 epochs: at 0.035 lambda 0.6 and mean EpCost 47;
-    #   at 0.1 lambda 1.4 and EpCost 28 (just over); at 0.3 lambda passes 2 in epoch 9, the mean EpCost is
-    #   under 25 from epoch 10 on (one seed touches 28 around epoch 25), and the return, after a dip while
-    #   the penalty dominates, climbs far past its start.
-    # Measured with `make run` (2-core machine, the process on a core of its own): 7.6 min wall, 7.6 CPU
-    # min. Last 50 training episodes, EpRet / EpCost: seed 0 93.9 / 10.0, seed 1 105.4 / 16.1, seed 2
-    # 35.9 / 14.6, mean 78.4 / 13.6 (epoch 1: -2.5 / 290); 10 deterministic evaluation episodes: 107.6 / 0,
-    # 126.7 / 0, 7.8 / 0, mean 80.7 / 0. Seeds 3 4 5 (5 evaluation episodes): mean 88.4 / 14.1, evaluation 91.7 / 0.
-    "make-run": dict(
-        algo="ppo_lag", env_id="SafetySwimmerVelocity-v1", seeds=[0, 1, 2], total_steps=300_000, num_envs=10,
-        steps_per_epoch=10_000, lagrangian_lr=0.3, eval_episodes=10, run_name="make-run",
-    ),
-    # PPO-Lag from pixels (issue 7): SafetyPointGoal1Vision-v0 sees only its 64 x 64 RGB camera and
-    # trains CNN encoders (sg_torchrl.train.models). Sized for 10-15 minutes on a CPU (15.5 min with
-    # evaluation on the shared 2-core machine kind), not for the paper's budget: rendering makes
-    # collection about 7x slower than the vector env, and three CNNs (actor, reward and cost
-    # critics) cost about 1 ms of update per sample and pass. So
-    # 10,000-step epochs (every simulator finishes one 1000-step episode per epoch, so EpRet / EpCost
-    # are defined from the first epoch), 4 passes of minibatch 64 instead of 40 (Atari PPO's 4
-    # epochs; KL early stop as always), 80,000 steps in all. A first look, not the paper's curve:
-    # seed 0 took EpRet from -0.1 to 1.4 and EpCost from 93 to 67 (limit 25) in 8 epochs.
-    "vision": dict(
-        algo="ppo_lag", env_id="SafetyPointGoal1Vision-v0", total_steps=80_000, num_envs=10,
-        steps_per_epoch=10_000, update_iters=4, minibatch_size=64, eval_episodes=5, run_name="vision",
-    ),
-    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (issue 8; sg_torchrl.dexhands). SafePO's
-    # Isaac Gym override config where a CPU can follow it: gamma 0.96, target KL 0.016, 8 passes of 4
-    # minibatches, gradient-norm clip 1.0, no critic L2. Scaled down for a CPU: 64 simulators on two
-    # physics threads (not 2,048 on a GPU), 9,600-step epochs (two 75-step episodes per simulator;
-    # Isaac Gym's are 32,768 steps), tanh 256 256 networks (not 1024 1024 512) and 104 epochs, about 1M steps
-    # (not 1e8).
-    "hands": dict(
-        algo="ppo_lag", env_id="ShadowHandOverSafeJoint-v0", env_options={"physics_threads": 2},
-        total_steps=998_400, num_envs=64, steps_per_epoch=9_600, gamma=0.96, target_kl=0.016, update_iters=8,
-        minibatch_size=2_400, max_grad_norm=1.0, critic_l2=0.0, hidden_sizes=[256, 256], eval_episodes=5,
-        run_name="hands",
-    ),
-    # A seconds-long smoke run for tests and for trying the pipeline.
-    "smoke": dict(
-        total_steps=4_000, num_envs=4, steps_per_epoch=2_000, update_iters=2, eval_episodes=1,
-        wandb="disabled", progress=False,
-    ),
-}
-
-
 def _flag_type(hint: Any):
     optional = [a for a in get_args(hint) if a is not type(None)] if get_origin(hint) in (Union, UnionType) else []
     if len(optional) == 1:  # ``X | None``: parse as X
@@ -530,8 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
         # argparse default stays None so that explicitly given flags can be told apart (--resume).
         help_text = f"{f.metadata.get('help', '')} (default: {f.metadata.get('shown_default', default)})"
         kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": help_text, "default": None}
-        if get_origin(hint) is Literal:
-            kwargs["choices"] = list(get_args(hint))
+        literal = next((a for a in (hint, *get_args(hint)) if get_origin(a) is Literal), None)  # also X | None
+        if literal is not None:
+            kwargs["choices"] = list(get_args(literal))
         if get_origin(hint) in (list, dict):
             kwargs["nargs"] = "+"
         if f.name == "seeds":

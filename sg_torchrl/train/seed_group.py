@@ -54,6 +54,12 @@ normaliser row, generators and statistics under ``"seeds"``
 non-finite, is frozen (no more updates, multiplier or logs; its simulators idle with zero actions)
 and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
 when none is left the run ends early.
+
+**One seed** (``sg-train --seed s``, ``engine="fused"``, the default on flat-vector observations):
+:class:`SingleSeedGroupTrainer` is this engine with the one seed, in the single-seed layout. It trains
+exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1: progress rows but their timings,
+parameters, the seed's checkpoint entry) and writes what a :class:`~sg_torchrl.train.trainer.Trainer`
+run writes, where it writes it.
 """
 
 from __future__ import annotations
@@ -82,7 +88,7 @@ from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
 from sg_torchrl.train.stacked import StackedActorCritic
 
-__all__ = ["GroupTrainer", "SeedRun", "StackedPolicy", "action_seed", "seed_entry"]
+__all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
 
 #: Update metrics logged as integers, as the single-seed trainer logs them.
 _COUNTS = ("Train/StopIter", "Train/ProjectionStopIter")
@@ -191,7 +197,7 @@ class GroupTrainer(SeedGroupTrainer):
         self.group_update = self.algorithm.make_group_update(parts, loss, cfg)
         self.policy = StackedPolicy(self.model, self.action_generators)
         self.collector = RolloutCollector(self.env, self.policy, steps=cfg.steps_per_epoch // cfg.num_envs)
-        self.runs = [SeedRun(seed, cfg.for_seed(seed)) for seed in self.seeds]
+        self.runs = [SeedRun(seed, self._seed_config(seed)) for seed in self.seeds]
         self._start(checkpoint)
 
     # ------------------------------------------------------------------ seeds and epochs
@@ -302,3 +308,45 @@ class GroupTrainer(SeedGroupTrainer):
             self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
         self.shuffler.generators[index].set_state(entry["minibatch_rng"])
         self.action_generators[index].set_state(entry["action_rng"])
+
+
+class SingleSeedGroupTrainer(GroupTrainer):
+    """One run (``cfg.seed``; no ``cfg.seeds``) on the fused engine, in the single-seed layout: ``sg-train --seed s``.
+
+    The seed-group engine with S = 1 (stacked networks, the fused minibatch step, the seed's own action-noise
+    and minibatch generators), so the run is seed ``s`` of ``--seeds s`` exactly: the same progress rows
+    but their ``Time/*`` columns, the same parameters and checkpoint entry. It is the
+    :class:`~sg_torchrl.train.trainer.Trainer`'s run statistically, not bit for bit: the same initial
+    networks, algorithm and hyper-parameters, drawn from other random streams and rounded by other kernels.
+
+    Only where things are written differs from a group of one: ``cfg.run_dir`` itself is the run's
+    directory and holds what a Trainer run writes there (``config.json``, ``progress.csv``, ``csv/``,
+    ``wandb/``, ``summary.json``, ``curves.png``, ``checkpoint.pt``), with the same metric names; there is
+    no ``seed-XXX/`` level and no group summary or group figure. The checkpoint is a group's with one
+    entry under ``"seeds"`` (:func:`seed_entry` reads it); its ``"seed_group"`` entry is how ``--resume``
+    tells it from a Trainer checkpoint and continues it on this engine. A diverged run (its parameters or
+    update turned non-finite) ends early, reported on stderr and in ``summary.json`` (``Diverged``).
+
+    Args:
+        cfg: a single-agent, single-seed config on flat-vector observations (``engine`` ``"fused"``).
+        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from.
+
+    Raises:
+        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those), a multi-agent algorithm, or
+            observations that are not a flat vector.
+    """
+
+    def _run_seeds(self, cfg: TrainConfig) -> list[int]:
+        if cfg.group:
+            raise ValueError(f"SingleSeedGroupTrainer trains one seed (cfg.seed); the seed group {cfg.seeds} is "
+                             f"GroupTrainer's")
+        return [cfg.seed]
+
+    def _seed_config(self, seed: int) -> TrainConfig:
+        return self.cfg  # the run's directory is the trainer's: no seed-XXX/ level
+
+    def finish(self) -> dict[str, float]:
+        """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
+        :meth:`Trainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
+        ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
+        return self._finish_seed(0)

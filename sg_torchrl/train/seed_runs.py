@@ -18,6 +18,11 @@ each seed's ``progress.csv`` row under the single-seed names), each seed's logs,
 ``summary.json`` and ``curves.png``), and the per-seed part of the checkpoint entries (episode
 statistics, :math:`J_c`, the last row, divergence; the seed list is checked on load).
 
+Where the runs write is a layout decided by two hooks, :meth:`~SeedGroupTrainer._run_seeds` and
+:meth:`~SeedGroupTrainer._seed_config` (default: the group's ``seed-XXX/`` directories), and :meth:`finish`:
+:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer` overrides them to run one seed in the
+single-seed layout (``sg-train --seed s`` on the fused engine).
+
 A subclass builds its env, :attr:`~SeedGroupTrainer.policy` (with a ``frozen`` attribute: ``None``
 or an ``(S,)`` bool of the seeds acting with zeros), :attr:`~SeedGroupTrainer.collector` and
 :attr:`~SeedGroupTrainer.runs`, then calls ``_start(checkpoint)``; it implements :meth:`_learn`,
@@ -77,10 +82,21 @@ class SeedGroupTrainer(EpochTrainer):
     policy: Any  # a TensorDict policy with a ``frozen`` attribute (``None`` or ``(S,)`` bool)
 
     def __init__(self, cfg: TrainConfig) -> None:
+        seeds = self._run_seeds(cfg)
+        super().__init__(cfg)
+        self.seeds = seeds
+
+    # ------------------------------------------------------------------ layout
+    def _run_seeds(self, cfg: TrainConfig) -> list[int]:
+        """The seeds this trainer runs: the group's ``cfg.seeds`` (a layout hook, as :meth:`_seed_config`)."""
         if not cfg.group:
             raise ValueError(f"{type(self).__name__} trains a seed group: give cfg.seeds")
-        super().__init__(cfg)
-        self.seeds = list(cfg.seeds)
+        return list(cfg.seeds)
+
+    def _seed_config(self, seed: int) -> TrainConfig:
+        """Seed ``seed``'s own run (its :attr:`SeedRun.cfg`, whose ``run_dir`` receives its logs): the group's
+        ``seed-XXX/`` (:meth:`TrainConfig.for_seed`). A single-seed layout returns the config itself."""
+        return self.cfg.for_seed(seed)
 
     # ------------------------------------------------------------------ hooks
     @abc.abstractmethod
@@ -198,14 +214,7 @@ class SeedGroupTrainer(EpochTrainer):
         ``seed-XXX/<name>`` (what ``sg-train`` prints).
         """
         cfg = self.cfg
-        summaries: dict[int, dict[str, Any]] = {}
-        for index, run in enumerate(self.runs):
-            evaluation = self._evaluate_seed(index) if cfg.eval_episodes > 0 and run.alive else None
-            extra = {} if run.alive else {"Diverged": True, "DivergedEpoch": run.diverged["epoch"],
-                                          "DivergedReason": run.diverged["reason"]}
-            steps = self.total_steps if run.alive else int((run.last_row or {}).get("Train/TotalSteps", 0))
-            summaries[run.seed] = write_run_summary(run.cfg, run.logger, run.stats, evaluation, title=self.title,
-                                                    total_steps=steps, train_seconds=self.train_seconds, extra=extra)
+        summaries = {run.seed: self._finish_seed(index) for index, run in enumerate(self.runs)}
         mean = mean_row([s for run, s in zip(self.runs, summaries.values()) if run.alive])
         (cfg.run_dir / "summary.json").write_text(json.dumps(
             {"seeds": {str(seed): summary for seed, summary in summaries.items()}, "mean": mean,
@@ -221,6 +230,17 @@ class SeedGroupTrainer(EpochTrainer):
             figures = {**(run.last_row or {}), **summaries[run.seed]}
             out.update({prefix + name: value for name, value in figures.items()})
         return out
+
+    def _finish_seed(self, index: int) -> dict[str, Any]:
+        """Seed ``index``'s end of run in its directory: evaluation (a live seed), ``summary.json`` (a frozen seed's
+        with ``Diverged``, ``DivergedEpoch``, ``DivergedReason``), ``curves.png``; returns its summary."""
+        run = self.runs[index]
+        evaluation = self._evaluate_seed(index) if self.cfg.eval_episodes > 0 and run.alive else None
+        extra = {} if run.alive else {"Diverged": True, "DivergedEpoch": run.diverged["epoch"],
+                                      "DivergedReason": run.diverged["reason"]}
+        steps = self.total_steps if run.alive else int((run.last_row or {}).get("Train/TotalSteps", 0))
+        return write_run_summary(run.cfg, run.logger, run.stats, evaluation, title=self.title, total_steps=steps,
+                                 train_seconds=self.train_seconds, extra=extra)
 
     # ------------------------------------------------------------------ checkpoints
     def _run_state(self) -> dict[str, Any]:
@@ -268,7 +288,8 @@ def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 
 def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
-    """Seed ``seed``'s entry of a group checkpoint (``EpochTrainer.load_checkpoint(path)``), with its config.
+    """Seed ``seed``'s entry of a group checkpoint (``EpochTrainer.load_checkpoint(path)``), with its config;
+    also of a fused single-seed run's (:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`: one entry).
 
     The entry holds what that seed's run needs to be used alone: ``"config"`` (its single-seed config
     as a dict), its episode statistics, ``"last_mean_cost"``, ``"progress_row"`` and ``"diverged"``, and
@@ -286,6 +307,7 @@ def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     entries = checkpoint.get("seeds") or []
     for entry in entries:
         if entry["seed"] == seed:
-            cfg = TrainConfig(**checkpoint["config"]).for_seed(seed)
+            cfg = TrainConfig(**checkpoint["config"])
+            cfg = cfg.for_seed(seed) if cfg.group else cfg  # a fused single-seed run's config is its seed's
             return {**entry, "config": cfg.to_dict()}
     raise KeyError(f"seed {seed} is not in this checkpoint (seeds: {[entry['seed'] for entry in entries]})")
