@@ -9,18 +9,14 @@ What renders
 ------------
 :class:`RenderMixin` gives an env with a :class:`~sg_torchrl.envs.physics.MujocoBatch` ``physics``
 (NavigationEnv, VelocityEnv) ``render(index, width, height, camera)``: simulator ``index`` as an
-``(height, width, 3)`` ``uint8`` RGB array. The env owns one :class:`Renderer`, created at the first
-``render`` and released by ``env.close()`` (or at interpreter exit, whichever comes first). Rendering
-only reads ``MjData``: it never changes a trajectory. ``camera`` is one of
-
-* ``None`` / ``"follow"``: the env's :attr:`RenderMixin.default_camera`, a :class:`FollowCamera`
-  whose look-at point is the robot's root body in every frame (navigation: from above at an angle;
-  locomotion: from the side, like gymnasium's MuJoCo envs);
-* ``"chase"``: :data:`CHASE_CAMERA`, behind the robot, turning with its heading;
-* a :class:`FollowCamera` of your own (distance, elevation, azimuth, heading);
-* the name or id of a camera of the model (the navigation robots carry an egocentric ``"vision"``
-  camera); ``-1`` or ``"world"``: MuJoCo's default free camera over the whole world;
-* a ``mujoco.MjvCamera``, used as is.
+``(height, width, 3)`` ``uint8`` RGB array, and ``render_depth(...)``: its depth image, ``(height,
+width)`` ``float32``, in metres or in gymnasium's ``depth_array`` convention. The env owns one
+:class:`Renderer`, created at the first frame and released by ``env.close()`` (or at interpreter
+exit, whichever comes first). Rendering only reads ``MjData``: it never changes a trajectory.
+``camera`` is a name of :attr:`RenderMixin.camera_names` (``None`` / ``"follow"``: the env's
+:attr:`RenderMixin.default_camera`, following the robot; ``"chase"``; ``"world"`` / ``"human"``;
+Safety-Gymnasium's ``"fixednear"``, ``"fixedfar"``, ``"vision"``, ``"track"``), a model camera's
+id, a :class:`FollowCamera` or an ``MjvCamera``: see :mod:`sg_torchrl.envs.cameras`.
 
 :meth:`RenderMixin.render_camera` returns the ``MjvCamera`` a frame would use (tests use it to
 check that the camera follows the robot).
@@ -63,20 +59,27 @@ from __future__ import annotations
 
 import atexit
 import ctypes.util
-import math
 import os
 import subprocess
 import sys
 import warnings
 import weakref
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
 import torch
+
+from sg_torchrl.envs.cameras import (
+    CHASE_CAMERA,
+    LOCOMOTION_CAMERA,
+    NAVIGATION_CAMERA,
+    FollowCamera,
+    camera_names,
+    resolve_camera,
+)
 
 __all__ = [
     "CHASE_CAMERA",
@@ -89,6 +92,7 @@ __all__ = [
     "RenderMixin",
     "Renderer",
     "RenderingUnavailable",
+    "depth_range",
     "gl_backend",
     "record_video",
 ]
@@ -204,6 +208,13 @@ def _context_class(backend: str) -> type:
 
 
 # ---------------------------------------------------------------------------- renderer
+def depth_range(model: mujoco.MjModel) -> tuple[float, float]:
+    """``(near, far)``: the clipping planes of ``model``'s cameras in metres, the range of depth values
+    (``model.vis.map.znear`` and ``zfar`` times ``model.stat.extent``)."""
+    extent = float(model.stat.extent)
+    return float(model.vis.map.znear) * extent, float(model.vis.map.zfar) * extent
+
+
 _live_renderers: weakref.WeakSet = weakref.WeakSet()
 _exit_hook_registered = False
 
@@ -350,10 +361,8 @@ class Renderer:
             model.geom_rgba[ids, 3] = saved
 
     def depth_range(self) -> tuple[float, float]:
-        """``(near, far)``: the clipping planes of the model's cameras in metres, the range of depth
-        values (``model.vis.map.znear`` and ``zfar`` times ``model.stat.extent``)."""
-        extent = float(self.model.stat.extent)
-        return float(self.model.vis.map.znear) * extent, float(self.model.vis.map.zfar) * extent
+        """``(near, far)``: the clipping planes of the model's cameras in metres (:func:`depth_range`)."""
+        return depth_range(self.model)
 
     def _scratch(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """Reused ``(height, width, 3)`` uint8 and ``(height, width)`` float32 read-back buffers."""
@@ -386,47 +395,7 @@ class Renderer:
             pass
 
 
-# ---------------------------------------------------------------------------- cameras
-@dataclass(frozen=True)
-class FollowCamera:
-    """A free camera whose look-at point is the robot's root body in every frame.
-
-    Args:
-        distance: from the look-at point, metres.
-        elevation: degrees above the horizon of the viewing direction (negative: looking down).
-        azimuth: degrees of the viewing direction in the plane (0: along +x, 90: along +y, which
-            shows +x to the right); relative to the robot's heading when ``heading`` is true.
-        heading: turn with the robot's yaw (a chase camera).
-        offset: added to the look-at point (world frame).
-    """
-
-    distance: float = 4.0
-    elevation: float = -60.0
-    azimuth: float = 90.0
-    heading: bool = False
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def place(self, camera: mujoco.MjvCamera, position: np.ndarray, rotation: np.ndarray) -> mujoco.MjvCamera:
-        """Point ``camera`` at a body at ``position`` (3,) with orientation ``rotation`` (3, 3)."""
-        camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        camera.lookat[:] = np.asarray(position) + np.asarray(self.offset)
-        camera.distance = self.distance
-        camera.elevation = self.elevation
-        azimuth = self.azimuth
-        if self.heading:
-            azimuth += math.degrees(math.atan2(rotation[1, 0], rotation[0, 0]))
-        camera.azimuth = azimuth
-        return camera
-
-
-#: the navigation default: from above at 60 degrees, a few metres of the arena around the robot
-NAVIGATION_CAMERA = FollowCamera(distance=4.5, elevation=-60.0, azimuth=90.0)
-#: the locomotion default: from the side, slightly above (gymnasium's MuJoCo envs look alike)
-LOCOMOTION_CAMERA = FollowCamera(distance=4.0, elevation=-20.0, azimuth=90.0)
-#: behind the robot, turning with it
-CHASE_CAMERA = FollowCamera(distance=2.5, elevation=-25.0, azimuth=0.0, heading=True)
-
-
+# ---------------------------------------------------------------------------- the env interface
 class RenderMixin:
     """``render`` for an env holding a :class:`~sg_torchrl.envs.physics.MujocoBatch` as ``physics``.
 
@@ -450,46 +419,60 @@ class RenderMixin:
         none). Envs whose objects fade per simulator override it (module docstring)."""
         return None
 
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """The camera names :meth:`render` accepts here (:func:`~sg_torchrl.envs.cameras.camera_names`):
+        ``follow``, ``chase``, ``world``, ``human`` and the model's cameras (navigation: Safety-Gymnasium's
+        ``fixednear``, ``fixedfar``, ``vision``, ``track``; velocity: ``track``)."""
+        return camera_names(self.physics.model)
+
     def render_camera(self, index: int = 0, camera: Any = None) -> mujoco.MjvCamera:
-        """The ``MjvCamera`` :meth:`render` uses for simulator ``index`` (``camera`` as in :meth:`render`)."""
-        model, data = self.physics.model, self._render_data(index)
-        if isinstance(camera, mujoco.MjvCamera):
-            return camera
-        if camera is None or camera == "follow":
-            camera = self.default_camera
-        elif camera == "chase":
-            camera = CHASE_CAMERA
-        elif camera == "world":
-            camera = -1
-        result = mujoco.MjvCamera()
-        if isinstance(camera, FollowCamera):
-            body = self._render_body()
-            return camera.place(result, data.xpos[body], data.xmat[body].reshape(3, 3))
-        camera_id = camera
-        if isinstance(camera, str):
-            camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-            if camera_id < 0:
-                names = [model.camera(i).name for i in range(model.ncam)]
-                raise ValueError(f"unknown camera {camera!r}: use 'follow', 'chase', 'world', a FollowCamera, "
-                                 f"an MjvCamera or a camera of the model {names}")
-        if not isinstance(camera_id, (int, np.integer)) or not -1 <= camera_id < model.ncam:
-            raise ValueError(f"camera must be a name, a FollowCamera, an MjvCamera or an id in [-1, {model.ncam}), "
-                             f"got {camera!r}")
-        if camera_id == -1:
-            mujoco.mjv_defaultFreeCamera(model, result)
-        else:
-            result.type = mujoco.mjtCamera.mjCAMERA_FIXED
-            result.fixedcamid = int(camera_id)
-        return result
+        """The ``MjvCamera`` :meth:`render` uses for simulator ``index`` (``camera`` as in :meth:`render`;
+        an unknown name raises ``ValueError`` listing :attr:`camera_names`)."""
+        return resolve_camera(self.physics.model, self._render_data(index), camera, default=self.default_camera,
+                              body=self._render_body())
 
     def render(self, index: int = 0, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
                camera: Any = None) -> np.ndarray:
         """Simulator ``index`` as an RGB image, ``(height, width, 3)`` ``uint8``.
 
-        ``camera``: ``None``/``"follow"`` (the env's follow camera), ``"chase"``, ``"world"``, a
-        :class:`FollowCamera`, a model camera's name or id, or an ``MjvCamera``. Raises
-        :class:`RenderingUnavailable` when no OpenGL backend works here.
+        ``camera``: ``None``/``"follow"`` (the env's follow camera), ``"chase"``, ``"world"``/``"human"``,
+        a model camera's name (:attr:`camera_names`) or id, a :class:`FollowCamera`, or an
+        ``MjvCamera`` (:mod:`sg_torchrl.envs.cameras`). Raises :class:`RenderingUnavailable` when no
+        OpenGL backend works here.
         """
+        data, mjv_camera, renderer = self._render_setup(index, width, height, camera)
+        return renderer.render(data, mjv_camera, width, height, geom_alpha=self.geom_alpha(index))
+
+    def render_depth(self, index: int = 0, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
+                     camera: Any = None, *, linear: bool = True) -> np.ndarray:
+        """Simulator ``index``'s depth image from ``camera`` (as in :meth:`render`), ``(height, width)`` ``float32``.
+
+        Args:
+            linear: ``True``: metres along the camera's optical axis, in :meth:`depth_range` (pixels
+                that see nothing read ``far``). ``False``: the convention of gymnasium's (and so
+                Safety-Gymnasium's) ``depth_array`` render mode, MuJoCo's raw depth buffer: 0 at the
+                near plane, 1 at the far one, ``far * (z - near) / (z * (far - near))`` for a point at
+                ``z`` metres, not linear in ``z``. The planes scale with the model's extent, which
+                Safety-Gymnasium recomputes with every layout; convert with this env's
+                :meth:`depth_range`.
+        """
+        data, mjv_camera, renderer = self._render_setup(index, width, height, camera)
+        rgb = np.empty((height, width, 3), dtype=np.uint8)
+        depth = np.empty((height, width), dtype=np.float32)
+        renderer.render_into(data, mjv_camera, rgb, depth, geom_alpha=self.geom_alpha(index))
+        if linear:
+            return depth
+        near, far = self.depth_range()
+        metres = depth.astype(np.float64)
+        return np.clip(far * (metres - near) / (metres * (far - near)), 0.0, 1.0).astype(np.float32)
+
+    def depth_range(self) -> tuple[float, float]:
+        """``(near, far)``: the clipping planes of this env's cameras in metres (:func:`depth_range`)."""
+        return depth_range(self.physics.model)
+
+    def _render_setup(self, index: int, width: int, height: int, camera: Any) -> tuple:
+        """``(data, MjvCamera, renderer)`` for one frame; (re)creates the renderer when the frame does not fit."""
         if self._render_closed:
             raise RuntimeError(f"{type(self).__name__}: render() after close()")
         data = self._render_data(index)
@@ -500,7 +483,7 @@ class RenderMixin:
                 renderer.close()
             self._renderer = None
             renderer = self._renderer = Renderer(self.physics.model, width, height, fast=self.render_fast)
-        return renderer.render(data, mjv_camera, width, height, geom_alpha=self.geom_alpha(index))
+        return data, mjv_camera, renderer
 
     def close_renderer(self) -> None:
         """Free the renderer (the next :meth:`render` creates a new one)."""

@@ -22,6 +22,7 @@ name prefix (:attr:`Robot.prefix <sg_torchrl.envs.navigation.robots.base.Robot>`
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -36,7 +37,8 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.robots.base import Robot
     from sg_torchrl.envs.navigation.scenery import Scenery
 
-__all__ = ["ResetBuffers", "Scene", "agent_prefix", "build_spec", "compiled_model", "prefix_robot", "world_order"]
+__all__ = ["FIXED_CAMERAS", "ResetBuffers", "Scene", "add_track_camera", "agent_prefix", "build_spec", "compiled_model",
+           "prefix_robot", "world_order"]
 
 _MODELS: dict[Hashable, mujoco.MjModel] = {}
 
@@ -70,8 +72,13 @@ def build_spec(
     for each in robots:  # first: their defaults are the world's (the reference reads them from the robot file)
         counts = _ElementCounts.of(spec)
         each.build(spec)
+        add_track_camera(spec.body(each.root_body))
         if each.prefix:
             prefix_robot(spec, each, counts)
+    for name, pos in FIXED_CAMERAS.items():
+        camera = spec.worldbody.add_camera(name=name, pos=list(pos))
+        camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_ZAXIS
+        camera.alt.zaxis = [0.0, -1.0, 1.0]  # looking at the arena's centre, 45 degrees down
     spec.worldbody.add_light(name="sun", pos=[0.0, 0.0, 4.0], dir=[0.0, 0.0, -1.0], castshadow=False,
                              diffuse=[1.0, 1.0, 1.0], specular=[0.0, 0.0, 0.0])
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6,
@@ -81,6 +88,32 @@ def build_spec(
     for obj in world_order(objects):
         obj.add_to(spec)
     return spec
+
+
+#: Safety-Gymnasium's fixed world cameras (its ``world.py``): name -> position, each looking towards +y, 45 degrees down
+FIXED_CAMERAS = {"fixednear": (0.0, -2.0, 2.0), "fixedfar": (0.0, -5.0, 5.0)}
+#: Safety-Gymnasium's ``track`` camera in the world frame: 2 m in +y and 2 m above the robot, looking back
+#: towards -y 45 degrees down; image x axis along -x, y axis up the slope
+_TRACK_OFFSET = np.array([0.0, 2.0, 2.0])
+_TRACK_AXES = np.array([[-1.0, 0.0, 0.0], [0.0, -math.sqrt(0.5), math.sqrt(0.5)]])
+
+
+def add_track_camera(root: mujoco.MjsBody) -> None:
+    """Add Safety-Gymnasium's ``track`` camera to a robot's ``root`` body.
+
+    Why this pose: the original builds it from the layout's robot yaw so that, once the robot's body is
+    rotated by that yaw, the camera always sits at the same world offset (:data:`_TRACK_OFFSET`,
+    measured on safety-gymnasium 1.0.0 for every robot and seed). A MuJoCo ``track`` camera keeps the
+    world offset and orientation it has at ``qpos0`` while following the body, so the offset is
+    written here in the root body's frame at ``qpos0`` (its spec orientation).
+    """
+    rotation = np.zeros(9)
+    mujoco.mju_quat2Mat(rotation, np.asarray(root.quat, dtype=np.float64))
+    to_local = rotation.reshape(3, 3).T
+    camera = root.add_camera(name="track", pos=list(to_local @ _TRACK_OFFSET))
+    camera.mode = mujoco.mjtCamLight.mjCAMLIGHT_TRACK
+    camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
+    camera.alt.xyaxes = list((_TRACK_AXES @ to_local.T).reshape(-1))
 
 
 @dataclass(frozen=True)
