@@ -99,7 +99,13 @@ from tensordict import TensorDict
 from sg_torchrl.envs.base import SafeEnv
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
-from sg_torchrl.render_modes import RENDER_MODES, RENDER_OPTIONS, FrameSource, split_render_options
+from sg_torchrl.render_modes import (
+    RENDER_MODES,
+    RENDER_OPTIONS,
+    FrameSource,
+    available_render_modes,
+    split_render_options,
+)
 
 __all__ = [
     "EpisodeEndedError",
@@ -194,6 +200,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     def __init__(self, env_id: str, render_mode: str | None = None, **options: Any) -> None:
         self._options = dict(options)  # what a deepcopy rebuilds the env from
+        self.metadata = {**self.metadata, "render_modes": available_render_modes()}  # no "human" when headless
         render_options = split_render_options(options)
         if "num_envs" in options:
             raise TypeError(

@@ -69,7 +69,7 @@ from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 from sg_torchrl.gym import EpisodeEndedError
-from sg_torchrl.render_modes import RENDER_MODES, FrameSource, split_render_options
+from sg_torchrl.render_modes import RENDER_MODES, FrameSource, available_render_modes, split_render_options
 
 __all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
 
@@ -109,6 +109,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         if "num_envs" in options:
             raise TypeError("the PettingZoo façade steps one simulator; use sg_torchrl.make(env_id, num_envs=N)")
         self._options = dict(options)  # what a deepcopy rebuilds the env from
+        self.metadata = {**self.metadata, "render_modes": available_render_modes()}  # no "human" when headless
         render_options = split_render_options(options)
         env = make_torchrl_env(env_id, num_envs=1, **options)
         self._env = env

@@ -14,7 +14,8 @@ renders simulator 0 the way gymnasium (and Safety-Gymnasium) define the mode:
 * ``"human"``: a window shows a frame after every ``reset`` and ``step``; ``render()`` returns
   ``None``. It needs a display and ``pygame``: without a display (``DISPLAY`` / ``WAYLAND_DISPLAY``
   unset on Linux) or without pygame, building the env raises :class:`HumanRenderingUnavailable`,
-  which names the reason and the headless alternatives.
+  which names the reason and the headless alternatives; ``env.metadata["render_modes"]`` leaves
+  ``"human"`` out where there is no display (:func:`available_render_modes`).
 
 Frames come from the env's public rendering interface (``render``, ``render_camera``,
 ``geom_alpha``, ``physics``); options ``width``, ``height`` (default 256) and the camera, given as
@@ -32,7 +33,8 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-__all__ = ["RENDER_MODES", "FrameSource", "HumanRenderingUnavailable", "split_render_options"]
+__all__ = ["RENDER_MODES", "FrameSource", "HumanRenderingUnavailable", "available_render_modes",
+           "split_render_options"]
 
 RENDER_MODES = ("human", "rgb_array", "depth_array", "rgb_array_list", "depth_array_list")
 RENDER_OPTIONS = ("width", "height", "camera", "camera_name", "camera_id")
@@ -41,6 +43,17 @@ _DEFAULT_SIZE = 256
 
 class HumanRenderingUnavailable(gymnasium.error.DependencyNotInstalled):
     """``render_mode="human"`` cannot open a window here (no display, or no pygame)."""
+
+
+def _has_display() -> bool:
+    return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def available_render_modes() -> list[str]:
+    """The render modes that work in this process: all of :data:`RENDER_MODES`, less ``"human"``
+    without a display. The façades' ``env.metadata["render_modes"]`` is this list, so that tools which
+    try every declared mode (gymnasium's ``check_env``) do not open windows on headless machines."""
+    return [mode for mode in RENDER_MODES if mode != "human" or _has_display()]
 
 
 def split_render_options(options: dict[str, Any]) -> dict[str, Any]:
@@ -177,7 +190,7 @@ class _HumanWindow:
     """A pygame window showing RGB frames at a fixed rate (``render_mode="human"``)."""
 
     def __init__(self, width: int, height: int, fps: float) -> None:
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        if not _has_display():
             raise HumanRenderingUnavailable(
                 "render_mode='human' opens a window, but there is no display here (DISPLAY and WAYLAND_DISPLAY "
                 "are unset). On a headless machine use render_mode='rgb_array' (render() returns each frame) or "

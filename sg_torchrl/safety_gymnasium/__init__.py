@@ -52,6 +52,7 @@ from sg_torchrl.safety_gymnasium.registration import make, register, safe_regist
 __version__ = "1.0.0"
 
 __all__ = [
+    "SafeMAEnv",
     "gymnasium_make",
     "gymnasium_register",
     "install_alias",
@@ -59,7 +60,10 @@ __all__ = [
     "make",
     "make_ma",
     "register",
+    "safe_registry",
     "uninstall_alias",
+    "vector",
+    "wrappers",
 ]
 
 VERSION = "v0"
