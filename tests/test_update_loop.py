@@ -1,8 +1,10 @@
-"""The shared minibatch loop (sg_torchrl.objectives.passes) on a tiny linear model.
+"""The shared minibatch loop (sg_torchrl.objectives.passes) on a tiny linear model, and a seed group's passes.
 
 What every caller relies on: the KL stop ends the passes, the orders draw from the generator only
 when they shuffle (chunks and slices of the same permutation agree), each clip group is clipped on
-its own, and the after-step hook runs once per optimiser step.
+its own, and the after-step hook runs once per optimiser step. What the seed group needs from the
+same loop: any callable order, a ``go_on`` decision after each pass and per-seed metrics kept as
+tensors without a host read per step.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from torch import nn  # noqa: E402
 from sg_torchrl.objectives.passes import (  # noqa: E402
     ClipGroup,
     GradientStep,
+    RowMeans,
+    StepMeans,
     run_passes,
     shuffled_chunks,
     shuffled_slices,
@@ -181,3 +185,76 @@ def test_multi_agent_steps_clip_each_network_separately():
     assert [group.norm_metric for group in step.clip_groups] == [None, "Misc/Reward_critic_norm", "Misc/Cost_critic_norm"]
     critics = update._gradient_step(1, loss.critic_losses, ("loss_critic",), actor=False)
     assert len(critics.clip_groups) == 2 and critics.optimizer is update.optimizers[1]
+
+
+class TestGeneralisedLoop:
+    def test_any_callable_is_an_order(self):
+        calls = []
+
+        def order(size, generator):
+            calls.append((size, generator))
+            return (torch.tensor([2, 3]), None, torch.tensor([9]))
+
+        gen = torch.Generator().manual_seed(0)
+        model = Model()
+        result = run_passes(make_batch(), make_step(model), passes=2, order=order, generator=gen)
+        assert calls == [(SIZE, gen)] * 2 and result.passes == 2
+        assert model.seen == [[2, 3], list(range(SIZE)), [9]] * 2
+
+    def test_go_on_runs_after_every_pass_after_the_stop_and_ends_the_loop(self):
+        events = []
+
+        def stop() -> float:
+            events.append("stop")
+            return 0.0
+
+        def go_on() -> bool:
+            events.append("go_on")
+            return len(events) < 4
+
+        model = Model()
+        result = run_passes(make_batch(), make_step(model), passes=5, order=whole_batch, stop=stop, target_kl=1.0,
+                            go_on=go_on)
+        assert result.passes == 2 and len(model.seen) == 2
+        assert events == ["stop", "go_on", "stop", "go_on"]
+
+    def test_step_means_are_the_default_metrics(self):
+        batch, model = make_batch(), Model()
+        means = StepMeans({"Loss/a": "a"})
+        result = run_passes(batch, make_step(model), passes=2, order=whole_batch, metrics=means)
+        expected = run_passes(batch, make_step(Model()), passes=2, order=whole_batch, metrics={"Loss/a": "a"})
+        assert result.means == expected.means and means.steps == 2
+
+    def test_row_means_average_each_row_over_its_own_steps_without_reading_them_back(self, monkeypatch):
+        """Three rows (seeds); row r stops after pass r + 1: its mean is over its own steps only."""
+        weights, values = [], iter(torch.arange(1.0, 19.0).view(6, 3))  # 2 steps per pass, 3 passes
+
+        means = RowMeans({"Loss/x": "x"}, (3,))
+
+        def step(minibatch):
+            weights.append(means.weight.clone())
+            return {"x": next(values).to(torch.float32)}, ()
+
+        passes = iter(range(1, 10))
+
+        def go_on() -> bool:
+            done = next(passes)
+            means.weight = (torch.arange(3) >= done).to(torch.float64)  # row `done - 1` stops now
+            return bool(means.weight.any())
+
+        def no_reads(self):
+            raise AssertionError("a per-seed metric was read back during the passes")
+
+        order = lambda size, generator: (torch.tensor([0]), torch.tensor([1]))  # noqa: E731
+        with monkeypatch.context() as patch:
+            patch.setattr(torch.Tensor, "item", no_reads)
+            patch.setattr(torch.Tensor, "tolist", no_reads)
+            result = run_passes(make_batch(), step, passes=5, order=order, metrics=means, go_on=go_on)
+        assert result.passes == 3
+        rows = torch.arange(1.0, 19.0, dtype=torch.float64).view(6, 3)
+        expected = torch.stack([rows[:2, 0].mean(), rows[:4, 1].mean(), rows[:, 2].mean()])
+        assert torch.equal(result.means["Loss/x"], expected)
+        assert result.means["Loss/x"].dtype == torch.float64
+        assert torch.equal(means.steps, torch.tensor([2.0, 4.0, 6.0], dtype=torch.float64))
+        assert [w.tolist() for w in weights] == [[1.0] * 3] * 2 + [[0.0, 1.0, 1.0]] * 2 + [[0.0, 0.0, 1.0]] * 2
+
