@@ -2,9 +2,10 @@
 
 What every caller relies on: the KL stop ends the passes, the orders draw from the generator only
 when they shuffle (chunks and slices of the same permutation agree), each clip group is clipped on
-its own, and the after-step hook runs once per optimiser step. What the seed group needs from the
-same loop: any callable order, a ``go_on`` decision after each pass and per-seed metrics kept as
-tensors without a host read per step.
+its own, and the after-step hook runs once per optimiser step. What the seed group adds through the
+same loop: any callable order, a ``go_on`` decision after each pass, per-seed metrics kept as
+tensors without a host read per step, and a per-seed stop that ends one seed's passes while the
+others go on (``seed_passes``).
 """
 
 from __future__ import annotations
@@ -258,3 +259,61 @@ class TestGeneralisedLoop:
         assert torch.equal(means.steps, torch.tensor([2.0, 4.0, 6.0], dtype=torch.float64))
         assert [w.tolist() for w in weights] == [[1.0] * 3] * 2 + [[0.0, 1.0, 1.0]] * 2 + [[0.0, 0.0, 1.0]] * 2
 
+
+def synthetic_group(passes: int, target_kl: float):
+    """A two-seed PPO-Lag group on synthetic data: seed 0's advantages are large (its KL stop fires
+    after its first pass), seed 1's are zero (its actor never moves: KL 0, it runs every pass)."""
+    import sg_torchrl
+    from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedShuffler
+    from sg_torchrl.train.group_updates import GroupParts
+    from sg_torchrl.train.models import make_actor_critics
+    from sg_torchrl.train.stacked import StackedActorCritic
+
+    seeds, obs_dim, size = (3, 11), 6, 128
+    action_spec = sg_torchrl.make("SafetyHalfCheetahVelocity-v1").action_spec
+    nets = []
+    for seed in seeds:
+        torch.manual_seed(seed)
+        nets.append(make_actor_critics(obs_dim, action_spec, [16, 16]))
+    model = StackedActorCritic.from_single(nets)
+    optimizer = FusedFirstOrderStep.make_optimizer(model, 1e-3, 1e-3, max_grad_norm=40.0)
+    parts = GroupParts(model, optimizer, SeedShuffler(seeds), passes=passes, minibatch_size=32, target_kl=target_kl)
+    step = FusedFirstOrderStep(model, optimizer, FirstOrderSpec("ppo", critic_l2=1e-3))
+    generator = torch.Generator().manual_seed(0)
+    obs = torch.randn(2, size, obs_dim, generator=generator)
+    with torch.no_grad():
+        action, log_prob, loc, scale = model.sample(obs, [torch.Generator().manual_seed(s) for s in seeds])
+    data = {"observation": obs, "action": action, "action_log_prob": log_prob.unsqueeze(-1), "loc": loc,
+            "scale": scale.expand_as(loc).clone()}
+    for key in ("advantage", "cost_advantage", "value_target", "cost_value_target"):
+        data[key] = torch.randn(2, size, 1, generator=generator)
+    data["advantage"][0] *= 100.0
+    data["advantage"][1] = 0.0
+    data["cost_advantage"][1] = 0.0
+    return parts, step, data
+
+
+def test_a_seed_whose_kl_stop_fires_stops_while_the_other_goes_on():
+    from sg_torchrl.train.group_updates import seed_passes
+
+    lam, active = torch.zeros(2), torch.ones(2, dtype=torch.bool)
+    parts, step, data = synthetic_group(passes=4, target_kl=1e-6)
+    result = seed_passes(parts, step, data, lam, active, (data["loc"], data["scale"]))
+    assert result.passes.tolist() == [1.0, 4.0] and not result.diverged.any()
+    assert result.kl[0] > 1e-6 and result.kl[1] == 0.0
+    # Adam counted 4 steps (128 / 32) for seed 0, 16 for seed 1; seed 0's generator drew one order
+    assert parts.optimizer.state[0]["step"].tolist() == [4.0, 16.0]
+    drawn = torch.Generator().manual_seed(3)
+    torch.randperm(128, generator=drawn)
+    assert torch.equal(parts.shuffler.generators[0].get_state(), drawn.get_state())
+    # seed 0 ends where a single pass leaves it, bit for bit, while seed 1 went on
+    once, step_once, data_once = synthetic_group(passes=1, target_kl=1e-6)
+    alone = seed_passes(once, step_once, data_once, lam, active, (data_once["loc"], data_once["scale"]))
+    for mine, single in zip(parts.model.flat_groups, once.model.flat_groups):
+        assert torch.equal(mine[0], single[0])
+    assert not torch.equal(parts.model.flat_critics[1], once.model.flat_critics[1])
+    assert torch.equal(result.means[:, 0], alone.means[:, 0])
+    # no seed left: nothing runs and nothing is drawn
+    state = parts.shuffler.generators[1].get_state()
+    none = seed_passes(parts, step, data, lam, torch.zeros(2, dtype=torch.bool), (data["loc"], data["scale"]))
+    assert none.passes.tolist() == [0.0, 0.0] and torch.equal(parts.shuffler.generators[1].get_state(), state)

@@ -195,7 +195,9 @@ class SeedBatch:
     A minibatch of every field is one advanced-indexing gather (:meth:`gather`) instead of one per
     field, and :meth:`fields` splits it back into views with one ``torch.split``. Every field is
     kept with a trailing feature dimension: scalars per sample (advantages, targets, log-probs) are
-    ``(S, N, 1)``, which is also the shape the losses compute in.
+    ``(S, N, 1)``, which is also the shape the losses compute in. Like a TensorDict for
+    :func:`~sg_torchrl.objectives.passes.run_passes`: ``len(batch)`` is the samples per seed and
+    ``batch[index]`` a minibatch.
     """
 
     def __init__(self, data: Tensor, names: Sequence[str], widths: Sequence[int], *,
@@ -230,8 +232,15 @@ class SeedBatch:
         """Every field as a view ``(S, N, width)``."""
         return dict(zip(self.names, torch.split(self.data, self.widths, dim=-1)))
 
-    def __getitem__(self, name: str) -> Tensor:
-        return self.fields()[name]
+    def __len__(self) -> int:
+        """The samples per seed: what minibatch indices range over (``len(data)`` in ``run_passes``)."""
+        return self.num_samples
+
+    def __getitem__(self, key: str | Tensor) -> Tensor | SeedBatch:
+        """A field by name (a view ``(S, N, width)``) or, as a TensorDict, the minibatch ``key`` (:meth:`gather`)."""
+        if isinstance(key, str):
+            return self.fields()[key]
+        return self.gather(key)
 
     def gather(self, index: Tensor) -> SeedBatch:
         """The minibatch ``index`` (``(S, mb)``: seed ``s`` takes its samples ``index[s]``)."""

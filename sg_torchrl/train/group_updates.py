@@ -14,7 +14,9 @@ chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torch
 * :class:`TrustRegionGroupUpdate` (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): the stacked trust-region
   step of every seed's actor (:mod:`sg_torchrl.train.stacked_trust_region`), then critics-only passes.
 
-All run :func:`seed_passes`, the minibatch loop of a group. Each seed follows its single-seed run:
+All run :func:`seed_passes`, a group's minibatch passes through the package's one update loop
+(:func:`~sg_torchrl.objectives.passes.run_passes`, which the single-seed trainer and the multi-agent
+rounds also run). Each seed follows its single-seed run:
 its own minibatch order (:class:`~sg_torchrl.train.fused.SeedShuffler`), its own KL early stop (after
 every pass, KL(reference || current) over the seed's batch against ``target_kl``; none for the
 critics-only passes). A seed that
@@ -36,12 +38,13 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.train.fused import (
     CombineRule,
     FirstOrderSpec,
@@ -56,8 +59,8 @@ from sg_torchrl.train.stacked import StackedActorCritic
 from sg_torchrl.train.stacked_trust_region import StackedTrustRegionStep
 
 __all__ = [
-    "FirstOrderGroupUpdate", "GroupParts", "GroupResult", "GroupUpdate", "PassesResult", "SeedSnapshot",
-    "finite_seeds", "seed_passes", "TrustRegionGroupUpdate", "TwoStageGroupUpdate",
+    "FirstOrderGroupUpdate", "GroupParts", "GroupResult", "GroupUpdate", "MaskedSeedStep", "PassesResult",
+    "SeedSnapshot", "SeedStops", "finite_seeds", "seed_passes", "TrustRegionGroupUpdate", "TwoStageGroupUpdate",
 ]
 
 #: The per-seed fields every update receives (``(S, n, k)`` each).
@@ -149,6 +152,86 @@ class PassesResult:
     diverged: Tensor
 
 
+class SeedStops:
+    """Which seeds of a group still step during :func:`seed_passes`, and what stopped the others.
+
+    The seed group's ``go_on`` for :func:`~sg_torchrl.objectives.passes.run_passes`: after each pass
+    it counts the pass for the seeds that took it, flags a seed whose parameters, summed losses or
+    KL turned non-finite (:attr:`diverged`), records each stepping seed's KL and drops from
+    :attr:`active` every flagged seed and, given ``kl``, every seed over ``target_kl``; then it
+    says whether any seed is left. One host sync per pass (:attr:`flags`, read by the per-seed
+    orders); :attr:`mask` (``None`` while every seed steps: the unmasked Adam is the cheaper one)
+    and ``means.weight`` are set for the next pass.
+
+    Args:
+        model: the group's networks (checked for finite parameters).
+        means: the passes' per-seed loss sums (:class:`~sg_torchrl.objectives.passes.RowMeans`,
+            metric ``"losses"``); its weight follows :attr:`active`.
+        active: ``(S,)`` bool, the seeds that step in the first pass (copied).
+        kl: ``None`` (no KL stop: critics-only passes), or a callable returning each seed's KL to
+            the reference policy, ``(S,)``.
+        target_kl: the KL stop's threshold.
+    """
+
+    def __init__(self, model: StackedActorCritic, means: RowMeans, active: Tensor,
+                 kl: Callable[[], Tensor] | None, target_kl: float) -> None:
+        self.model, self.means, self.kl_fn, self.target_kl = model, means, kl, target_kl
+        f64 = dict(dtype=torch.float64, device=active.device)
+        self.active = active.clone()
+        self.passes, self.kl = torch.zeros(active.shape[0], **f64), torch.zeros(active.shape[0], **f64)
+        self.diverged = torch.zeros_like(self.active)
+        self.flags = self.active.tolist()
+        self._next_pass()
+
+    def _next_pass(self) -> None:
+        self.mask = None if all(self.flags) else self.active
+        self.means.weight = self.active.to(torch.float64)
+
+    def go_on(self) -> bool:
+        """After a pass: count it, flag and stop seeds (see the class docstring); whether any seed steps on."""
+        active = self.active
+        self.passes += self.means.weight
+        finite = finite_seeds(self.model) & torch.isfinite(self.means.sums["losses"]).all(0)
+        if self.kl_fn is not None:
+            kl = self.kl_fn().to(torch.float64)
+            self.kl = torch.where(active, kl, self.kl)
+            finite &= torch.isfinite(kl)
+        bad = active & ~finite
+        self.diverged |= bad
+        active &= ~bad
+        if self.kl_fn is not None:
+            active &= ~(kl > self.target_kl)
+        self.flags = active.tolist()
+        if not any(self.flags):
+            return False
+        self._next_pass()
+        return True
+
+
+class MaskedSeedStep:
+    """The seed group's :data:`~sg_torchrl.objectives.passes.Step`: a fused step of every seed, stopped seeds masked.
+
+    Backward of ``step``'s losses on the minibatch, then the optimiser step under ``stops.mask``.
+    Returns ``{"losses": (terms, S)}``, the per-seed losses as the single-seed losses report them
+    (the critics' with their L2 term at the parameters before the step), and no clip-group norms.
+    """
+
+    def __init__(self, step: FusedFirstOrderStep, lam: Tensor, stops: SeedStops) -> None:
+        self.step, self.lam, self.stops = step, lam, stops
+        spec = step.spec
+        self.l2 = spec.critic_l2 if not spec.actor_only else 0.0
+        self.width = step.model.reward_critic_width
+
+    def __call__(self, minibatch: SeedBatch) -> tuple[dict[str, Tensor], tuple[()]]:
+        values = torch.stack(self.step.backward(minibatch, self.lam))
+        if self.l2:  # the critics' losses as reported: with the L2 term at the step's parameters
+            squares = self.step.model.flat_critics.detach().square()
+            norms = torch.stack((squares[:, :self.width].sum(1), squares[:, self.width:].sum(1)))
+            values = torch.cat((values[:-2], values[-2:] + self.l2 * norms))  # the critics' are the last two
+        self.step.update(self.stops.mask)
+        return {"losses": values}, ()
+
+
 def seed_passes(
     parts: GroupParts,
     step: FusedFirstOrderStep,
@@ -159,13 +242,17 @@ def seed_passes(
 ) -> PassesResult:
     """Up to ``parts.passes`` shuffled passes of ``step`` for the ``active`` seeds, each with its own KL stop.
 
-    A pass gathers each seed's minibatches from its own order, takes one fused gradient step per
-    minibatch (seeds that are no longer active masked), then computes each active seed's mean
-    KL(``reference`` || current policy) over its batch: a seed whose KL exceeds ``parts.target_kl``
-    (SafePO's early stop), or whose KL, losses or parameters are not finite (flagged diverged),
-    takes no further step. A critics-only step (``spec.kl_stop`` false: the second-order
-    algorithms' critic passes) runs every pass with no KL (``reference`` unused, reported KL 0);
-    non-finite losses or parameters still stop and flag a seed.
+    The package's one loop (:func:`~sg_torchrl.objectives.passes.run_passes`) with the group's
+    pieces: the data is a :class:`SeedBatch`, the order each seed's minibatches from its own
+    generator (:class:`SeedShuffler`; a seed that stopped draws none), the step
+    :class:`MaskedSeedStep`, the metrics :class:`~sg_torchrl.objectives.passes.RowMeans` and the
+    stop :meth:`SeedStops.go_on`. A pass takes one fused gradient step per minibatch (seeds that
+    are no longer active masked), then computes each active seed's mean KL(``reference`` ||
+    current policy) over its batch: a seed whose KL exceeds ``parts.target_kl`` (SafePO's early
+    stop), or whose KL, losses or parameters are not finite (flagged diverged), takes no further
+    step. A critics-only step (``spec.kl_stop`` false: the second-order algorithms' critic passes)
+    runs every pass with no KL (``reference`` unused, reported KL 0); non-finite losses or
+    parameters still stop and flag a seed.
 
     Args:
         parts: the group's model, optimiser, shuffler and loop settings.
@@ -182,49 +269,21 @@ def seed_passes(
         each critic's loss with its L2 term, as the single-seed losses report them), and whether it
         diverged.
     """
-    model = parts.model
-    spec = step.spec
+    model, spec = parts.model, step.spec
     if spec.kl_stop and reference is None:
         raise ValueError(f"the {spec.objective!r} passes stop on the KL to a reference policy: give reference")
     batch = SeedBatch.pack({name: data[name] for name in spec.fields})
     observation = data["observation"]
-    seeds, size = batch.num_seeds, batch.num_samples
-    with_critics, l2 = not spec.actor_only, spec.critic_l2
-    width = model.reward_critic_width
-    f64 = dict(dtype=torch.float64, device=observation.device)
-    sums = torch.zeros(spec.num_losses, seeds, **f64)
-    steps, passes, kl_last = (torch.zeros(seeds, **f64) for _ in range(3))
-    diverged = torch.zeros(seeds, dtype=torch.bool, device=observation.device)
-    active = active.clone()
-    flags = active.tolist()
-    for _ in range(parts.passes):
-        if not any(flags):
-            break
-        mask = None if all(flags) else active  # the unmasked Adam is the cheaper one
-        weight = active.to(torch.float64)
-        for index in parts.shuffler.minibatches(size, parts.minibatch_size, flags):
-            losses = step.backward(batch.gather(index), lam)
-            values = torch.stack(losses)
-            if with_critics and l2:  # the critics' losses as reported: with the L2 term at the step's parameters
-                squares = model.flat_critics.detach().square()
-                norms = torch.stack((squares[:, :width].sum(1), squares[:, width:].sum(1)))
-                values = torch.cat((values[:-2], values[-2:] + l2 * norms))  # the critics' are the last two
-            step.update(mask)
-            sums += values.to(torch.float64) * weight
-            steps += weight
-        passes += weight
-        finite = finite_seeds(model) & torch.isfinite(sums).all(0)
-        if spec.kl_stop:
-            kl = batch_kl(model, observation, *reference).to(torch.float64)
-            kl_last = torch.where(active, kl, kl_last)
-            finite &= torch.isfinite(kl)
-        bad = active & ~finite
-        diverged |= bad
-        active &= ~bad
-        if spec.kl_stop:
-            active &= ~(kl > parts.target_kl)
-        flags = active.tolist()
-    return PassesResult(passes, kl_last, sums / steps.clamp_min(1.0), diverged)
+    means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), observation.device)
+    kl = (lambda: batch_kl(model, observation, *reference)) if spec.kl_stop else None
+    stops = SeedStops(model, means, active, kl, parts.target_kl)
+
+    def order(size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
+        return parts.shuffler.minibatches(size, parts.minibatch_size, stops.flags)
+
+    report = run_passes(batch, MaskedSeedStep(step, lam, stops), passes=parts.passes if any(stops.flags) else 0,
+                        order=order, metrics=means, go_on=stops.go_on)
+    return PassesResult(stops.passes, stops.kl, report.means["losses"], stops.diverged)
 
 
 def _first_order_metrics(result: PassesResult) -> dict[str, Tensor]:
