@@ -19,7 +19,9 @@ API
   Safety-Gymnasium's **6-tuple** ``(obs, reward, cost, terminated, truncated, info)``; ``obs`` is a
   ``float64`` numpy array, ``reward`` and ``cost`` python floats, the flags python bools, and
   ``info`` holds one ``cost_<name>`` per constraint (the ``("cost_info", name)`` entries of the
-  TorchRL env, e.g. ``cost_hazards``) plus ``cost_sum`` (equal to ``cost``).
+  TorchRL env, e.g. ``cost_hazards``) plus ``cost_sum`` (equal to ``cost``); envs with a
+  ``step_info`` (the velocity ids) first put gymnasium's terms there (``x_velocity``,
+  ``reward_ctrl``, ... as Safety-Gymnasium's info).
   ``reset(seed=None, options=None)`` returns ``(obs, {})``. A seed re-seeds the simulator (same
   seed, same initial observation and, with the same actions, the same trajectory); no seed continues
   the random stream, so each episode gets a new initial state.
@@ -235,6 +237,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         self._action_shape = self.action_space.shape
         self._constraints = tuple(observation_spec["cost_info"].keys())
         self._info_keys = tuple(f"cost_{name}" for name in self._constraints)
+        # Gymnasium's info terms (x_velocity, reward_ctrl, ...) where the env reports them (velocity ids).
+        self._step_info = getattr(env, "step_info", None)
         # Numpy fast path: only where the step is SafeEnv's own, so every hook it calls is the one
         # SafeEnv._step would call. Anything else goes through the public TorchRL step.
         # Pixel observations are emitted by the TorchRL step only.
@@ -364,7 +368,9 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         observation, reward, costs, terminated, truncated = env.step_arrays(action32.astype(np.float64))
         cost, cost_info = env.aggregate_cost(costs)
         cost = float(np.float32(cost[0]))
-        info = {key: float(np.float32(cost_info[name][0])) for key, name in zip(self._info_keys, self._constraints)}
+        info = self._step_info(0) if self._step_info is not None else {}
+        info.update((key, float(np.float32(cost_info[name][0])))
+                    for key, name in zip(self._info_keys, self._constraints))
         info["cost_sum"] = cost
         obs = np.asarray(observation[0], dtype=np.float32).astype(np.float64)
         return obs, float(np.float32(reward[0])), cost, bool(terminated[0]), bool(truncated[0]), info
@@ -389,7 +395,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         nxt = env.step(td).get("next").cpu()
         cost = float(nxt.get("cost")[0, 0])
         cost_info = nxt.get("cost_info")
-        info = {key: float(cost_info.get(name)[0, 0]) for key, name in zip(self._info_keys, self._constraints)}
+        info = self._step_info(0) if self._step_info is not None else {}
+        info.update((key, float(cost_info.get(name)[0, 0])) for key, name in zip(self._info_keys, self._constraints))
         info["cost_sum"] = cost
         obs = self._observation(nxt)
         terminated, truncated = bool(nxt.get("terminated")[0, 0]), bool(nxt.get("truncated")[0, 0])

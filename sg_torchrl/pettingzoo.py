@@ -22,8 +22,10 @@ API
   for the velocity ids the team reward and the velocity indicator, equal for all agents; for the
   MultiGoal ids each agent's own), the flags python bools, and ``infos[agent]`` holds ``cost_<name>``
   per constraint (the agent's own where the env reports per-agent entries, else the team's) plus
-  ``cost_sum``. ``reset(seed=None, options=None)`` returns ``(observations, infos)`` with empty
-  infos; ``options`` are accepted and ignored (as MaMuJoCo's v4 robots do). ``state()`` is the
+  ``cost_sum``, after gymnasium's terms where the env has them (velocity ids: ``x_velocity``, ...,
+  the same for every agent as in MaMuJoCo). ``reset(seed=None, options=None)`` returns
+  ``(observations, infos)`` with empty infos; ``options`` are accepted and ignored (as MaMuJoCo's v4
+  robots do). ``state()`` is the
   global state (the env's ``"state"``: the robot's v4 observation, or the MultiGoal joint observation;
   ``float64``), ``state_space`` its box.
 * Rendering: gymnasium's render modes and options, as in :mod:`sg_torchrl.gym`
@@ -271,7 +273,8 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         costs = dict(zip(agents, cost))
         terminations = dict(zip(agents, map(bool, terminated)))
         truncations = dict(zip(agents, map(bool, truncated)))
-        infos = {agent: {**info, "cost_sum": costs[agent]} for agent, info in zip(agents, cost_info)}
+        terms = env.step_info(0) if hasattr(env, "step_info") else {}  # gymnasium's terms, as MaMuJoCo's info
+        infos = {agent: {**terms, **info, "cost_sum": costs[agent]} for agent, info in zip(agents, cost_info)}
         if any(terminated) or any(truncated):
             self.agents = []
         if self._frames is not None:

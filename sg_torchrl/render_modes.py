@@ -7,7 +7,7 @@ renders simulator 0 the way gymnasium (and Safety-Gymnasium) define the mode:
 * ``"depth_array"``: ``render()`` returns the current depth image, ``(height, width)`` ``float32``,
   as MuJoCo's (and so gymnasium's) depth buffer: 0 at the near clipping plane, 1 at the far one,
   growing with distance (``far * (z - near) / (z * (far - near))`` for a point at ``z`` metres along
-  the optical axis). :meth:`FrameSource.metric_depth` gives the same image in metres.
+  the optical axis; the env's ``render_depth``). :meth:`FrameSource.metric_depth` gives metres.
 * ``"rgb_array_list"`` / ``"depth_array_list"``: a frame is taken after every ``reset`` and ``step``
   (``reset`` first drops what was collected); ``render()`` returns the frames since the last call
   and starts a new list, as gymnasium's ``RenderCollection`` does.
@@ -17,11 +17,12 @@ renders simulator 0 the way gymnasium (and Safety-Gymnasium) define the mode:
   which names the reason and the headless alternatives; ``env.metadata["render_modes"]`` leaves
   ``"human"`` out where there is no display (:func:`available_render_modes`).
 
-Frames come from the env's public rendering interface (``render``, ``render_camera``,
-``geom_alpha``, ``physics``); options ``width``, ``height`` (default 256) and the camera, given as
-``camera``, or as Safety-Gymnasium's ``camera_name`` / ``camera_id`` (at most one of the three): a
-name or id of a camera of the model, or the names of :mod:`sg_torchrl.envs.rendering` (``"follow"``,
-``"chase"``, ``"world"``).
+Frames come from the env's public rendering interface (``render``, ``render_depth``,
+``render_camera``); options ``width``, ``height`` (default 256) and the camera, given as ``camera``,
+or as Safety-Gymnasium's ``camera_name`` / ``camera_id`` (at most one of the three): a name of the
+env's ``camera_names`` (the original's ``"fixednear"``, ``"fixedfar"``, ``"vision"``, ``"track"``
+where the scene has them, and ``"follow"``, ``"chase"``, ``"world"``), or a model camera's id
+(:mod:`sg_torchrl.envs.cameras`).
 """
 
 from __future__ import annotations
@@ -109,11 +110,11 @@ class FrameSource:
         self.camera = _camera(options)
         self._env = env
         self._frames: list[np.ndarray] = []
-        self._renderer = None  # our own renderer, for depth (the env's render() returns colour only)
         self._window = None
         if render_mode is None:
             return
-        if not hasattr(env, "render") or not hasattr(env, "render_camera"):
+        needs = ("render_depth",) if self._depth else ("render",)
+        if not all(hasattr(env, name) for name in (*needs, "render_camera")):
             raise NotImplementedError(f"{type(env).__name__} cannot render (render_mode={render_mode!r})")
         env.render_camera(0, self.camera)  # raises ValueError for an unknown camera
         if render_mode == "human":
@@ -127,24 +128,11 @@ class FrameSource:
         """The current frame of the mode: RGB ``(H, W, 3)`` ``uint8`` or depth ``(H, W)`` ``float32``."""
         if not self._depth:
             return self._env.render(0, self.width, self.height, self.camera)
-        depth, (near, far) = self.metric_depth()
-        buffer = far * (depth - near) / (depth * (far - near))
-        return np.clip(buffer, 0.0, 1.0, out=buffer).astype(np.float32, copy=False)  # float32 rounding at the planes
+        return self._env.render_depth(0, self.width, self.height, self.camera, linear=False)
 
-    def metric_depth(self) -> tuple[np.ndarray, tuple[float, float]]:
-        """``(depth, (near, far))``: the depth image in metres along the optical axis and the
-        clipping planes it lies in."""
-        from sg_torchrl.envs.rendering import Renderer
-
-        env = self._env
-        if self._renderer is None or self._renderer.closed:
-            self._renderer = Renderer(env.physics.model, self.width, self.height,
-                                      fast=getattr(env, "render_fast", True))
-        rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
-        depth = np.empty((self.height, self.width), dtype=np.float32)
-        self._renderer.render_into(env.physics.datas[0], env.render_camera(0, self.camera), rgb, depth,
-                                   geom_alpha=env.geom_alpha(0))
-        return depth, self._renderer.depth_range()
+    def metric_depth(self) -> np.ndarray:
+        """The current depth image in metres along the optical axis (``env.depth_range()`` bounds it)."""
+        return self._env.render_depth(0, self.width, self.height, self.camera, linear=True)
 
     def after_reset(self) -> None:
         """Call after every ``reset``: list modes start a new list with this frame; ``human`` shows it."""
@@ -174,16 +162,10 @@ class FrameSource:
         return self.frame()
 
     def close(self) -> None:
-        """Release the depth renderer and the window (the env's own renderer closes with the env)."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        """Release the window (the env's renderer closes with the env)."""
         if self._window is not None:
             self._window.close()
             self._window = None
-
-    def __deepcopy__(self, memo: dict) -> None:
-        raise TypeError("FrameSource holds GL and window resources: the façades build a new one for a copy")
 
 
 class _HumanWindow:

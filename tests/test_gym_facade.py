@@ -47,7 +47,8 @@ def mid_action(env: gymnasium.Env) -> np.ndarray:
 
 def expected_info_keys(env: sg_gym.SafetyGymnasiumEnv) -> set[str]:
     names = env.torchrl_env.observation_spec["cost_info"].keys()
-    return {f"cost_{name}" for name in names} | {"cost_sum"}
+    terms = set(getattr(env.torchrl_env, "info_keys", ()))  # velocity ids: gymnasium's terms (x_velocity, ...)
+    return {f"cost_{name}" for name in names} | {"cost_sum"} | terms
 
 
 def quiet_check_env(env: gymnasium.Env) -> None:
@@ -131,7 +132,8 @@ def test_trajectory_equals_torchrl_env(env_id):
     names = list(raw.observation_spec["cost_info"].keys())
     for k, action in enumerate(actions):
         nxt = raw.step(TensorDict({"action": torch.from_numpy(action)[None]}, batch_size=[1]))["next"]
-        expected_info = {f"cost_{name}": float(nxt["cost_info", name][0, 0]) for name in names}
+        expected_info = raw.step_info(0) if hasattr(raw, "step_info") else {}  # velocity: gymnasium's terms
+        expected_info.update({f"cost_{name}": float(nxt["cost_info", name][0, 0]) for name in names})
         expected_info["cost_sum"] = float(nxt["cost"][0, 0])
         for facade in (fast, slow):
             obs, reward, cost, terminated, truncated, info = facade.step(action)

@@ -399,7 +399,9 @@ class TestPettingZooFacade:
         assert rewards["agent_0"] == rewards["agent_1"] and type(rewards["agent_0"]) is float
         assert costs["agent_0"] == costs["agent_1"] and costs["agent_0"] in (0.0, 1.0)
         assert all(type(flag) is bool for flag in (*terminations.values(), *truncations.values()))
-        assert infos["agent_0"] == {"cost_velocity": costs["agent_0"], "cost_sum": costs["agent_0"]}
+        terms = env.torchrl_env.step_info(0)  # gymnasium's terms (x_velocity, ...), the same for every agent
+        assert infos["agent_0"] == {**terms, "cost_velocity": costs["agent_0"], "cost_sum": costs["agent_0"]}
+        assert list(infos["agent_1"])[: len(terms)] == list(env.torchrl_env.info_keys)
 
     def test_six_tuple_does_not_fit_pettingzoo_api_test(self):
         # PettingZoo's test unpacks exactly five values from step: Safety-Gymnasium's 6-tuple cannot pass it,

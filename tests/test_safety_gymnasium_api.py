@@ -123,6 +123,18 @@ def test_register_and_make_a_user_env():
     assert truncated and cost == 0.5 and info["final_observation"][0] == 2.0 and obs[0] == 0.0
 
 
+def test_velocity_info_carries_gymnasiums_terms():
+    env = safety_gymnasium.make(VEL_ID)
+    env.reset(seed=0)
+    info = env.step(env.action_space.sample())[5]
+    assert list(info)[:4] == ["x_position", "x_velocity", "reward_run", "reward_ctrl"]  # the original's keys
+    assert {"cost_velocity", "cost_sum"} <= set(info)
+    ma = safety_gymnasium.make_ma("Ant", "2x4")
+    ma.reset(seed=0)
+    infos = ma.step({agent: ma.action_space(agent).sample() for agent in ma.agents})[5]
+    assert infos["agent_0"]["x_velocity"] == infos["agent_1"]["x_velocity"]
+
+
 def test_reset_accepts_options_and_seeds_reproduce():
     env = safety_gymnasium.make(NAV_ID)
     first, _ = env.reset(seed=5, options={"anything": 1})
@@ -208,7 +220,10 @@ def test_human_mode_names_the_reason_without_a_display(monkeypatch):
 
 def test_camera_name_and_id_choose_the_frame():
     frames = {}
-    for key, value in (("camera_name", None), ("camera_name", "vision"), ("camera_id", -1)):
+    names = ["fixednear", "fixedfar", "track"]
+    available = [name for name in names if name in safety_gymnasium.make(NAV_ID).unwrapped.torchrl_env.camera_names]
+    for key, value in (("camera_name", None), ("camera_name", "vision"), ("camera_id", -1),
+                       *(("camera_name", name) for name in available)):
         env = safety_gymnasium.make(NAV_ID, render_mode="rgb_array", width=32, height=32, **{key: value})
         env.reset(seed=0)
         frames[value] = env.render()
