@@ -167,3 +167,16 @@ def test_async_env_in_a_script_without_main_guard(tmp_path):
                             capture_output=True, text=True, timeout=240, env=env, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("unguarded ok") == 1 and "[True, True]" in result.stdout
+
+
+def test_async_env_with_spawn_carries_lambdas():
+    # Under spawn the env functions travel to fresh interpreters: lambdas and closures go by cloudpickle.
+    length = 2
+    envs = SafetyAsyncVectorEnv([lambda: safety_gymnasium.make(VEL_ID, max_episode_steps=length)] * 2,
+                                context="spawn")
+    assert envs.context == "spawn"
+    envs.reset(seed=0)
+    for _ in range(length):
+        truncateds = envs.step(envs.action_space.sample())[4]
+    assert truncateds.tolist() == [True, True]
+    envs.close()
