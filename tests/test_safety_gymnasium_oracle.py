@@ -124,3 +124,20 @@ def test_vector_spaces_match_the_oracle(oracle):
     assert list(envs.single_observation_space.shape) == oracle["vector"]["single"]
     assert list(envs.action_space.shape) == oracle["vector"]["action"]
     envs.close()
+
+
+def test_top_level_constants_match_the_oracle():
+    if not os.path.exists(ORACLE_PYTHON):
+        pytest.skip(f"no safety-gymnasium 1.0.0 oracle at {ORACLE_PYTHON} (see this module's docstring)")
+    names = ["VERSION", "PREFIX", "ROBOT_NAMES", "MAKE_VISION_ENVIRONMENTS", "goal_tasks", "button_tasks",
+             "push_tasks", "circle_tasks", "run_tasks", "race_tasks", "fading_tasks", "__version__"]
+    code = ("import json, warnings; warnings.filterwarnings('ignore'); import safety_gymnasium as s; "
+            f"print('ORACLE' + json.dumps({{n: getattr(s, n) for n in {names!r}}}))")
+    result = subprocess.run([ORACLE_PYTHON, "-c", code], capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "PYTHONPATH": ""}, cwd="/tmp")
+    lines = [line for line in result.stdout.splitlines() if line.startswith("ORACLE")]
+    if result.returncode != 0 or not lines:
+        pytest.skip(f"the oracle at {ORACLE_PYTHON} did not run: {result.stderr[-1500:]}")
+    theirs = json.loads(lines[-1][len("ORACLE"):])
+    ours = json.loads(json.dumps({name: getattr(safety_gymnasium, name) for name in names}))
+    assert ours == theirs

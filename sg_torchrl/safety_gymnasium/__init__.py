@@ -80,4 +80,4 @@ goal_tasks = {"Goal0": {}, "Goal1": {}, "Goal2": {}}
 circle_tasks = {"Circle0": {}, "Circle1": {}, "Circle2": {}}
 run_tasks = {"Run0": {}}
 race_tasks = {f"Race{level}": {"floor_conf.type": "village"} for level in range(3)}
-fading_tasks = {f"Fading{kind}{level}": {} for kind in ("Easy", "Hard") for level in range(3)}
+fading_tasks = {f"FadingHard{level}": {} for level in range(3)}  # as the original's table (Easy ids exist too)
