@@ -228,8 +228,9 @@ def test_camera_name_and_id_choose_the_frame():
         env.reset(seed=0)
         frames[value] = env.render()
         env.close()
-    assert not np.array_equal(frames[None], frames["vision"])
+    np.testing.assert_array_equal(frames[None], frames["vision"])  # the original's default: the robot's camera
     assert not np.array_equal(frames["vision"], frames[-1])
+    assert all(not np.array_equal(frames[name], frames["vision"]) for name in available)
     with pytest.raises(ValueError, match="unknown camera"):
         safety_gymnasium.make(NAV_ID, render_mode="rgb_array", camera_name="no_such_camera")
     with pytest.raises(TypeError, match="only one of"):

@@ -16,7 +16,8 @@
   wrapped the same way.
 * Keyword arguments go to the env: render options (``render_mode``, ``width``, ``height``,
   ``camera_name``, ``camera_id``) and sg_torchrl's options (``cost_mode``, ``velocity_threshold``, ...);
-  one it does not take raises ``TypeError``.
+  one it does not take raises ``TypeError``. Without a camera, the navigation ids render from the
+  robot's ``"vision"`` camera, as the original's do (the velocity ids: the env's side view).
 
 Differences from the original: ``max_episode_steps`` larger than the id's registered length lengthens
 the episodes (the original's navigation tasks still stop at their own length); ``apply_api_compatibility``
@@ -41,6 +42,8 @@ safe_registry: set[str] = set(list_envs())
 """Ids :func:`make` accepts (sg_torchrl's ids and those added with :func:`register`)."""
 
 _SG_IDS = frozenset(safe_registry)
+# Families whose frames the original renders, by default, from the robot's own "vision" camera.
+_EGOCENTRIC_FAMILIES = ("navigation", "vision")
 
 
 def register(**kwargs: Any) -> None:
@@ -121,6 +124,9 @@ def _make_sg(env_id, max_episode_steps, autoreset, apply_api_compatibility, disa
 
     length = max_episode_steps if max_episode_steps is not None else registry_entry(env_id).max_episode_steps
     options = dict(kwargs)
+    if (options.get("render_mode") is not None and registry_entry(env_id).family in _EGOCENTRIC_FAMILIES
+            and all(options.get(key) is None for key in ("camera", "camera_name", "camera_id"))):
+        options["camera_name"] = "vision"  # the original's navigation envs render from the robot's camera
     if max_episode_steps is not None and "max_episode_steps" not in options:
         options["max_episode_steps"] = max(max_episode_steps, registry_entry(env_id).max_episode_steps)
     env = make_facade(env_id, **options)
