@@ -324,7 +324,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         clone._np_random_seed = self._np_random_seed
         clone.spec = copy.deepcopy(self.spec, memo)
         if self._frames is not None:
-            clone._frames._frames = [frame.copy() for frame in self._frames._frames]
+            clone._frames.copy_frames_from(self._frames)
         return clone
 
     # ------------------------------------------------------------------ internals

@@ -148,6 +148,10 @@ class FrameSource:
         elif self._window is not None:
             self._window.show(self.frame())
 
+    def copy_frames_from(self, other: FrameSource) -> None:
+        """Take copies of the frames ``other`` has collected (a façade's ``deepcopy``)."""
+        self._frames = [frame.copy() for frame in other._frames]
+
     def render(self) -> np.ndarray | list[np.ndarray] | None:
         """What the façade's ``render()`` returns in this mode (see the module docstring)."""
         if self.render_mode is None:

@@ -202,7 +202,10 @@ def test_every_render_mode(env_id):
         env.step(env.action_space.sample())
         assert len(env.render()) == 1 and env.render() == []
         env.reset()
-        assert len(env.render()) == 1
+        env.step(env.action_space.sample())
+        twin = copy.deepcopy(env)  # the collected frames travel with a copy
+        assert len(twin.render()) == len(env.render()) == 2
+        twin.close()
         env.close()
     declared = safety_gymnasium.make(env_id).metadata["render_modes"]
     assert set(declared) >= {"rgb_array", "depth_array", "rgb_array_list", "depth_array_list"}
