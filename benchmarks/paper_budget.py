@@ -61,15 +61,16 @@ def report(args: argparse.Namespace) -> None:
     finals = []
     for seed in args.seeds:
         progress = directory / f"seed-{seed:03d}" / "progress.csv"
-        rows = list(csv.DictReader(progress.open())) if progress.exists() else []
+        # Training rows only: the final evaluation appends a row that holds the step count alone.
+        rows = [row for row in csv.DictReader(progress.open()) if row.get("Metrics/EpRet")] if progress.exists() else []
         if not rows:
             print(f"| {seed} | 0 | | | | |")
             continue
         last = rows[-1]
         summary_path = directory / f"seed-{seed:03d}" / "summary.json"
         summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-        ret = summary.get("Final/EpRetLast10", float(last["Metrics/EpRet"]))
-        cost = summary.get("Final/EpCostLast10", float(last["Metrics/EpCost"]))
+        ret = float(summary.get("Final/EpRetLast10", last["Metrics/EpRet"]))
+        cost = float(summary.get("Final/EpCostLast10", last["Metrics/EpCost"]))
         finals.append((ret, cost))
         print(f"| {seed} | {float(last['Train/TotalSteps']):,.0f} | {ret:.2f} | {cost:.2f} | "
               f"{float(last['Train/LagrangeMultiplier']):.3f} | {float(last['Time/Total']) / 3600:.2f} |")
