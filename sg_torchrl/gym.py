@@ -225,7 +225,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         self._frames = FrameSource(env, render_mode, render_options, fps=fps) if render_mode is not None else None
         observation_spec = env.observation_spec
         self._pixels = "pixels" in observation_spec.keys()
-        self.observation_space = _observation_space(observation_spec)
+        self.observation_space = _observation_space(observation_spec, getattr(env, "observation_slices", None))
         action_spec = env.action_spec
         box = getattr(action_spec, "space", None)
         if box is not None and hasattr(box, "low"):
@@ -424,21 +424,30 @@ def _check_options(env_id: str, options: dict[str, Any]) -> None:
                         f"({env_id} takes {takes}; unknown: {', '.join(map(repr, unknown))})")
 
 
-def _observation_space(observation_spec) -> spaces.Space:
+def _observation_space(observation_spec, slices: dict[str, slice] | None = None) -> spaces.Space:
     """The gymnasium space of a TorchRL env's observations.
 
-    The flat vector alone: a ``float64`` ``Box``. With pixel observations (``obs_mode`` other than
+    The flat vector alone: a ``float64`` ``Box``, unbounded except the lidar parts named in
+    ``slices`` (the navigation envs' ``observation_slices``), in ``[0, 1]`` as Safety-Gymnasium
+    declares them. With pixel observations (``obs_mode`` other than
     ``"vector"``, the Vision ids): a ``Dict`` in Safety-Gymnasium's channels-last layout, ``"vision"``
     ``(H, W, 3)`` ``uint8`` (Safety-Gymnasium's key), ``"depth"`` ``(H, W, 1)`` ``float32`` metres in
     RGB-D modes, and ``"observation"`` (the flat ``float64`` vector) in ``vector+`` modes.
     """
     keys = observation_spec.keys()
-    if "pixels" not in keys:
-        return spaces.Box(-np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]), dtype=np.float64)
-    entries: dict[str, spaces.Space] = {}
+    vector = None
     if "observation" in keys:
-        entries["observation"] = spaces.Box(-np.inf, np.inf, shape=tuple(observation_spec["observation"].shape[1:]),
-                                            dtype=np.float64)
+        shape = tuple(observation_spec["observation"].shape[1:])
+        low, high = np.full(shape, -np.inf), np.full(shape, np.inf)
+        for name, part in (slices or {}).items():
+            if name.endswith("_lidar") and len(shape) == 1:
+                low[part], high[part] = 0.0, 1.0
+        vector = spaces.Box(low, high, dtype=np.float64)
+    if "pixels" not in keys:
+        return vector
+    entries: dict[str, spaces.Space] = {}
+    if vector is not None:
+        entries["observation"] = vector
     height, width, channels = observation_spec["pixels"].shape[1:]
     entries["vision"] = spaces.Box(0, 255, shape=(height, width, channels), dtype=np.uint8)
     if "depth" in keys:

@@ -86,6 +86,8 @@ def test_single_agent_ids_match_the_oracle(oracle, env_id):
     env = safety_gymnasium.make(env_id)
     assert list(env.observation_space.shape) == theirs["observation"]["shape"]
     assert str(env.observation_space.dtype) == theirs["observation"]["dtype"] == "float64"
+    np.testing.assert_array_equal(env.observation_space.low, theirs["observation"]["low"])  # lidar in [0, 1]
+    np.testing.assert_array_equal(env.observation_space.high, theirs["observation"]["high"])
     assert list(env.action_space.shape) == theirs["action"]["shape"]
     np.testing.assert_allclose(env.action_space.low, theirs["action"]["low"], rtol=1e-6)
     np.testing.assert_allclose(env.action_space.high, theirs["action"]["high"], rtol=1e-6)
