@@ -180,3 +180,23 @@ def test_async_env_with_spawn_carries_lambdas():
         truncateds = envs.step(envs.action_space.sample())[4]
     assert truncateds.tolist() == [True, True]
     envs.close()
+
+
+def test_omnisafe_adapter_pattern():
+    # OmniSafe 0.5's SafetyGymnasiumEnv: vector.make(env_id=..., num_envs=...) (asynchronous by default),
+    # single_* spaces, torch actions, final_observation rows or None.
+    import torch
+
+    envs = safety_gymnasium.vector.make(env_id=VEL_ID, num_envs=2, max_episode_steps=2)
+    assert isinstance(envs.single_action_space, gymnasium.spaces.Box)
+    assert isinstance(envs.single_observation_space, gymnasium.spaces.Box)
+    obs, info = envs.reset(seed=0)
+    for _ in range(2):
+        action = torch.as_tensor(envs.action_space.sample())
+        obs, reward, cost, terminated, truncated, info = envs.step(action)
+        obs, reward, cost, terminated, truncated = (
+            torch.as_tensor(x, dtype=torch.float32) for x in (obs, reward, cost, terminated, truncated))
+    final = torch.as_tensor(np.array([array if array is not None else np.zeros(obs.shape[-1])
+                                      for array in info["final_observation"]]), dtype=torch.float32)
+    assert final.shape == (2, 17) and truncated.tolist() == [1.0, 1.0]
+    envs.close()
