@@ -323,6 +323,7 @@ def test_install_alias_makes_import_safety_gymnasium_resolve_here():
         from safety_gymnasium.vector.utils.tile_images import tile_images
         from safety_gymnasium.tasks.safe_multi_agent.safe_mujoco_multi import SafeMAEnv
         from safety_gymnasium.utils.registration import make, safe_registry
+        from safety_gymnasium.utils.passive_env_checker import env_step_passive_checker
         from safety_gymnasium.version import __version__
         assert safety_gymnasium is sgs and SafeMAEnv is sgs.make_ma and make is sgs.make
         assert safety_gymnasium.wrappers.autoreset.SafeAutoResetWrapper is SafeAutoResetWrapper

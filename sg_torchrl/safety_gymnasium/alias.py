@@ -40,6 +40,7 @@ TARGET = "sg_torchrl.safety_gymnasium"
 LEGACY_PATHS: dict[str, str | None] = {
     "utils": None,
     "utils.registration": f"{TARGET}.registration",
+    "utils.passive_env_checker": f"{TARGET}.wrappers.env_checker",
     "version": TARGET,
     "tasks": None,
     "tasks.safe_multi_agent": None,
