@@ -115,6 +115,9 @@ def test_register_and_make_a_user_env():
             self.t += 1
             return np.full(1, float(self.t)), 1.0, 0.5, False, False, {}
 
+    rebuilt = safety_gymnasium.make(safety_gymnasium.make("SafetyPointGoal0-v0").spec)  # make(EnvSpec)
+    assert rebuilt.spec.max_episode_steps == 1000 and len(rebuilt.reset(seed=0)) == 2
+    assert len(rebuilt.step(rebuilt.action_space.sample())) == 6
     safety_gymnasium.register(id="SgTorchrlCounter-v0", entry_point=Counter, max_episode_steps=2)
     env = safety_gymnasium.make("SgTorchrlCounter-v0", autoreset=True)
     env.reset(seed=0)

@@ -152,7 +152,7 @@ def _make_registered(env_spec: EnvSpec, max_episode_steps, autoreset, apply_api_
         disable_env_checker = env_spec.disable_env_checker
     length = max_episode_steps if max_episode_steps is not None else env_spec.max_episode_steps
     if autoreset is None:
-        autoreset = env_spec.autoreset
+        autoreset = getattr(env_spec, "autoreset", False)  # a field of gymnasium 0.28's EnvSpec, not of 1.x's
     return _wrap(env, length, autoreset, disable_env_checker, order_enforce=env_spec.order_enforce)
 
 
