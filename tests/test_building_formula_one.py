@@ -73,7 +73,7 @@ def test_every_id_is_registered_with_its_vision_twin():
                 assert entry.max_episode_steps == (500 if task == "FormulaOne" else 1000)
                 assert entry.constructor is NavigationEnv and entry.kwargs == {"robot": robot, "task": task,
                                                                                 "level": level}
-                assert registry_entry(twin).options == {"obs_mode": "rgb", "image_size": 64}
+                assert registry_entry(twin).options == {"obs_mode": "vector+rgb", "image_size": 256}
 
 
 # ---------------------------------------------------------------------------- sizes, composition, stepping
@@ -351,7 +351,7 @@ def test_sim0_same_for_n1_and_n4(env_id):
 @pytest.mark.parametrize("task", TASKS)
 def test_vision_twins_emit_pixels(backend, task):
     env = make_env(f"SafetyPoint{task}2Vision-v0", num_envs=2, image_size=24)
-    assert "observation" not in env.observation_spec.keys()
+    assert {"observation", "pixels"} <= set(env.observation_spec.keys())  # the Vision ids' default: both
     nxt = env.rollout(2, break_when_any_done=False)["next"]
     pixels = nxt["pixels"]
     assert pixels.shape == (2, 2, 24, 24, 3) and pixels.dtype == torch.uint8

@@ -316,7 +316,7 @@ def registry_from_env_modules() -> dict[str, tuple]:
                 ids[f"Safety{robot}{task}{level}-v0"] = (NavigationEnv, "navigation", robot, task, level, steps, kwargs, {})
                 ids[f"Safety{robot}{task}{level}Vision-v0"] = (
                     NavigationEnv, "vision", robot, task, level, steps, kwargs,
-                    {"obs_mode": "rgb", "image_size": DEFAULT_IMAGE_SIZE})
+                    {"obs_mode": "vector+rgb", "image_size": DEFAULT_IMAGE_SIZE})
     for scenario in SCENARIOS.values():
         for conf in scenario.partitions:
             ids[f"Safety{conf}{scenario.robot}Velocity-v0"] = (

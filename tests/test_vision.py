@@ -85,14 +85,14 @@ def test_vision_ids_in_the_registry():
         assert (entry.family, entry.constructor) == ("vision", NavigationEnv)
         assert (entry.robot, entry.task, entry.level, entry.max_episode_steps, entry.kwargs) == (
             plain.robot, plain.task, plain.level, plain.max_episode_steps, plain.kwargs)
-        assert entry.options == {"obs_mode": "rgb", "image_size": 64}  # pixels only, 64 x 64, by default
+        assert entry.options == {"obs_mode": "vector+rgb", "image_size": 256}  # the original's (test_vision_fidelity)
     assert not set(VISION_IDS) & set(sg_torchrl.list_envs(family="navigation"))
 
 
 def test_sg_train_takes_pixel_envs_and_refuses_images_too_small_for_its_cnn():
     from sg_torchrl.train.config import TrainConfig
 
-    # Pixel-only envs train through CNN encoders (tests/test_train_vision.py runs them).
+    # Pixel envs train through CNN encoders (tests/test_train_vision.py runs them).
     assert TrainConfig(env_id=VISION_ID).env_id == VISION_ID
     assert TrainConfig(env_id="SafetyPointGoal1-v0", env_options={"obs_mode": "rgbd"}).env_options["obs_mode"] == "rgbd"
     with pytest.raises(ValueError, match="image_size=16 is too small for sg-train's CNN encoder.*>= 36"):
@@ -113,8 +113,10 @@ def test_without_opengl_a_pixel_env_says_why(monkeypatch):
 # ---------------------------------------------------------------------------- shapes, dtypes, ranges
 @pytest.mark.parametrize("robot", sorted(ROBOTS))
 def test_every_robot_sees_through_its_camera(backend, robot):
-    env = make_env(f"Safety{robot}Goal1Vision-v0", num_envs=2)
-    assert "observation" not in env.observation_spec.keys()  # pixels only by default
+    # Pixels only (obs_mode="rgb"), 64 x 64: the Vision ids' default, the vector and 256 x 256 images, is
+    # tested in tests/test_vision_fidelity.py.
+    env = make_env(f"Safety{robot}Goal1Vision-v0", num_envs=2, obs_mode="rgb", image_size=64)
+    assert "observation" not in env.observation_spec.keys()
     spec = env.observation_spec["pixels"]
     assert spec.shape == (2, 64, 64, 3) and spec.dtype == torch.uint8  # TorchRL's raw pixels: channels last
     assert spec.space.low.min() == 0 and spec.space.high.max() == 255
@@ -361,7 +363,10 @@ def test_facade_dict_observation(backend):
     assert obs in space and type(cost) is float
     env.close()
     twin = gymnasium.make(sg_gym.gymnasium_twin_id(VISION_ID), image_size=16)
-    assert set(twin.observation_space.spaces) == {"vision"}  # the id's default: pixels only
+    # The id's default holds the vector too (its keys: the façade's; sg_torchrl.envs.vision.DictLayout
+    # gives the original's, tests/test_vision_fidelity.py).
+    assert "vision" in twin.observation_space.spaces and len(twin.observation_space.spaces) > 1
+    assert twin.observation_space["vision"].shape == (16, 16, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         check_env(twin.unwrapped, skip_render_check=True)

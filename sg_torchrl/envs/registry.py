@@ -330,8 +330,10 @@ MULTI_AGENT_VELOCITY_PARTITIONS = {
 #: safety variants (``SAFETY_VARIANTS``).
 HAND_TASKS = {"HandOver": 75, "CatchOver2Underarm": 75}
 HAND_SAFETY_VARIANTS = ("SafeJoint", "SafeFinger")
-#: The Vision ids' image side (``sg_torchrl.envs.vision.DEFAULT_IMAGE_SIZE``).
-VISION_IMAGE_SIZE = 64
+#: The Vision ids' image side (``sg_torchrl.envs.vision.DEFAULT_IMAGE_SIZE``): Safety-Gymnasium's 256.
+VISION_IMAGE_SIZE = 256
+#: The Vision ids' ``obs_mode``: the vector and the image, as Safety-Gymnasium's Vision envs observe.
+VISION_OBS_MODE = "vector+rgb"
 
 
 def _register_velocity() -> None:
@@ -346,16 +348,17 @@ def _register_velocity() -> None:
 def _register_navigation() -> None:
     """``Safety{Robot}{Task}{Level}-v0`` and its ``...Vision-v0`` twin for every navigation task and level.
 
-    A Vision id is the same env as the plain id (task, level, episode length, costs) observed through
-    the robot's ``vision`` camera: ``obs_mode="rgb"`` at 64 x 64 by default (Safety-Gymnasium's
-    Vision envs render 256 x 256 next to the vector: ``obs_mode="vector+rgb"``, ``image_size=256``).
+    A Vision id is the same env as the plain id (task, level, episode length, costs) that also sees
+    through the robot's ``vision`` camera: by default the flat vector and a 256 x 256 RGB image
+    (``obs_mode="vector+rgb"``, ``image_size=256``), what Safety-Gymnasium's Vision envs observe.
+    Smaller images (``image_size=64``) or pixels only (``obs_mode="rgb"``) are options.
     """
     for task, (levels, steps) in NAVIGATION_TASKS.items():
         for level in range(levels):
             for robot in NAVIGATION_ROBOTS:
                 for suffix, family, options in (
                     ("", "navigation", {}),
-                    ("Vision", VISION_FAMILY, {"obs_mode": "rgb", "image_size": VISION_IMAGE_SIZE}),
+                    ("Vision", VISION_FAMILY, {"obs_mode": VISION_OBS_MODE, "image_size": VISION_IMAGE_SIZE}),
                 ):
                     register(EnvEntry(
                         env_id=f"Safety{robot}{task}{level}{suffix}-v0", constructor=_NAVIGATION, family=family,

@@ -29,8 +29,10 @@ tried in a short-lived subprocess (about half a second), because PyOpenGL binds 
 process and a failed EGL attempt would otherwise rule out OSMesa. Both work without a GPU through
 Mesa's software rasteriser (llvmpipe). When neither works, :class:`RenderingUnavailable` names the
 missing system library (Debian/Ubuntu: ``libegl1``, ``libgl1``, ``libosmesa6``; ``make install``
-installs them when it can). By default (``render_fast``) frames have no anti-aliasing, shadows,
-reflections or skybox: on a software rasteriser these cost several times the frame rate. Frames of
+installs them when it can). By default (``render_fast``) frames have no anti-aliasing, which on a
+software rasteriser costs several times the frame rate, and no shadows; they do have the model's
+skybox and reflections (about 10%: the navigation worlds' floor reflects and their sky has stars, as
+in Safety-Gymnasium, and the pixel observations look the same as ``render``). Frames of
 any size work (the renderer's offscreen buffer is sized for them; the shared model is left as is).
 
 Videos
@@ -232,20 +234,25 @@ class Renderer:
         model: the compiled model (shared by the simulators it renders).
         width / height: the largest frame this renderer will produce (smaller ones are fine).
         max_geom: capacity of the scene in geoms.
-        fast: no multisample anti-aliasing (about 3x faster on a software rasteriser) and no
-            shadows, reflections or skybox (stack notes: up to 8x; the navigation worlds use none).
+        fast: no multisample anti-aliasing (about 3x faster on a software rasteriser), no shadows
+            and, unless ``effects`` says otherwise, no reflections or skybox (stack notes: up to 8x).
+        effects: draw reflections and the skybox (default: ``not fast``). The env renderers and the
+            pixel observations use ``fast=True, effects=True``: Safety-Gymnasium's floor reflects and
+            its sky has stars, and these cost about 10% at 256 x 256 here, where anti-aliasing and
+            shadows cost most (:mod:`sg_torchrl.envs.vision`).
 
     Prefer :meth:`RenderMixin.render`; use this class directly to render ``MjData`` you manage.
     :meth:`close` frees the GL resources (also done at interpreter exit).
     """
 
     def __init__(self, model: mujoco.MjModel, width: int, height: int, *, max_geom: int = 10_000,
-                 fast: bool = True) -> None:
+                 fast: bool = True, effects: bool | None = None) -> None:
         global _exit_hook_registered
         if width < 1 or height < 1:
             raise ValueError(f"frame size must be positive, got width={width}, height={height}")
         self.model = model
         self.fast = fast
+        self.effects = (not fast) if effects is None else bool(effects)
         self._gl = None
         self._context = None
         backend = gl_backend()
@@ -323,9 +330,10 @@ class Renderer:
             raise ValueError(f"frame {width}x{height} exceeds this renderer's {self.max_width}x{self.max_height}")
         self._gl.make_current()
         self._update_scene(data, camera, geom_alpha)
+        flags = self._scene.flags
         if self.fast:
-            flags = self._scene.flags
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        if not self.effects:
             flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
             flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
         viewport = mujoco.MjrRect(0, 0, width, height)
@@ -482,7 +490,7 @@ class RenderMixin:
             if renderer is not None:
                 renderer.close()
             self._renderer = None
-            renderer = self._renderer = Renderer(self.physics.model, width, height, fast=self.render_fast)
+            renderer = self._renderer = Renderer(self.physics.model, width, height, fast=self.render_fast, effects=True)
         return data, mjv_camera, renderer
 
     def close_renderer(self) -> None:

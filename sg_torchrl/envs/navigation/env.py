@@ -40,7 +40,7 @@ from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_ve
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
-from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model
+from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model, world_extent
 from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, GeomAlpha, RenderMixin
 from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE, ObservationContent, ObsMode, PixelObserver
 
@@ -65,7 +65,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         obs_mode: ``"vector"`` (default: the flat ``observation``), ``"rgb"`` / ``"rgbd"`` (images
             of the robot's ``vision`` camera only: ``pixels`` and ``depth``), ``"vector+rgb"`` /
             ``"vector+rgbd"`` (both); see :mod:`sg_torchrl.envs.vision`. Single-robot tasks only.
-        image_size: side of the square images in pixels (default 64; the reference's is 256).
+        image_size: side of the square images in pixels (default 256, the reference's; 64 is 16 times cheaper).
         physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
             2 pays when a core is idle, see its module docstring).
 
@@ -114,10 +114,12 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             raise ValueError(f"lidar must be 'pseudo' or 'natural', got {lidar!r}")
         if not isinstance(compass, bool):  # a string such as "no" is truthy: it would turn the compass on
             raise TypeError(f"compass must be True or False, got {compass!r}")
+        # The original's extent: its cameras' clipping planes follow it (world_extent).
+        extent = world_extent(self.task.name, self.task.level, max(abs(e) for e in self.task.extents))
         model = compiled_model(  # natural lidar re-assigns geom groups: its own model
-            (*self.robot.spec_key(), *self.task.key, *((("agents", count),) if count > 1 else ()),
+            (*self.robot.spec_key(), *self.task.key, ("extent", extent), *((("agents", count),) if count > 1 else ()),
              *(("natural_lidar",) if lidar == "natural" else ())),
-            lambda: build_spec(self.robots, objects, self.task.floor_half_size, self.task.scenery),
+            lambda: build_spec(self.robots, objects, self.task.floor_half_size, self.task.scenery, extent),
         )
         for each in self.robots:
             each.bind(model)

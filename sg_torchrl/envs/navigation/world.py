@@ -37,8 +37,9 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.robots.base import Robot
     from sg_torchrl.envs.navigation.scenery import Scenery
 
-__all__ = ["FIXED_CAMERAS", "ResetBuffers", "Scene", "add_track_camera", "agent_prefix", "build_spec", "compiled_model",
-           "prefix_robot", "world_order"]
+__all__ = ["FIXED_CAMERAS", "FLOOR_CHECKER", "FLOOR_CHECKER_PERIOD", "REFERENCE_EXTENTS", "ResetBuffers", "Scene",
+           "add_look", "add_track_camera", "agent_prefix", "build_spec", "compiled_model", "prefix_robot",
+           "world_extent", "world_order"]
 
 _MODELS: dict[Hashable, mujoco.MjModel] = {}
 
@@ -56,7 +57,7 @@ def agent_prefix(index: int, count: int) -> str:
 
 def build_spec(
     robot: Robot | Sequence[Robot], objects: Sequence[NavObject], floor_half_size: float,
-    scenery: Scenery | None = None,
+    scenery: Scenery | None = None, extent: float | None = None,
 ) -> mujoco.MjSpec:
     """The world as an ``MjSpec``: robot options and defaults, the robot(s), the floor, the fixed
     ``scenery`` (:mod:`.scenery`: Race's village, Building's construction site, FormulaOne's track), then
@@ -64,11 +65,14 @@ def build_spec(
 
     ``robot`` is one robot or a sequence of them (several robots share one world: their options and
     defaults must agree, as they do for robots of one class); each robot's elements are renamed
-    with its prefix (:func:`prefix_robot`).
+    with its prefix (:func:`prefix_robot`). ``extent``: the model's ``stat.extent`` in metres
+    (:func:`world_extent`; ``None``: MuJoCo's, computed at compile time).
     """
     robots = list(robot) if isinstance(robot, Sequence) else [robot]
     spec = mujoco.MjSpec()
     spec.modelname = f"{robots[0].name.lower()}_navigation"
+    if extent is not None:
+        spec.stat.extent = extent
     for each in robots:  # first: their defaults are the world's (the reference reads them from the robot file)
         counts = _ElementCounts.of(spec)
         each.build(spec)
@@ -79,15 +83,78 @@ def build_spec(
         camera = spec.worldbody.add_camera(name=name, pos=list(pos))
         camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_ZAXIS
         camera.alt.zaxis = [0.0, -1.0, 1.0]  # looking at the arena's centre, 45 degrees down
-    spec.worldbody.add_light(name="sun", pos=[0.0, 0.0, 4.0], dir=[0.0, 0.0, -1.0], castshadow=False,
-                             diffuse=[1.0, 1.0, 1.0], specular=[0.0, 0.0, 0.0])
-    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6,
-                            size=[floor_half_size, floor_half_size, 0.1], rgba=[0.9, 0.9, 0.9, 1.0])
+    add_look(spec, floor_half_size)
     if scenery is not None:
         scenery.build(spec)
     for obj in world_order(objects):
         obj.add_to(spec)
     return spec
+
+
+#: Safety-Gymnasium's floor texture ("matplane"): a 2 x 2 checker of these two sand colours
+FLOOR_CHECKER = ((0.859, 0.843, 0.765), (0.949, 0.914, 0.855))
+#: metres per repeat of the checker (two squares): Safety-Gymnasium repeats it 10 times across its 7 m floor
+FLOOR_CHECKER_PERIOD = 0.7
+#: pixels a side of the skybox's faces and the share of them that are stars
+_SKY_SIZE, _STARS = 512, 0.004
+
+
+def add_look(spec: mujoco.MjSpec, floor_half_size: float) -> None:
+    """Add what the world looks like: the floor, its light and the sky, as Safety-Gymnasium's worlds.
+
+    Why: pixel observations (the Vision ids) are only comparable with the original's if the robot's
+    camera sees the same world. Measured on safety-gymnasium 1.0.0 (its ``world.py`` and compiled
+    models): the floor is a plane with a checkered texture (:data:`FLOOR_CHECKER`, squares of 0.35 m)
+    in a slightly specular (0.1), shiny (0.1) and reflective (0.1) material; one directional light
+    straight down (diffuse 1, no specular, no shadows) plus MuJoCo's default headlight; the sky is a
+    star field (a skybox of black with sparse white stars; here MuJoCo's built-in random marks, not
+    the original's star photographs). Scenery (:mod:`.scenery`) may restyle the floor afterwards.
+    """
+    repeat = 2.0 * floor_half_size / FLOOR_CHECKER_PERIOD
+    spec.add_texture(name="floor_checker", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER, width=100, height=100,
+                     rgb1=list(FLOOR_CHECKER[0]), rgb2=list(FLOOR_CHECKER[1]))
+    material = spec.add_material(name="floor_checker", texrepeat=[repeat, repeat], specular=0.1, shininess=0.1,
+                                 reflectance=0.1)
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "floor_checker"
+    spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX, builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT,
+                     width=_SKY_SIZE, height=_SKY_SIZE, rgb1=[0.0, 0.0, 0.0], rgb2=[0.0, 0.0, 0.0],
+                     mark=mujoco.mjtMark.mjMARK_RANDOM, random=_STARS, markrgb=[1.0, 1.0, 1.0])
+    spec.worldbody.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0.0, 0.0, 0.5],
+                             dir=[0.0, 0.0, -1.0], castshadow=False, diffuse=[1.0, 1.0, 1.0],
+                             specular=[0.0, 0.0, 0.0])
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, condim=6, material="floor_checker",
+                            size=[floor_half_size, floor_half_size, 0.1], rgba=[1.0, 1.0, 1.0, 1.0])
+
+
+#: Safety-Gymnasium's model extent (``stat.extent``, metres) per (task, level): the mean over 4-6 layouts
+#: measured on 1.0.0 (Point; Car's agree within 3%). Circle 1-2 and Run are fixed by their boundary walls.
+#: The Fading tasks are Goal levels (FadingEasy1 measured 2.91). See :func:`world_extent`.
+REFERENCE_EXTENTS = {
+    **{(task, level): extent for task in ("Goal", "FadingEasy", "FadingHard")
+       for level, extent in enumerate((1.30, 2.88, 3.91))},
+    ("Button", 0): 1.80, ("Button", 1): 2.90, ("Button", 2): 3.88,
+    ("Push", 0): 1.86, ("Push", 1): 3.08, ("Push", 2): 4.11,
+    ("Circle", 0): 3.00, ("Circle", 1): 9.28, ("Circle", 2): 9.28,
+    ("Run", 0): 36.0,
+}
+
+
+def world_extent(task_name: str, level: int, placement_half_width: float) -> float:
+    """The ``stat.extent`` to compile a task's world with: Safety-Gymnasium's (:data:`REFERENCE_EXTENTS`).
+
+    Why: MuJoCo puts the cameras' clipping planes at 1% and 50 times the extent (and the free camera at
+    a distance in proportion). Safety-Gymnasium recompiles every layout, so its extent is the spread of
+    that layout's bodies: about 2.9 m at Goal level 1, 9.3 m for Circle (its boundary walls), 36 m for
+    Run. Ours is compiled once, before any layout is placed (0.85 m for PointGoal1), which would put
+    the near plane at 8 mm: the Racecar's ``vision`` camera, 13.5 mm behind its front bumper, would
+    see the bumper fill its view where the original's clips it, and at Circle (near plane 9 cm) the
+    original's Point camera does not see its own body. Tasks the table lacks (the original has no
+    such task, or cannot build it) get twice their placement half-width, which is within 5% of the
+    table for every Goal, Button and Push level above 0.
+    """
+    extent = REFERENCE_EXTENTS.get((task_name, level))
+    return extent if extent is not None else 2.0 * placement_half_width
 
 
 #: Safety-Gymnasium's fixed world cameras (its ``world.py``): name -> position, each looking towards +y, 45 degrees down
@@ -178,6 +245,7 @@ def compiled_model(key: Hashable, build: Callable[[], mujoco.MjSpec]) -> mujoco.
     if model is None:
         model = _MODELS[key] = build().compile()
     return model
+
 
 
 @dataclass

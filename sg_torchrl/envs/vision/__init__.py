@@ -1,4 +1,5 @@
-"""Vision: pixel observations of the navigation envs (:mod:`.pixels`).
+"""Vision: pixel observations of the navigation envs (:mod:`.pixels`) and Safety-Gymnasium's dict
+layout of them (:mod:`.layout`).
 
 The vision scenes are navigation tasks (``sg_torchrl.envs.navigation.tasks``): FadingEasy / FadingHard
 (objects fading per simulator, :mod:`sg_torchrl.envs.navigation.fading`), Race (a village road),
@@ -6,6 +7,7 @@ BuildingGoal / BuildingButton / BuildingPush (a construction site) and FormulaOn
 fixed set dressing is :mod:`sg_torchrl.envs.navigation.scenery`.
 """
 
+from sg_torchrl.envs.vision.layout import DictEntry, DictLayout
 from sg_torchrl.envs.vision.pixels import (
     DEFAULT_IMAGE_SIZE,
     OBS_MODES,
@@ -14,4 +16,5 @@ from sg_torchrl.envs.vision.pixels import (
     PixelObserver,
 )
 
-__all__ = ["DEFAULT_IMAGE_SIZE", "OBS_MODES", "ObservationContent", "ObsMode", "PixelObserver"]
+__all__ = ["DEFAULT_IMAGE_SIZE", "DictEntry", "DictLayout", "OBS_MODES", "ObservationContent", "ObsMode",
+           "PixelObserver"]

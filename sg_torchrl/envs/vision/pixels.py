@@ -15,14 +15,17 @@ emits, besides or instead of the flat ``observation`` vector:
   depth in metres (it scales only integer images).
 
 ``obs_mode`` is one of :data:`OBS_MODES`: ``"vector"`` (the flat vector only, the default of the
-plain ids), ``"rgb"``, ``"rgbd"`` (pixels only: the default of the Vision ids is ``"rgb"``),
-``"vector+rgb"``, ``"vector+rgbd"`` (both). Images are square, ``image_size`` pixels a side (64 by
-default; Safety-Gymnasium's Vision envs use 256).
+plain ids), ``"rgb"``, ``"rgbd"`` (pixels only), ``"vector+rgb"``, ``"vector+rgbd"`` (both; the
+Vision ids' default is ``"vector+rgb"``, what Safety-Gymnasium's Vision envs observe). Images are
+square, ``image_size`` pixels a side: 256 by default, Safety-Gymnasium's size; ``image_size=64`` (or
+less) makes them 16 times cheaper to render, store and learn from. The gymnasium façade gives the
+original's dict layout back (:mod:`sg_torchrl.envs.vision.layout`).
 
 How: one :class:`PixelObserver` per env owns one offscreen
 :class:`~sg_torchrl.envs.rendering.Renderer` that renders the ``N`` simulators one after the other
-into ``(N, H, W, 3)`` / ``(N, H, W)`` buffers allocated once, with the renderer's fast flags (no
-shadows, reflections, skybox or anti-aliasing: several times faster on a software rasteriser). The
+into ``(N, H, W, 3)`` / ``(N, H, W)`` buffers allocated once, without anti-aliasing or shadows (several
+times faster on a software rasteriser) but with the floor's reflections and the starry skybox of the
+original (``Renderer(fast=True, effects=True)``: about 10% more). The
 env renders after every step (all simulators) and after a reset (only the simulators reset: a
 partial reset draws nothing for the others), and copies the buffers into fresh tensors when it
 emits a TensorDict. Rendering only reads ``MjData``: trajectories are the same with or without
@@ -31,13 +34,15 @@ own: GL contexts belong to one process) and freed by :meth:`PixelObserver.close`
 Without a working OpenGL backend, building a pixel env raises
 :class:`~sg_torchrl.envs.rendering.RenderingUnavailable`, which says what is missing.
 
-Differences from Safety-Gymnasium's Vision envs, whose ``vision`` image goes through ``render()``:
-theirs shows the lidar indicator spheres above the agent, these show only the world (the markers
-are a debugging aid, not part of what a camera on the robot would see); theirs has the skybox and
-shadows, here the sky is black and nothing casts shadows (the fast flags); theirs is ``(256, 256,
-3)`` under the key ``"vision"`` next to the vector keys, here the size is ``image_size`` and the
-key TorchRL's ``"pixels"``, in the same channels-last layout (the gymnasium façade gives the
-``"vision"`` key back).
+The scene is the original's (:func:`sg_torchrl.envs.navigation.world.add_look`: checkered floor,
+one directional light, a starry sky; each robot's camera pose and field of view; the clipping planes
+of its extent), so images agree in their statistics (``tests/test_vision_fidelity.py`` measures
+them against safety-gymnasium 1.0.0). Differences from Safety-Gymnasium's Vision envs, whose
+``vision`` image goes through ``render()``: theirs shows the lidar indicator spheres above the agent
+when they come into view, these show only the world (the markers are a debugging aid, not part of
+what a camera on the robot would see); their stars are photographs, ours MuJoCo's random marks;
+theirs is anti-aliased. The key is TorchRL's ``"pixels"`` next to the flat ``"observation"``, in the
+same channels-last layout; the gymnasium façade gives the original's ``"vision"`` key back.
 """
 
 from __future__ import annotations
@@ -59,8 +64,8 @@ __all__ = ["OBS_MODES", "ObsMode", "ObservationContent", "PixelObserver", "DEFAU
 ObsMode = Literal["vector", "rgb", "rgbd", "vector+rgb", "vector+rgbd"]
 #: every accepted ``obs_mode``
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
-#: default side of the square images, pixels
-DEFAULT_IMAGE_SIZE = 64
+#: default side of the square images, pixels: Safety-Gymnasium's (its ``vision_size`` is 256 x 256)
+DEFAULT_IMAGE_SIZE = 256
 
 
 @dataclass(frozen=True)
@@ -151,7 +156,7 @@ class PixelObserver:
         renderer = self._renderer
         if renderer is None:
             size = self.image_size
-            renderer = self._renderer = Renderer(self.physics.model, size, size, fast=True)
+            renderer = self._renderer = Renderer(self.physics.model, size, size, fast=True, effects=True)
         datas, camera, depth, alpha = self.physics.datas, self.camera, self.depth, self.geom_alpha
         for index in indices:
             renderer.render_into(datas[index], camera, self.rgb[index], None if depth is None else depth[index],

@@ -32,8 +32,8 @@ raised), so in practice this means it has turned over (on its back the torso res
 
 Frame: the same body frame as the reference's model. The ant has no built-in front (its legs are four
 times symmetric); +x, the diagonal between legs 1 and 4, is its forward axis here, where lidar bin 0
-looks, as in the reference. The one difference is the ``vision`` camera: the reference's looks
-along the body's +y axis; here it looks along +x like every robot's (:func:`add_vision_camera`).
+looks, as in the reference. The ``vision`` camera is the reference's too: level, 0.05 above and
+0.05 along +y from the torso centre, looking along +y (to the left of lidar bin 0), 45-degree view.
 
 Observation (40 values, reference section 2): accelerometer, velocimeter, gyro, magnetometer on the
 torso site (12); the eight leg-joint velocities ``hip_1_vel, ankle_1_vel, ..., ankle_4_vel`` (8);
@@ -132,7 +132,8 @@ class Ant(FreeBodyRobot):
         spec.default.site.size[0] = 0.032
 
         torso = spec.worldbody.add_body(name=self.root_body, pos=[0.0, 0.0, self.height])
-        add_vision_camera(torso, [0.05, 0.0, 0.05])
+        # The reference's: level, looking along the body's +y axis (module docstring).
+        add_vision_camera(torso, [0.0, 0.05, 0.05], xyaxes=(1.0, 0.0, 0.0, 0.0, 0.0, 1.0), fovy=45.0)
         free = torso.add_freejoint(name=self.root_body)
         free.armature, free.damping[0] = 0.0, 0.0  # the leg joints' defaults do not apply to the root
         free.limited = mujoco.mjtLimited.mjLIMITED_FALSE

@@ -56,11 +56,23 @@ def add_fixed_sensors(spec: mujoco.MjSpec, site: str) -> None:
         spec.add_sensor(name=sensor, type=_FIXED_SENSOR_TYPES[sensor], objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
 
 
-def add_vision_camera(body: mujoco.MjsBody, pos: list[float]) -> None:
-    """Add the ``vision`` camera at ``pos`` on ``body``: looking along the body's +x axis, tilted down, fovy 90."""
-    camera = body.add_camera(name="vision", pos=pos, fovy=90.0)
+#: the ``vision`` camera's image axes of Point, Car and Doggo: looking along the body's +x axis, tilted
+#: down by 22 degrees (Safety-Gymnasium's ``xyaxes="0 -1 0 .4 0 1"``)
+TILTED_FORWARD = (0.0, -1.0, 0.0, 0.4, 0.0, 1.0)
+
+
+def add_vision_camera(body: mujoco.MjsBody, pos: list[float], *, xyaxes: tuple[float, ...] = TILTED_FORWARD,
+                      fovy: float = 90.0) -> None:
+    """Add the ``vision`` camera (the Vision ids' pixel observations) at ``pos`` on ``body``.
+
+    ``xyaxes`` (the image's x and y axes in the body frame) and ``fovy`` (vertical field of view,
+    degrees) are each robot's in Safety-Gymnasium 1.0.0, measured there relative to the robot's root
+    body (its compiled models' ``cam_pos`` / ``cam_quat`` / ``cam_fovy``; 45 where its model gives none),
+    so that the same id shows the same view.
+    """
+    camera = body.add_camera(name="vision", pos=pos, fovy=fovy)
     camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
-    camera.alt.xyaxes = [0.0, -1.0, 0.0, 0.4, 0.0, 1.0]
+    camera.alt.xyaxes = list(xyaxes)
 
 # How a sensor reading becomes observation values.
 Transform = Literal["raw", "sincos", "rotmat", "z"]

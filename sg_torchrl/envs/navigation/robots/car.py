@@ -68,7 +68,7 @@ class Car(FreeBodyRobot):
         spec.default.site.size[0] = 0.032
 
         chassis = spec.worldbody.add_body(name=self.root_body, pos=[0.0, 0.0, self.height])
-        add_vision_camera(chassis, [-0.1, 0.0, 0.2])
+        add_vision_camera(chassis, [-0.1, 0.0, 0.2], fovy=45.0)  # the reference's pose in this frame, its default fovy
         chassis.add_freejoint(name=self.root_body)  # free joints are undamped
         chassis.add_site(name=self.root_body, type=_SPHERE, rgba=[1.0, 0.0, 0.0, 0.1])
         chassis.add_geom(name="agent", type=_BOX, size=[0.1, 0.1, 0.05], rgba=_BODY_RGBA)

@@ -96,8 +96,7 @@ class Doggo(FreeBodyRobot):
         spec.default.site.size[0] = 0.018
 
         torso = spec.worldbody.add_body(name=self.root_body, pos=[0.0, 0.0, self.height])
-        add_vision_camera(torso, [0.0625, 0.0, 0.1])
-        spec.camera("vision").fovy = 100.0  # the reference's field of view
+        add_vision_camera(torso, [0.0625, 0.0, 0.1], fovy=100.0)  # the reference's field of view
         torso.add_site(name=self.root_body, type=_SPHERE, rgba=[1.0, 0.0, 0.0, 0.0])
         torso.add_geom(name="agent", type=_CYLINDER, size=[self.torso_radius, 0.0, 0.0],
                        fromto=[0.0, 0.0, 0.0, 0.1, 0.0, 0.0], density=2.0, rgba=_BODY_RGBA)

@@ -43,9 +43,10 @@ cylinders for the wheels), its differential gears are lumped into the welded blo
 above (the same total mass and inertia about the same points), and the geometry-only parts (visual
 meshes, a small collidable cylinder inside the chassis) are left out. Its ``subtreecom``,
 ``subtreelinvel`` and ``subtreeangmom`` sensors are not observed and not built. The ``vision``
-camera differs on purpose: the reference's sits 0.05 above the origin at x = 0.2, just behind the
-front bumper, which fills nearly all of its level 45-degree view; here it sits 0.1 above the front
-edge of the bumper (x = 0.25), tilted down with a 90-degree view like every robot's.
+camera is the reference's: 0.05 above the origin at x = 0.2, just behind the front bumper, level,
+with a 45-degree view. The bumper, 13.5 mm ahead, is nearer than the near clipping plane of the
+reference's extent at levels 1 and 2 and is not drawn, as there (at level 0 it is; see
+:func:`~sg_torchrl.envs.navigation.world.world_extent`).
 
 Observation (12 values, reference section 2): accelerometer, velocimeter, gyro, magnetometer on the
 site 0.02 ahead of the origin. The car's hinges carry no sensors, so they add nothing:
@@ -126,7 +127,8 @@ class Racecar(FreeBodyRobot):
         spec.default.site.size[0] = 0.032
 
         chassis = spec.worldbody.add_body(name=self.root_body, pos=[0.0, 0.0, self.height])
-        add_vision_camera(chassis, [0.25, 0.0, 0.1])  # above the bumper's front edge (see the module docstring)
+        # The reference's: level, looking along +x, just behind the front bumper (module docstring).
+        add_vision_camera(chassis, [0.2, 0.0, 0.05], xyaxes=(0.0, -1.0, 0.0, 0.0, 0.0, 1.0), fovy=45.0)
         chassis.add_freejoint(name=self.root_body)  # free joints are undamped
         chassis.add_site(name=self.root_body, type=_SPHERE, pos=[0.02, 0.0, 0.0], rgba=[1.0, 0.0, 0.0, 0.1])
         chassis.add_geom(name=self.root_body, type=_BOX, pos=[0.0025, 0.0, 0.0], size=[0.2025, 0.1, 0.03],
