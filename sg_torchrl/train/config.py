@@ -25,7 +25,8 @@ Pixel observations (a ``...Vision-v0`` id, or ``env_options`` ``obs_mode=rgb|rgb
 vector+rgbd``) need no option: the single-agent networks read whatever the env's observation spec
 holds, with a CNN encoder before ``hidden_sizes`` when there are images
 (:mod:`sg_torchrl.train.models`), and ``normalize_obs`` applies to the flat vector only. The
-``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU.
+``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU: pixels only, 64 x 64
+(``env_options``; the Vision ids default to the vector and a 256 x 256 image, Safety-Gymnasium's layout).
 
 **Seed groups.** ``seeds`` (``--seeds 0 1 2``) trains S seeds side by side in one process, each
 exactly as its single-seed run with that ``seed`` would train: ``num_envs``, ``steps_per_epoch`` and
@@ -383,7 +384,7 @@ class TrainConfig:
             raise ValueError(
                 f"config: image_size={image_size} is too small for sg-train's CNN encoder (kernels "
                 f"{DEFAULT_CNN.kernel_sizes}, strides {DEFAULT_CNN.strides}): use image_size >= {smallest} "
-                f"(the Vision ids default to 64)"
+                f"(the Vision ids default to 256, Safety-Gymnasium's size)"
             )
 
     def _validate_engine(self) -> None:
