@@ -80,11 +80,10 @@ a 6-tuple env fails with "too many values to unpack"). Hence:
 Speed
 -----
 For a plain :class:`~sg_torchrl.envs.base.SafeEnv` the step runs the env's public numpy interface
-(:meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays` and ``aggregate_cost``: the body of its TorchRL
-step without building TensorDicts), which saves about
-90-110 us per step compared with ``env.step(td)`` on one simulator (HalfCheetah: 157 -> 66 us, of
-which MuJoCo takes 36 us; 2-core CPU machine); envs that override ``_step`` (or are not a
-``SafeEnv``) go through the public TorchRL ``step``. Both paths give identical data (tested).
+(:meth:`~sg_torchrl.envs.base.SafeEnv.step_one`: the body of its TorchRL step without building
+TensorDicts, on Python values), several times cheaper than ``env.step(td)`` on one simulator
+(``benchmarks/single_env_speed.py`` sets it beside bare MuJoCo and Safety-Gymnasium 1.0.0); envs
+that override ``_step`` (or are not a ``SafeEnv``) go through the public TorchRL ``step``. Both paths give identical data (tested).
 """
 
 from __future__ import annotations
@@ -362,18 +361,13 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         return out
 
     def _fast_step(self, action32: np.ndarray):
-        """The env's public numpy step (:meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays`), emitting
+        """The env's public one-simulator step (:meth:`~sg_torchrl.envs.base.SafeEnv.step_one`), emitting
         the values its TorchRL step would emit (float32 rounding included) without TensorDicts."""
-        env = self._env
-        observation, reward, costs, terminated, truncated = env.step_arrays(action32.astype(np.float64))
-        cost, cost_info = env.aggregate_cost(costs)
-        cost = float(np.float32(cost[0]))
+        obs, reward, cost, terminated, truncated, cost_info = self._env.step_one(action32)
         info = self._step_info(0) if self._step_info is not None else {}
-        info.update((key, float(np.float32(cost_info[name][0])))
-                    for key, name in zip(self._info_keys, self._constraints))
+        info.update((key, cost_info[name]) for key, name in zip(self._info_keys, self._constraints))
         info["cost_sum"] = cost
-        obs = np.asarray(observation[0], dtype=np.float32).astype(np.float64)
-        return obs, float(np.float32(reward[0])), cost, bool(terminated[0]), bool(truncated[0]), info
+        return obs, reward, cost, terminated, truncated, info
 
     def _observation(self, td: TensorDict) -> np.ndarray | dict[str, np.ndarray]:
         """Simulator 0's observation in :attr:`observation_space`'s layout (see :func:`_observation_space`)."""

@@ -36,6 +36,7 @@ Subclasses implement the numpy hooks ``_reset_sims``, ``_advance``, ``_observe``
 from __future__ import annotations
 
 import abc
+import math
 import numbers
 from collections.abc import Sequence
 from typing import Literal
@@ -51,6 +52,18 @@ __all__ = ["SafeEnv", "CostMode", "block_seeds"]
 CostMode = Literal["indicator", "raw"]
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
+
+
+def _magnitude(reward: np.ndarray, costs: dict[str, np.ndarray]) -> float:
+    """The sum of the absolute rewards and raw costs of the whole batch (NaN when one is NaN).
+
+    One-element arrays (one simulator, one agent) are read as Python floats: the same float64
+    additions, without a numpy reduction per array.
+    """
+    magnitude = abs(reward.item()) if reward.size == 1 else np.add.reduce(np.abs(reward), axis=None)
+    for value in costs.values():
+        magnitude += abs(value.item()) if value.size == 1 else np.add.reduce(np.abs(value), axis=None)
+    return magnitude
 
 
 def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> None:
@@ -223,8 +236,22 @@ class SafeEnv(EnvBase, abc.ABC):
         """Record anything the reward or cost needs from the pre-step state (e.g. positions)."""
 
     def _diverged(self, observation: np.ndarray) -> np.ndarray:
-        """Which simulators hold a non-finite state after stepping, ``(N,)`` bool."""
+        """Which simulators hold a non-finite state after stepping, ``(N,)`` bool.
+
+        A subclass that adds a condition here must add it to :meth:`_fault_free` too.
+        """
         return ~np.isfinite(observation).all(axis=1)
+
+    def _fault_free(self, observation: np.ndarray, reward: np.ndarray, costs: dict[str, np.ndarray]) -> bool:
+        """A screen before :meth:`_diverged` and :meth:`_nonfinite_outcome`: ``True`` only when neither
+        would flag any simulator, so the step can skip building their ``(N,)`` masks.
+
+        Why: on one simulator those masks cost more than the physics of a small robot. Here a
+        finite sum of the whole observation proves every entry finite (NaN and inf propagate; a
+        sum that overflows only sends the step to the exact test), and the outcome test is
+        :meth:`_nonfinite_outcome`'s own whole-batch magnitude.
+        """
+        return math.isfinite(np.add.reduce(observation, axis=None)) and _magnitude(reward, costs) <= _FLOAT32_MAX
 
     def _nonfinite_outcome(self, reward: np.ndarray, costs: dict[str, np.ndarray]) -> np.ndarray:
         """Which simulators' reward or cost would be emitted non-finite, ``(N,)`` bool.
@@ -242,10 +269,7 @@ class SafeEnv(EnvBase, abc.ABC):
         is finite. One sum over the whole batch decides the common all-finite case (about 3 us, the
         per-step price of this check); only when it fails is the sum taken per simulator.
         """
-        magnitude = np.abs(reward).sum()
-        for value in costs.values():
-            magnitude += np.abs(value).sum()
-        if magnitude <= _FLOAT32_MAX:
+        if _magnitude(reward, costs) <= _FLOAT32_MAX:
             return np.zeros(self.num_envs, dtype=bool)
         n = self.num_envs
         per_sim = np.abs(np.reshape(reward, (n, -1))).sum(axis=1)
@@ -291,8 +315,10 @@ class SafeEnv(EnvBase, abc.ABC):
         reward = self._compute_reward(action)
         costs = self._compute_cost()
         terminated = self._compute_terminated()
-        self._elapsed[:] += 1  # in place: assigning an attribute of an nn.Module costs microseconds
+        np.add(self._elapsed, 1, out=self._elapsed)  # in place: assigning an attribute of an nn.Module costs microseconds
         truncated = self._elapsed >= self.max_episode_steps
+        if self._fault_free(observation, reward, costs):  # the common case, decided without (N,) masks
+            return observation, reward, costs, terminated, truncated
         diverged = self._diverged(observation) | self._nonfinite_outcome(reward, costs)
         if diverged.any():
             return self._isolate(diverged, observation, reward, costs, terminated, truncated)
@@ -318,6 +344,36 @@ class SafeEnv(EnvBase, abc.ABC):
             The arrays may be buffers that the next step overwrites: copy what you keep.
         """
         return self._transition_arrays(action)
+
+    def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
+        """One step of a one-simulator env as Python values: what a gymnasium env returns.
+
+        Args:
+            action: the ``(act_dim,)`` or ``(1, act_dim)`` action (the caller has checked its shape and
+                that it is finite; it is clipped to the bounds here, as in ``step``).
+
+        Returns:
+            ``(observation, reward, cost, terminated, truncated, cost_info)``: the ``(obs_dim,)`` float64
+            observation, reward and cost as Python floats, the flags as Python bools and ``cost_info``
+            ``{name: float}``. Each value is the float32 value the TorchRL ``step`` emits, widened
+            (the observation a fresh array), so a policy sees the same inputs through either API.
+
+        Why: on one simulator the batched bookkeeping (``(N, 1)`` columns, TensorDicts) costs more
+        than the physics of a small robot; this is the step of the gymnasium façade.
+        """
+        if self.num_envs != 1:
+            raise ValueError(f"step_one steps a one-simulator env; this one has num_envs={self.num_envs}")
+        observation, reward, costs, terminated, truncated = self._transition_arrays(
+            np.asarray(action, dtype=np.float64).reshape(1, -1))
+        cost, cost_info = self._aggregate_cost(costs)
+        return (
+            observation[0].astype(np.float32).astype(np.float64),
+            float(np.float32(reward[0])),
+            float(np.float32(cost[0])),
+            bool(terminated[0]),
+            bool(truncated[0]),
+            {name: float(np.float32(value[0])) for name, value in cost_info.items()},
+        )
 
     def aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """``(cost, cost_info)`` of raw per-constraint ``costs`` under :attr:`cost_mode`: the total the
@@ -466,6 +522,12 @@ class SafeEnv(EnvBase, abc.ABC):
     def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The total cost and the ``cost_info`` entries for raw per-constraint ``costs``, each ``(N,)``
         (or ``(N, A)``, one value per agent: then per agent), under :attr:`cost_mode`."""
+        if self.cost_mode == "indicator" and len(costs) == 1:
+            # One constraint: 0 + v > 0 is v > 0 for every v (signed zeros and NaN included), so the total's
+            # indicator is the constraint's own, without the sum.
+            (name, value), = costs.items()
+            indicator = (value > 0).astype(np.float32)
+            return indicator, {name: indicator.copy()}
         shape = np.shape(next(iter(costs.values()))) if costs else (self.num_envs,)
         total = sum(costs.values(), np.zeros(shape))
         if self.cost_mode == "indicator":

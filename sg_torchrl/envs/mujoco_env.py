@@ -29,6 +29,9 @@ class MujocoSafeEnv(SafeEnv):
     def _diverged(self, observation: np.ndarray) -> np.ndarray:
         return super()._diverged(observation) | self.physics.unstable
 
+    def _fault_free(self, observation: np.ndarray, reward: np.ndarray, costs: dict[str, np.ndarray]) -> bool:
+        return not np.count_nonzero(self.physics.unstable) and super()._fault_free(observation, reward, costs)
+
     def _physics_state(self):
         return self.physics.get_state()
 

@@ -17,6 +17,12 @@ no attribute lookups). Tasks then read observations, positions and health checks
 as often as they like. The cache is refreshed by :meth:`step`, :meth:`reset` and :meth:`set_state`;
 code that writes into ``MjData`` directly must call :meth:`refresh`.
 
+One simulator: with ``num_sims == 1`` the state cache arrays are ``(1, ...)`` views of that
+simulator's ``MjData`` arrays rather than copies, and :meth:`step` reads its instability counters as
+three scalars. A single simulator is where the work around ``mj_step`` decides the speed (the
+gymnasium façade, issue 19), and the values read are the same either way: nothing reads the cache
+between a write into ``MjData`` and the :meth:`refresh` that would follow it.
+
 Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises one of its
 ``BADQPOS``/``BADQVEL``/``BADQACC`` warnings and silently resets that ``MjData`` to the model's
 initial state. :meth:`step` reports which simulators this happened to, so the env can end their
@@ -54,7 +60,7 @@ MocapTrajectory = Callable[[np.ndarray], np.ndarray]
 
 # MuJoCo's instability warnings (contiguous in mjtWarning): each comes with an automatic reset.
 _UNSTABLE = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
-assert int(mujoco.mjtWarning.mjWARN_BADQVEL) == _UNSTABLE.start + 1
+assert int(mujoco.mjtWarning.mjWARN_BADQVEL) == _UNSTABLE.start + 1 and _UNSTABLE.stop - _UNSTABLE.start == 3
 
 
 class MujocoBatch:
@@ -101,13 +107,18 @@ class MujocoBatch:
         # holds the (N, ...) cache array and the live views of that MjData array in every simulator.
         # MuJoCo's warning counters are cached the same way: they reveal its silent resets.
         self._ctrl_views = [data.ctrl for data in self.datas]
+        # One simulator (module docstring, "One simulator"): the cache arrays are (1, ...) views of its
+        # MjData arrays, so nothing is copied after a step.
+        self._aliased = num_sims == 1
         self._cache: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}
         for name in ("qpos", "qvel", *fields, "warnings"):
             views = [data.warning.number if name == "warnings" else getattr(data, name) for data in self.datas]
-            self._cache[name] = (np.zeros((num_sims, *views[0].shape), dtype=views[0].dtype), views)
+            cache = views[0][None] if self._aliased else np.zeros((num_sims, *views[0].shape), dtype=views[0].dtype)
+            self._cache[name] = (cache, views)
         self._qpos, self._qvel, self._warnings = (self._cache[name][0] for name in ("qpos", "qvel", "warnings"))
-        # Where np.concatenate of the N views lands: the cache array with the N rows joined.
-        self._gather_plan = [(views, cache.reshape(-1, *cache.shape[2:])) for cache, views in self._cache.values()]
+        # Where np.concatenate of the N views lands: the cache array with the N rows joined (none when aliased).
+        self._gather_plan = [] if self._aliased else [
+            (views, cache.reshape(-1, *cache.shape[2:])) for cache, views in self._cache.values()]
         self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
         self.unstable = np.zeros(num_sims, dtype=bool)  # simulators MuJoCo reset during the last step
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
@@ -134,6 +145,8 @@ class MujocoBatch:
         """
         if self._mocap_drivers:
             self._for_each_slice(self._step_driven, ctrl, nstep, self._mocap_plans(nstep))
+        elif self._aliased:
+            return self._step_one(ctrl, nstep)
         else:
             self._for_each_slice(self._step_plain, ctrl, nstep)
         self.version += 1
@@ -142,6 +155,23 @@ class MujocoBatch:
         counts = self._warnings[:, _UNSTABLE].sum(axis=1)
         np.not_equal(counts, self._unstable_counts, out=self.unstable)
         self._unstable_counts[:] = counts
+        return self.unstable
+
+    def _step_one(self, ctrl: np.ndarray, nstep: int) -> np.ndarray:
+        """:meth:`step` of a single simulator without driven mocap bodies: the state cache is a view of
+        its ``MjData`` (nothing to gather) and its instability warnings are three counters read as scalars."""
+        data = self.datas[0]
+        self._ctrl_views[0][:] = ctrl[0]
+        mujoco.mj_step(self.model, data, nstep)
+        if self.forward_after_step:
+            mujoco.mj_forward(self.model, data)
+        if self.post_constraint:
+            mujoco.mj_rnePostConstraint(self.model, data)
+        self.version += 1
+        warnings, first = self._warnings[0], _UNSTABLE.start
+        count = int(warnings[first]) + int(warnings[first + 1]) + int(warnings[first + 2])
+        self.unstable[0] = count != self._unstable_counts[0]
+        self._unstable_counts[0] = count
         return self.unstable
 
     def _for_each_slice(self, step_slice: Callable[..., None], *args) -> None:
@@ -248,9 +278,10 @@ class MujocoBatch:
         Only needed after writing into ``self.datas[i]`` directly.
         """
         rows = range(self.num_sims) if indices is None else [int(i) for i in indices]
-        for cache, views in self._cache.values():
-            for i in rows:
-                cache[i] = views[i]
+        if not self._aliased:  # an aliased cache is the MjData itself
+            for cache, views in self._cache.values():
+                for i in rows:
+                    cache[i] = views[i]
         rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
         self.unstable[rows] = False

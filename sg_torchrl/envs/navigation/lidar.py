@@ -26,6 +26,7 @@ compass=...)``):
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Literal
 
@@ -80,14 +81,24 @@ def pseudo_lidar(
     bins = np.minimum(position.astype(np.int64), num_bins - 1)  # angles a hair below 2 pi round up to 2 pi
     reading = _reading(distance, max_dist, exp_gain)
     # Every target writes three distinct bins of its own row; the per-bin maximum over targets is taken after.
+    # The writes go through flat indices (row and target offsets computed once per shape): cheaper than
+    # indexing with three broadcast index arrays, and the same elements get the same values.
     contributions = np.zeros((n, k, num_bins))
-    rows, columns = np.arange(n)[:, None], np.arange(k)[None, :]
+    flat, offsets = contributions.reshape(-1), _target_offsets(n, k, num_bins)
     if alias:
-        fraction = np.clip(position - bins, 0.0, 1.0)
-        contributions[rows, columns, (bins + 1) % num_bins] = fraction * reading
-        contributions[rows, columns, (bins - 1) % num_bins] = (1.0 - fraction) * reading
-    contributions[rows, columns, bins] = reading
+        fraction = np.minimum(np.maximum(position - bins, 0.0), 1.0)  # np.clip(.., 0, 1), cheaper
+        flat[offsets + (bins + 1) % num_bins] = fraction * reading
+        flat[offsets + (bins - 1) % num_bins] = (1.0 - fraction) * reading
+    flat[offsets + bins] = reading
     return contributions.max(axis=1, out=out)
+
+
+@functools.lru_cache(maxsize=64)
+def _target_offsets(n: int, k: int, num_bins: int) -> np.ndarray:
+    """Flat index of bin 0 of each target's row in an ``(n, k, num_bins)`` array, ``(n, k)`` (read-only)."""
+    offsets = np.arange(n * k, dtype=np.int64).reshape(n, k) * num_bins
+    offsets.flags.writeable = False
+    return offsets
 
 
 def _reading(distance: np.ndarray, max_dist: float | None, exp_gain: float) -> np.ndarray:

@@ -151,9 +151,15 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self._penalty_ctrl = np.zeros(num_envs)  # the last step's control penalty (step_info)
         self.last_velocity = np.zeros(num_envs)
         self._velocity = np.zeros((num_envs, 2))
+        self._velocity_measured = self._velocity[:, : self._position_before.shape[1]]  # views of the buffers
+        self._velocity_x = self._velocity[:, 0]
+        self._action_squared = np.zeros((num_envs, model.nu))
+        self._never_terminated = np.zeros(num_envs, dtype=bool)  # robots without a health check
+        self._never_terminated.flags.writeable = False
         # Hot-path buffers are filled in place: assigning an attribute of an EnvBase (an nn.Module)
         # costs microseconds, and SafeEnv copies what it emits.
         self._observation = np.zeros((num_envs, self._observation_size(model)))
+        self._parts = self._observation_parts()  # views of it
         low, high = self.physics.ctrl_range
         super().__init__(
             num_envs=num_envs,
@@ -209,45 +215,60 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
 
     def _advance(self, action: np.ndarray) -> None:
         self.physics.step(action, self.frame_skip)
-        width = self._position_before.shape[1]
         self._position_after[:] = self._position()
-        np.subtract(self._position_after, self._position_before, out=self._velocity[:, :width])
-        self._velocity[:, :width] /= self._dt
+        velocity = np.subtract(self._position_after, self._position_before, out=self._velocity_measured)
+        np.divide(velocity, self._dt, out=velocity)
+
+    def _observation_parts(self) -> tuple[np.ndarray, np.ndarray, list[tuple[str, np.ndarray]]]:
+        """Views of the observation buffer, taken once: where qpos, qvel and each extra field go."""
+        model, robot, obs = self.physics.model, self.robot, self._observation
+        width = model.nq - robot.qpos_skip
+        end = width + model.nv
+        extras = []
+        for name in robot.extra_observations:
+            size = self.physics.field(name)[0].size
+            extras.append((name, obs[:, end : end + size]))
+            end += size
+        return obs[:, :width], obs[:, width : width + model.nv], extras
 
     def _observe(self) -> np.ndarray:
         # One reused buffer, filled from the physics state cache; SafeEnv copies it when emitting.
-        physics, robot, obs = self.physics, self.robot, self._observation
-        qpos = physics.qpos()[:, robot.qpos_skip:]
-        end = qpos.shape[1] + physics.model.nv
-        obs[:, : qpos.shape[1]] = qpos
+        physics, robot = self.physics, self.robot
+        qpos_part, qvel_part, extras = self._parts
+        np.copyto(qpos_part, physics.qpos()[:, robot.qpos_skip:])
         if robot.qvel_clip is None:
-            obs[:, qpos.shape[1] : end] = physics.qvel()
+            np.copyto(qvel_part, physics.qvel())
         else:
-            np.clip(physics.qvel(), -robot.qvel_clip, robot.qvel_clip, out=obs[:, qpos.shape[1] : end])
-        for name in robot.extra_observations:
-            values = physics.field(name).reshape(self.num_envs, -1)
-            obs[:, end : end + values.shape[1]] = values
-            end += values.shape[1]
-        return obs
+            np.clip(physics.qvel(), -robot.qvel_clip, robot.qvel_clip, out=qvel_part)
+        for name, part in extras:
+            np.copyto(part, physics.field(name).reshape(self.num_envs, -1))
+        return self._observation
 
 
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
         # gymnasium v4 penalises the action as given (MuJoCo clamps it only inside the physics).
-        spec = self.robot
-        np.multiply(spec.ctrl_cost_weight, np.square(action).sum(axis=1), out=self._penalty_ctrl)
-        return spec.forward_reward_weight * self._velocity[:, 0] + spec.healthy_reward - self._penalty_ctrl
+        # Buffers filled in place, the same operations as w * square(action).sum(axis=1).
+        spec, penalty = self.robot, self._penalty_ctrl
+        np.add.reduce(np.square(action, out=self._action_squared), axis=1, out=penalty)
+        np.multiply(spec.ctrl_cost_weight, penalty, out=penalty)
+        if self.num_envs == 1:  # the same float64 operations on Python floats: cheaper than three on arrays
+            reward = spec.forward_reward_weight * self._velocity_x.item() + spec.healthy_reward - penalty.item()
+            return np.array((reward,))
+        return spec.forward_reward_weight * self._velocity_x + spec.healthy_reward - penalty
 
     def _compute_cost(self) -> dict[str, np.ndarray]:
         if self._planar_cost:
             np.hypot(self._velocity[:, 0], self._velocity[:, 1], out=self.last_velocity)
         else:
-            self.last_velocity[:] = self._velocity[:, 0]
+            self.last_velocity[:] = self._velocity_x
+        if self.num_envs == 1:  # one comparison of Python floats
+            return {"velocity": np.array((1.0 if self.last_velocity.item() > self.velocity_threshold else 0.0,))}
         return {"velocity": (self.last_velocity > self.velocity_threshold).astype(np.float64)}
 
     def _compute_terminated(self) -> np.ndarray:
         health = self.robot.health
         if health is None:
-            return np.zeros(self.num_envs, dtype=bool)
+            return self._never_terminated  # read-only: emitted flags are copies
         return ~health(self.physics.qpos(), self.physics.qvel())
 
     # ------------------------------------------------------------------ info
@@ -271,7 +292,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         Before the first step the measured terms are zeros; a reset does not change them (gymnasium's
         ``reset`` returns an empty ``info``).
         """
-        spec, rows = self.robot, slice(None) if index is None else index
+        if index is not None:
+            return self._step_info_of(index)
+        spec, rows = self.robot, slice(None)
         position, velocity = self._position_after[rows], self._velocity[rows]
         values: dict[str, Any] = {}
         for key in spec.info_keys:
@@ -287,6 +310,33 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
                 source = position if key.endswith("position") else velocity
                 value = source[..., 0 if key.startswith("x") else 1]
             values[key] = float(value) if index is not None else np.array(value, dtype=np.float64)
+        return values
+
+    def _step_info_of(self, index: int) -> dict[str, float]:
+        """:meth:`step_info` of one simulator: the same values as a row of the batched terms, read as Python
+        floats (each term is one float64 product, copy or negation, so the arithmetic is the same; the
+        distance is the same ``np.linalg.norm`` call on the row). The gymnasium façade calls it every step."""
+        spec = self.robot
+        position = self._position_after[index]
+        x_position, *rest = position.tolist()
+        x_velocity, y_velocity = self._velocity[index].tolist()
+        penalty = float(self._penalty_ctrl[index])
+        values: dict[str, float] = {}
+        for key in spec.info_keys:
+            if key in _FORWARD:
+                values[key] = spec.forward_reward_weight * x_velocity
+            elif key in ("reward_ctrl", "reward_quadctrl"):
+                values[key] = -penalty
+            elif key in ("reward_survive", "reward_alive"):
+                values[key] = float(spec.healthy_reward)
+            elif key == "distance_from_origin":
+                values[key] = float(np.linalg.norm(position, axis=-1))
+            elif key == "x_position":
+                values[key] = x_position
+            elif key == "y_position":
+                values[key] = rest[0]
+            else:
+                values[key] = x_velocity if key == "x_velocity" else y_velocity
         return values
 
     def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
