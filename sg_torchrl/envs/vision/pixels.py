@@ -18,8 +18,9 @@ emits, besides or instead of the flat ``observation`` vector:
 plain ids), ``"rgb"``, ``"rgbd"`` (pixels only), ``"vector+rgb"``, ``"vector+rgbd"`` (both; the
 Vision ids' default is ``"vector+rgb"``, what Safety-Gymnasium's Vision envs observe). Images are
 square, ``image_size`` pixels a side: 256 by default, Safety-Gymnasium's size; ``image_size=64`` (or
-less) makes them 16 times cheaper to render, store and learn from. The gymnasium façade gives the
-original's dict layout back (:mod:`sg_torchrl.envs.vision.layout`).
+less) makes them 16 times cheaper to render, store and learn from. :class:`~.layout.DictLayout` splits
+``observation`` and ``pixels`` into the original's dict (``accelerometer``, ..., ``goal_lidar``, ...,
+``vision``).
 
 How: one :class:`PixelObserver` per env owns one offscreen
 :class:`~sg_torchrl.envs.rendering.Renderer` that renders the ``N`` simulators one after the other
