@@ -36,7 +36,7 @@ from torchrl.data import Composite
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
-from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, pseudo_lidar
+from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, pseudo_lidars
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
@@ -325,14 +325,15 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         if clip is None:
             self._agent_reward[:] = reward
         else:
-            np.clip(reward, -clip, clip, out=self._agent_reward)
+            np.minimum(np.maximum(reward, -clip), clip, out=self._agent_reward)  # np.clip, cheaper
         views = self.scene.views
         for obj in self._constrained:
             obj.agent_costs(views, self._agent_costs)
         self.task.agent_costs(self, self._agent_costs)
         self._terminated[:] = self.task.after_step(self)
+        terminated = self._terminated  # |= on the attribute would reassign it (an nn.Module __setattr__)
         for robot, view in zip(self.robots, views):  # one robot dead ends the episode (the reference's rule)
-            self._terminated |= ~robot.is_alive(view)
+            terminated |= ~robot.is_alive(view)
         if self.vision is not None:  # the state the observation describes (a reached goal already moved)
             self.vision.render(range(self.num_envs))
 
@@ -347,12 +348,11 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             position, rotation = view.agent_pos(), view.agent_mat()
             if natural is not None:
                 natural.prepare(view)
-            for obj, part in lidar_groups:
-                if natural is not None:
+                for obj, part in lidar_groups:
                     natural.observe(view, obj, out=obs[:, part])
-                else:
-                    pseudo_lidar(position, rotation, obj.positions(scene), num_bins=bins, max_dist=max_dist,
-                                 out=obs[:, part])
+            elif lidar_groups:  # every group in one pass (pseudo_lidars)
+                pseudo_lidars(position, rotation, [obj.positions(scene) for obj, _ in lidar_groups],
+                              [obs[:, part] for _, part in lidar_groups], num_bins=bins, max_dist=max_dist)
             for obj, part in compass_groups:
                 compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
         self.task.after_observe(self, obs)

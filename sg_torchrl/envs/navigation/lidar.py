@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
     from sg_torchrl.envs.navigation.world import Scene
 
-__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "pseudo_lidar", "egocentric_xy"]
+__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "pseudo_lidar", "pseudo_lidars", "egocentric_xy"]
 
 LidarMode = Literal["pseudo", "natural"]
 
@@ -68,12 +68,41 @@ def pseudo_lidar(
 
     ``out`` (``(N, num_bins)``, may be a view into the observation buffer) is filled and returned.
     """
-    n, k = targets_xy.shape[:2]
     if out is None:
-        out = np.empty((n, num_bins))
-    if k == 0:
-        out[:] = 0.0
-        return out
+        out = np.empty((targets_xy.shape[0], num_bins))
+    pseudo_lidars(agent_pos, agent_mat, [targets_xy], [out], num_bins=num_bins, max_dist=max_dist,
+                  exp_gain=exp_gain, alias=alias)
+    return out
+
+
+def pseudo_lidars(
+    agent_pos: np.ndarray,
+    agent_mat: np.ndarray,
+    groups: Sequence[np.ndarray],
+    outs: Sequence[np.ndarray],
+    *,
+    num_bins: int = 16,
+    max_dist: float | None = 3.0,
+    exp_gain: float = 1.0,
+    alias: bool = True,
+) -> None:
+    """:func:`pseudo_lidar` of several target groups (``(N, K_g, 2)`` each) seen from the same robots,
+    readings written to ``outs`` (``(N, num_bins)`` each).
+
+    Why: every lidar group of an observation is seen from the same robot pose, so the targets of all
+    groups go through the frame change, distances, angles and bin writes together (one pass of
+    array operations instead of one per group, which is most of a one-simulator navigation step);
+    only the per-bin maximum is taken per group. Each target's values do not depend on the others,
+    so every group reads as it would alone.
+    """
+    sizes = [targets.shape[1] for targets in groups]
+    total = sum(sizes)
+    if total == 0:
+        for out in outs:
+            out[:] = 0.0
+        return
+    targets_xy = groups[0] if len(groups) == 1 else np.concatenate(groups, axis=1)
+    n, k = targets_xy.shape[:2]
     ego = egocentric_xy(agent_pos, agent_mat, targets_xy)
     distance = np.hypot(ego[..., 0], ego[..., 1])
     angle = np.arctan2(ego[..., 1], ego[..., 0]) % TWO_PI
@@ -90,7 +119,13 @@ def pseudo_lidar(
         flat[offsets + (bins + 1) % num_bins] = fraction * reading
         flat[offsets + (bins - 1) % num_bins] = (1.0 - fraction) * reading
     flat[offsets + bins] = reading
-    return contributions.max(axis=1, out=out)
+    start = 0
+    for size, out in zip(sizes, outs):
+        if size:
+            contributions[:, start : start + size].max(axis=1, out=out)
+        else:
+            out[:] = 0.0
+        start += size
 
 
 @functools.lru_cache(maxsize=64)

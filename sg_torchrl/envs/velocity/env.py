@@ -143,6 +143,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self._quaternions = quaternion_addresses(model)
         self._init_qvel = np.zeros(model.nv)
         self._dt = model.opt.timestep * spec.frame_skip
+        # Constants of the hot path as one-element arrays: a ufunc with a Python-scalar operand costs more.
+        self._dt_array = np.array([self._dt])
+        self._ctrl_cost_weight = np.array([spec.ctrl_cost_weight])
         self._planar_cost = version in spec.planar_cost_versions if planar_cost is None else bool(planar_cost)
         self._torso_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         self._body_mass = model.body_mass[:, None] / model.body_mass.sum()
@@ -217,7 +220,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         self.physics.step(action, self.frame_skip)
         self._position_after[:] = self._position()
         velocity = np.subtract(self._position_after, self._position_before, out=self._velocity_measured)
-        np.divide(velocity, self._dt, out=velocity)
+        np.divide(velocity, self._dt_array, out=velocity)
 
     def _observation_parts(self) -> tuple[np.ndarray, np.ndarray, list[tuple[str, np.ndarray]]]:
         """Views of the observation buffer, taken once: where qpos, qvel and each extra field go."""
@@ -250,7 +253,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         # Buffers filled in place, the same operations as w * square(action).sum(axis=1).
         spec, penalty = self.robot, self._penalty_ctrl
         np.add.reduce(np.square(action, out=self._action_squared), axis=1, out=penalty)
-        np.multiply(spec.ctrl_cost_weight, penalty, out=penalty)
+        np.multiply(self._ctrl_cost_weight, penalty, out=penalty)
         if self.num_envs == 1:  # the same float64 operations on Python floats: cheaper than three on arrays
             reward = spec.forward_reward_weight * self._velocity_x.item() + spec.healthy_reward - penalty.item()
             return np.array((reward,))
