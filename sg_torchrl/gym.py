@@ -47,10 +47,13 @@ API
 * ``copy.deepcopy(env)`` builds a new env with the same id and options and loads the simulator's
   state into it (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state`: physics, random streams, step
   counter, layout): the copy's next step, given the same action, equals the original's.
-* Pixel observations (the ``...Vision-v0`` ids, or ``obs_mode="rgb"`` etc.): ``obs`` is a dict,
-  ``"vision"`` ``(H, W, 3)`` ``uint8`` (Safety-Gymnasium's key and channels-last layout), ``"depth"``
-  ``(H, W, 1)`` ``float32`` metres (RGB-D modes) and ``"observation"`` (``vector+`` modes), under a
-  ``gymnasium.spaces.Dict`` observation space. These envs step through the TorchRL ``step``.
+* Pixel observations (the ``...Vision-v0`` ids, or ``obs_mode="rgb"`` etc.): ``obs`` is a dict under a
+  ``gymnasium.spaces.Dict`` observation space. With the vector and the image (the Vision ids' default,
+  ``obs_mode="vector+rgb"``) it is Safety-Gymnasium's own dict: one ``float64`` entry per vector part
+  in observation order (``accelerometer``, ..., ``<object>_lidar``), then ``"vision"`` ``(H, W, 3)``
+  ``uint8`` (:class:`~sg_torchrl.envs.vision.DictLayout`; ``"depth"`` ``(H, W, 1)`` ``float32`` metres
+  last in RGB-D modes). Pixels alone give ``"vision"`` (and ``"depth"``). These envs step through the
+  TorchRL ``step``.
 * The values are exactly the TorchRL env's: the observation is its ``float32`` observation
   converted to ``float64``, reward and cost are its ``float32`` values as python floats, and the
   action is converted to ``float32`` (the action spec's dtype) before use. A policy evaluated
@@ -89,6 +92,7 @@ that override ``_step`` (or are not a ``SafeEnv``) go through the public TorchRL
 from __future__ import annotations
 
 import copy
+from collections import OrderedDict
 from typing import Any
 
 import gymnasium
@@ -98,6 +102,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.base import SafeEnv
+from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 from sg_torchrl.render_modes import (
@@ -224,7 +229,15 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         self._frames = FrameSource(env, render_mode, render_options, fps=fps) if render_mode is not None else None
         observation_spec = env.observation_spec
         self._pixels = "pixels" in observation_spec.keys()
-        self.observation_space = _observation_space(observation_spec, getattr(env, "observation_slices", None))
+        # Navigation envs with the vector and the image (the Vision ids' default): Safety-Gymnasium's dict.
+        self._dict_layout = _original_dict_layout(env) if self._pixels else None
+        if self._dict_layout is not None:
+            # An OrderedDict keeps the original's key order (gymnasium sorts a plain dict's keys).
+            self.observation_space = spaces.Dict(OrderedDict(
+                (entry.name, spaces.Box(entry.low, entry.high, shape=entry.shape, dtype=np.dtype(entry.dtype)))
+                for entry in self._dict_layout.entries))
+        else:
+            self.observation_space = _observation_space(observation_spec, getattr(env, "observation_slices", None))
         action_spec = env.action_spec
         box = getattr(action_spec, "space", None)
         if box is not None and hasattr(box, "low"):
@@ -373,6 +386,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         """Simulator 0's observation in :attr:`observation_space`'s layout (see :func:`_observation_space`)."""
         if not self._pixels:
             return td.get("observation")[0].cpu().numpy().astype(np.float64)
+        if self._dict_layout is not None:
+            return self._dict_layout.split(td, 0)
         obs = {}
         if "observation" in td.keys():
             obs["observation"] = td.get("observation")[0].cpu().numpy().astype(np.float64)
@@ -416,6 +431,17 @@ def _check_options(env_id: str, options: dict[str, Any]) -> None:
         takes = ", ".join([*accepted, *RENDER_OPTIONS])
         raise TypeError(f"make() got an unexpected keyword argument {unknown[0]!r} "
                         f"({env_id} takes {takes}; unknown: {', '.join(map(repr, unknown))})")
+
+
+def _original_dict_layout(env) -> DictLayout | None:
+    """Safety-Gymnasium's Vision dict layout of ``env`` (one key per vector part, then ``"vision"``),
+    or ``None`` where it has none: pixels without the vector (``obs_mode="rgb"``) or an env without
+    named observation parts (:class:`~sg_torchrl.envs.vision.DictLayout` needs the navigation envs'
+    ``observation_slices``)."""
+    keys = env.observation_spec.keys()
+    if "observation" not in keys or not hasattr(env, "observation_slices") or not hasattr(env, "robot"):
+        return None
+    return DictLayout.of(env)
 
 
 def _observation_space(observation_spec, slices: dict[str, slice] | None = None) -> spaces.Space:

@@ -350,22 +350,30 @@ def test_copies_render_with_their_own_renderer(backend):
 
 # ---------------------------------------------------------------------------- gymnasium façade
 def test_facade_dict_observation(backend):
+    # With the vector and the image, the façade's dict is Safety-Gymnasium's: one entry per vector part
+    # (in observation order), then "vision", then (RGB-D) "depth".
     env = sg_gym.make(VISION_ID, obs_mode="vector+rgbd", image_size=16)
     space = env.observation_space
-    assert isinstance(space, gymnasium.spaces.Dict) and set(space.spaces) == {"vision", "depth", "observation"}
+    parts = env.torchrl_env.observation_slices
+    assert isinstance(space, gymnasium.spaces.Dict)
+    assert list(space.spaces) == [*parts, "vision", "depth"]
     assert space["vision"].shape == (16, 16, 3) and space["vision"].dtype == np.uint8
     obs, info = env.reset(seed=0)
     assert obs in space and obs["depth"].shape == (16, 16, 1)
     td = env.torchrl_env.vision.observation()
     np.testing.assert_array_equal(obs["vision"], td["pixels"][0].numpy())  # both channels last
     np.testing.assert_array_equal(obs["depth"], td["depth"][0].numpy())
+    flat = np.concatenate([obs[name].reshape(-1) for name in parts])
+    assert flat.dtype == np.float64 and flat.shape == (sum(p.stop - p.start for p in parts.values()),)
+    pixels_only = sg_gym.make(VISION_ID, obs_mode="rgb", image_size=16)
+    assert list(pixels_only.observation_space.spaces) == ["vision"]
+    pixels_only.close()
     obs, reward, cost, terminated, truncated, info = env.step(env.action_space.sample())
     assert obs in space and type(cost) is float
     env.close()
     twin = gymnasium.make(sg_gym.gymnasium_twin_id(VISION_ID), image_size=16)
-    # The id's default holds the vector too (its keys: the façade's; sg_torchrl.envs.vision.DictLayout
-    # gives the original's, tests/test_vision_fidelity.py).
-    assert "vision" in twin.observation_space.spaces and len(twin.observation_space.spaces) > 1
+    # The id's default holds the vector too: the original's keys (tests/test_vision_fidelity.py compares them).
+    assert list(twin.observation_space.spaces)[-1] == "vision" and "accelerometer" in twin.observation_space.spaces
     assert twin.observation_space["vision"].shape == (16, 16, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
