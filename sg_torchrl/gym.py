@@ -92,6 +92,7 @@ that override ``_step`` (or are not a ``SafeEnv``) go through the public TorchRL
 from __future__ import annotations
 
 import copy
+import math
 from collections import OrderedDict
 from typing import Any
 
@@ -352,7 +353,8 @@ class SafetyGymnasiumEnv(gymnasium.Env):
                 f"{self.env_id}: action has shape {array.shape}, expected {self._action_shape} "
                 f"(action_space={self.action_space})"
             )
-        if not np.isfinite(array).all():
+        # One float64 sum decides it: float32 values cannot overflow it, and NaN or inf propagates.
+        if not math.isfinite(sum(array.reshape(-1).tolist())):
             raise ValueError(f"{self.env_id}: action is not finite: {array}")
         return array.reshape(1, -1)
 
@@ -377,8 +379,10 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         """The env's public one-simulator step (:meth:`~sg_torchrl.envs.base.SafeEnv.step_one`), emitting
         the values its TorchRL step would emit (float32 rounding included) without TensorDicts."""
         obs, reward, cost, terminated, truncated, cost_info = self._env.step_one(action32)
-        info = self._step_info(0) if self._step_info is not None else {}
-        info.update((key, cost_info[name]) for key, name in zip(self._info_keys, self._constraints))
+        step_info = self._step_info
+        info = step_info(0) if step_info is not None else {}
+        for key, name in zip(self._info_keys, self._constraints):
+            info[key] = cost_info[name]
         info["cost_sum"] = cost
         return obs, reward, cost, terminated, truncated, info
 

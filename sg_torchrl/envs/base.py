@@ -367,8 +367,10 @@ class SafeEnv(EnvBase, abc.ABC):
         """
         if self.num_envs != 1:
             raise ValueError(f"step_one steps a one-simulator env; this one has num_envs={self.num_envs}")
-        observation, reward, costs, terminated, truncated = self._transition_arrays(
-            np.asarray(action, dtype=np.float64).reshape(1, -1))
+        return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
+
+    def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
+        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator."""
         cost, cost_info = self._aggregate_cost(costs)
         return (
             observation[0].astype(np.float32).astype(np.float64),

@@ -120,6 +120,7 @@ class MujocoBatch:
         self._gather_plan = [] if self._aliased else [
             (views, cache.reshape(-1, *cache.shape[2:])) for cache, views in self._cache.values()]
         self._unstable_counts = np.zeros(num_sims, dtype=np.int64)
+        self._unstable_one = self._warnings[0, _UNSTABLE]  # simulator 0's three instability counters (a view)
         self.unstable = np.zeros(num_sims, dtype=bool)  # simulators MuJoCo reset during the last step
         self._ctrl_low = model.actuator_ctrlrange[:, 0].copy()
         self._ctrl_high = model.actuator_ctrlrange[:, 1].copy()
@@ -160,19 +161,30 @@ class MujocoBatch:
     def _step_one(self, ctrl: np.ndarray, nstep: int) -> np.ndarray:
         """:meth:`step` of a single simulator without driven mocap bodies: the state cache is a view of
         its ``MjData`` (nothing to gather) and its instability warnings are three counters read as scalars."""
-        data = self.datas[0]
         self._ctrl_views[0][:] = ctrl[0]
+        self.advance_one(nstep)
+        return self.unstable
+
+    def advance_one(self, nstep: int) -> bool:
+        """:meth:`step` of a single simulator whose control is already written into ``datas[0].ctrl``.
+
+        Returns whether MuJoCo found it unstable (also in :attr:`unstable`). Only for one simulator
+        without driven mocap bodies (:meth:`step` dispatches there itself); a one-simulator env's
+        single step writes the clipped action straight into ``ctrl`` and calls this (issue 19).
+        """
+        data = self.datas[0]
         mujoco.mj_step(self.model, data, nstep)
         if self.forward_after_step:
             mujoco.mj_forward(self.model, data)
         if self.post_constraint:
             mujoco.mj_rnePostConstraint(self.model, data)
         self.version += 1
-        warnings, first = self._warnings[0], _UNSTABLE.start
-        count = int(warnings[first]) + int(warnings[first + 1]) + int(warnings[first + 2])
-        self.unstable[0] = count != self._unstable_counts[0]
+        first, second, third = self._unstable_one.tolist()
+        count = first + second + third
+        unstable = count != int(self._unstable_counts[0])
+        self.unstable[0] = unstable
         self._unstable_counts[0] = count
-        return self.unstable
+        return unstable
 
     def _for_each_slice(self, step_slice: Callable[..., None], *args) -> None:
         """``step_slice(rows, *args)`` for every slice of the simulators: inline, or one per thread."""

@@ -10,6 +10,8 @@ compare with the paper's.
 
 from __future__ import annotations
 
+import math
+
 from typing import Any
 
 import mujoco
@@ -17,8 +19,9 @@ import numpy as np
 import torch
 
 from sg_torchrl.envs.backends import Backend, make_physics
-from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.base import _FLOAT32_MAX, CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
+from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 
@@ -176,6 +179,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             device=device,
             seed=seed,
         )
+        self._single = self._single_plan()
 
     default_camera = LOCOMOTION_CAMERA  # render(): follows the torso (sg_torchrl.envs.rendering)
 
@@ -274,6 +278,124 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
             return self._never_terminated  # read-only: emitted flags are copies
         return ~health(self.physics.qpos(), self.physics.qvel())
 
+    # ------------------------------------------------------------------ one simulator (gymnasium façade)
+    # The hooks whose work :meth:`step_one`'s own path does: a subclass overriding one steps through SafeEnv's.
+    _SINGLE_HOOKS = ("_before_step", "_advance", "_observe", "_compute_reward", "_compute_cost",
+                     "_compute_terminated", "_transition_arrays", "_fault_free", "_aggregate_cost",
+                     "_single_outputs", "_position")
+
+    def _single_plan(self) -> tuple | None:
+        """What :meth:`step_one`'s own path reads, taken once (views of the buffers and of the one
+        ``MjData``), or ``None`` where it does not apply: more than one simulator, another backend,
+        a position other than joint ``qpos`` (Ant, Humanoid) or extra observation fields, or hooks
+        that a subclass overrides."""
+        physics, robot = self.physics, self.robot
+        if (self.num_envs != 1 or not isinstance(physics, MujocoBatch) or not physics._aliased
+                or robot.position_source != "qpos" or robot.extra_observations
+                or any(getattr(type(self), name) is not getattr(VelocityEnv, name) for name in self._SINGLE_HOOKS)):
+            return None
+        qpos_part, qvel_part, _ = self._parts
+        qvel_clip = None
+        if robot.qvel_clip is not None:
+            qvel_clip = (np.full_like(qvel_part, -robot.qvel_clip), np.full_like(qvel_part, robot.qvel_clip))
+        ctrl = physics.datas[0].ctrl
+        return (
+            physics, physics.qpos()[0], physics.qvel()[0], ctrl[None], np.zeros((1, ctrl.size)),
+            qpos_part, physics.qpos()[:, robot.qpos_skip:], qvel_part, physics.qvel(), qvel_clip,
+        )
+
+    def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
+        """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>` with the velocity task's
+        arithmetic on Python floats where it is elementwise.
+
+        Why: a gymnasium step of a small robot (HalfCheetah, Hopper, Swimmer, Walker2d) spent as long
+        in a dozen operations on one-element arrays as in the physics (issue 19). This path does the
+        same float64 operations in the same order as :meth:`_transition_arrays` and the hooks it
+        calls (the positions' finite difference, the reward terms, the threshold comparison, the
+        health rule: :meth:`HealthCheck.healthy_one`), keeps numpy for the control penalty's sum (its
+        summation order is numpy's), fills the same buffers (:attr:`last_velocity`, :meth:`step_info`'s
+        terms, the observation, the step counter) and sends a faulty step (an unstable simulator, a
+        non-finite observation or outcome) through the same screen and isolation. Only robots whose
+        position is joint ``qpos`` take this path; the outputs, :meth:`step_info` and the buffers
+        equal :meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>`'s bit for bit.
+        """
+        plan = self._single
+        if plan is None:
+            return super().step_one(action)
+        physics, qpos, qvel, ctrl, clipped, qpos_part, qpos_source, qvel_part, qvel_source, qvel_clip = plan
+        if physics._mocap_drivers:
+            return super().step_one(action)
+        if not (type(action) is np.ndarray and action.dtype == np.float32 and action.shape == clipped.shape):
+            action = np.asarray(action, dtype=np.float64).reshape(1, -1)
+        # else the façade's float32 action, read through float64 loops below (widening is exact)
+        robot = self.robot
+        planar = robot.planar
+        x_before = qpos.item(0)
+        y_before = qpos.item(1) if planar else 0.0
+        position_before = self._position_before
+        position_before[0, 0] = x_before
+        if planar:
+            position_before[0, 1] = y_before
+        np.maximum(action, self._clip_low, out=clipped)  # np.clip's value, written into MjData's ctrl
+        np.minimum(clipped, self._clip_high, out=ctrl)
+        unstable = physics.advance_one(self.frame_skip)
+        dt = self._dt
+        x_after = qpos.item(0)
+        x_velocity = (x_after - x_before) / dt
+        velocity = self._velocity
+        position_after = self._position_after
+        position_after[0, 0] = x_after
+        velocity[0, 0] = x_velocity
+        if planar:
+            y_after = qpos.item(1)
+            position_after[0, 1] = y_after
+            velocity[0, 1] = (y_after - y_before) / dt
+        # _observe
+        np.copyto(qpos_part, qpos_source)
+        if qvel_clip is None:
+            np.copyto(qvel_part, qvel_source)
+        else:
+            np.maximum(qvel_source, qvel_clip[0], out=qvel_part)  # np.clip's value
+            np.minimum(qvel_part, qvel_clip[1], out=qvel_part)
+        observation = self._observation
+        # _compute_reward
+        penalty = self._penalty_ctrl
+        np.add.reduce(np.square(action, out=self._action_squared, dtype=np.float64), axis=1, out=penalty)
+        penalty[0] = control = robot.ctrl_cost_weight * penalty.item()  # the float64 product np.multiply takes
+        reward = robot.forward_reward_weight * x_velocity + robot.healthy_reward - control
+        # _compute_cost
+        if self._planar_cost:
+            np.hypot(self._velocity[:, 0], self._velocity[:, 1], out=self.last_velocity)
+            speed = self.last_velocity.item()
+        else:
+            self.last_velocity[0] = speed = x_velocity
+        cost = 1.0 if speed > self.velocity_threshold else 0.0
+        # _compute_terminated
+        health = robot.health
+        terminated = False if health is None else not health.healthy_one(qpos, qvel)
+        elapsed = self._elapsed
+        steps = elapsed.item() + 1
+        elapsed[0] = steps
+        truncated = steps >= self.max_episode_steps
+        # _fault_free's screen: a finite sum proves every entry finite (an overflow only takes the exact path)
+        if not unstable and math.isfinite(sum(observation[0].tolist())) and abs(reward) + abs(cost) <= _FLOAT32_MAX:
+            return (
+                observation[0].astype(np.float32).astype(np.float64),
+                float(np.float32(reward)),
+                cost,  # 0.0 or 1.0: its float32 value, its own indicator and the total of one constraint
+                terminated,
+                truncated,
+                {"velocity": cost},
+            )
+        # A faulty step: SafeEnv's own screen and isolation, on the arrays its hooks would have returned.
+        rewards, costs = np.array((reward,)), {"velocity": np.array((cost,))}
+        terminated_flags, truncated_flags = np.array((terminated,)), np.array((truncated,))
+        diverged = self._diverged(observation) | self._nonfinite_outcome(rewards, costs)
+        if diverged.any():
+            return self._single_outputs(
+                *self._isolate(diverged, observation, rewards, costs, terminated_flags, truncated_flags))
+        return self._single_outputs(observation, rewards, costs, terminated_flags, truncated_flags)
+
     # ------------------------------------------------------------------ info
     @property
     def info_keys(self) -> tuple[str, ...]:
@@ -318,29 +440,49 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
     def _step_info_of(self, index: int) -> dict[str, float]:
         """:meth:`step_info` of one simulator: the same values as a row of the batched terms, read as Python
         floats (each term is one float64 product, copy or negation, so the arithmetic is the same; the
-        distance is the same ``np.linalg.norm`` call on the row). The gymnasium façade calls it every step."""
-        spec = self.robot
+        distance is ``np.linalg.norm``'s own ``sqrt(x * x + y * y)`` for a row of two). The gymnasium
+        façade calls it every step, so the keys come from a plan made once (:meth:`_info_plan`)."""
+        plan = self.__dict__.get("_info_plan_cache")
+        if plan is None:
+            plan = self._info_plan()
         position = self._position_after[index]
-        x_position, *rest = position.tolist()
+        if len(position) == 2:
+            x_position, y_position = position.tolist()
+        else:
+            x_position, y_position = position.item(0), 0.0
         x_velocity, y_velocity = self._velocity[index].tolist()
-        penalty = float(self._penalty_ctrl[index])
-        values: dict[str, float] = {}
-        for key in spec.info_keys:
+        distance = 0.0  # computed only where a key asks for it
+        if plan[1]:
+            distance = (math.sqrt(x_position * x_position + y_position * y_position) if len(position) == 2
+                        else float(np.linalg.norm(position, axis=-1)))
+        values = (
+            self.robot.forward_reward_weight * x_velocity,  # 0: the forward reward
+            -self._penalty_ctrl.item(index),  # 1: the control penalty
+            float(self.robot.healthy_reward),  # 2
+            distance,  # 3
+            x_position, y_position, x_velocity, y_velocity,  # 4-7
+        )
+        return {key: values[code] for key, code in plan[0]}
+
+    def _info_plan(self) -> tuple[tuple[tuple[str, int], ...], bool]:
+        """``((key, term), ...)`` in :attr:`info_keys`' order (``term`` indexes :meth:`_step_info_of`'s
+        values) and whether a key asks for the distance from the origin."""
+        codes = []
+        for key in self.robot.info_keys:
             if key in _FORWARD:
-                values[key] = spec.forward_reward_weight * x_velocity
+                code = 0
             elif key in ("reward_ctrl", "reward_quadctrl"):
-                values[key] = -penalty
+                code = 1
             elif key in ("reward_survive", "reward_alive"):
-                values[key] = float(spec.healthy_reward)
+                code = 2
             elif key == "distance_from_origin":
-                values[key] = float(np.linalg.norm(position, axis=-1))
-            elif key == "x_position":
-                values[key] = x_position
-            elif key == "y_position":
-                values[key] = rest[0]
+                code = 3
             else:
-                values[key] = x_velocity if key == "x_velocity" else y_velocity
-        return values
+                code = {"x_position": 4, "y_position": 5, "x_velocity": 6, "y_velocity": 7}[key]
+            codes.append((key, code))
+        plan = (tuple(codes), any(code == 3 for _, code in codes))
+        self.__dict__["_info_plan_cache"] = plan  # not through nn.Module.__setattr__
+        return plan
 
     def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
         """The cost this task assigns to a measured velocity (for documentation and tests)."""
