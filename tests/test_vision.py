@@ -340,7 +340,9 @@ def test_copies_render_with_their_own_renderer(backend):
     env = make_env(VISION_ID, image_size=16)
     frame = env.reset()["pixels"]
     clone = copy.deepcopy(env)
-    assert clone.vision.renderer is None and clone.vision.camera.fixedcamid == env.vision.camera.fixedcamid
+    # A copy is the env rebuilt and its simulators loaded (SafeEnv.__reduce_ex__): its own renderer, never env's.
+    assert clone.vision.renderer is not env.vision.renderer
+    assert clone.vision.camera.fixedcamid == env.vision.camera.fixedcamid
     clone.vision.render([0])
     assert torch.equal(clone.vision.observation()["pixels"], frame)
     assert clone.vision.renderer is not env.vision.renderer

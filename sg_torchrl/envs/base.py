@@ -453,6 +453,33 @@ class SafeEnv(EnvBase, abc.ABC):
             tensordict.set(key, torch.where(rows, new, old))
         return tensordict
 
+    # ------------------------------------------------------------------ copies
+    def remember_construction(self, constructor, kwargs: dict) -> None:
+        """Record how this env was built (``sg_torchrl.make`` does), so that copies can rebuild it.
+
+        Why: ``copy.deepcopy`` and ``pickle`` copy numpy views as separate arrays, so a copied env's
+        caches, buffers and control views would no longer alias its ``MjData`` and the copy would
+        step wrongly. With the recipe recorded, a copy is a new env built the same way whose
+        simulators continue from this one's :meth:`sim_state` (see :meth:`__reduce_ex__`).
+        """
+        self.__dict__["_construction"] = (constructor, dict(kwargs))
+
+    def __reduce_ex__(self, protocol):
+        """Copies and pickles of an env built by ``sg_torchrl.make``: rebuilt, then :meth:`load_sim_state`.
+
+        The copy's next step, given the same action, equals this env's. Envs built otherwise, or whose
+        task has no simulator snapshot, are copied attribute by attribute as before.
+        """
+        construction = self.__dict__.get("_construction")
+        if construction is not None:
+            try:
+                state = self.sim_state()
+            except NotImplementedError:
+                state = None
+            if state is not None:
+                return _rebuilt_env, (*construction, state)
+        return super().__reduce_ex__(protocol)
+
     # ------------------------------------------------------------------ snapshots
     def sim_state(self) -> dict:
         """Everything needed to continue the simulators exactly: generators, step counters, physics.
@@ -563,3 +590,11 @@ class SafeEnv(EnvBase, abc.ABC):
         # per-entry validation (a sizeable share of the per-step cost) is skipped.
         out = TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self._cpu)
         return out if self.device is None or self.device.type == "cpu" else out.to(self.device)
+
+
+def _rebuilt_env(constructor, kwargs: dict, state: dict) -> SafeEnv:
+    """An env built by ``constructor(**kwargs)`` whose simulators continue from ``state`` (``sim_state``)."""
+    env = constructor(**kwargs)
+    env.remember_construction(constructor, kwargs)
+    env.load_sim_state(state)
+    return env

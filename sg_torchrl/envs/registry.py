@@ -203,8 +203,12 @@ def make(
     seed = _checked_seed(env_id, seed, int(num_envs))
     options = validate_env_options(env_id, options)
     _check_device(env_id, device)
-    kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **entry.options, **options}
-    return entry.constructor(num_envs=int(num_envs), device=device, seed=seed, **kwargs)
+    kwargs = {**entry.kwargs, "max_episode_steps": entry.max_episode_steps, **entry.options, **options,
+              "num_envs": int(num_envs), "device": device, "seed": seed}
+    env = entry.constructor(**kwargs)
+    if hasattr(env, "remember_construction"):  # copies rebuild the env this way (SafeEnv.__reduce_ex__)
+        env.remember_construction(entry.constructor, kwargs)
+    return env
 
 
 def _checked_seed(env_id: str, seed: Any, num_envs: int) -> int | list[int] | None:
