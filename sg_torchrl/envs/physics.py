@@ -210,6 +210,17 @@ class MujocoBatch:
             if post:
                 mujoco.mj_rnePostConstraint(model, data)
 
+    @property
+    def aliased(self) -> bool:
+        """Whether the state cache arrays are views of the one simulator's ``MjData`` (``num_sims == 1``):
+        then a reader holding :meth:`qpos` / :meth:`qvel` rows sees every step without a copy."""
+        return self._aliased
+
+    @property
+    def drives_mocap(self) -> bool:
+        """Whether mocap bodies follow trajectories during steps (:meth:`drive_mocap`)."""
+        return bool(self._mocap_drivers)
+
     def drive_mocap(self, mocap_ids: Sequence[int], trajectory: MocapTrajectory) -> None:
         """Move mocap bodies ``mocap_ids`` along ``trajectory`` before every physics sub-step.
 

@@ -290,7 +290,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         a position other than joint ``qpos`` (Ant, Humanoid) or extra observation fields, or hooks
         that a subclass overrides."""
         physics, robot = self.physics, self.robot
-        if (self.num_envs != 1 or not isinstance(physics, MujocoBatch) or not physics._aliased
+        if (self.num_envs != 1 or not isinstance(physics, MujocoBatch) or not physics.aliased
                 or robot.position_source != "qpos" or robot.extra_observations
                 or any(getattr(type(self), name) is not getattr(VelocityEnv, name) for name in self._SINGLE_HOOKS)):
             return None
@@ -323,7 +323,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         if plan is None:
             return super().step_one(action)
         physics, qpos, qvel, ctrl, clipped, qpos_part, qpos_source, qvel_part, qvel_source, qvel_clip = plan
-        if physics._mocap_drivers:
+        if physics.drives_mocap:
             return super().step_one(action)
         if not (type(action) is np.ndarray and action.dtype == np.float32 and action.shape == clipped.shape):
             action = np.asarray(action, dtype=np.float64).reshape(1, -1)
