@@ -67,8 +67,9 @@ class ButtonTask(GoalTask):
         return super().after_step(env)
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
-        if self._buttons_lidar is not None:
-            observation[self.buttons.timer > 0, self._buttons_lidar] = 0.0
+        timer = self.buttons.timer
+        if self._buttons_lidar is not None and timer.any():  # no timer running: the masked write is a no-op
+            observation[timer > 0, self._buttons_lidar] = 0.0
 
 
 # reference section 6: extents, counts, sizes and keep-outs of each level.

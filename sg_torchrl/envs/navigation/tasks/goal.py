@@ -58,6 +58,8 @@ class GoalTask(Task):
 
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         terminated = np.zeros(env.num_envs, dtype=bool)
+        if not self.goal_met.any():  # most steps: nothing to move (skips flatnonzero and the loop)
+            return terminated
         for index in np.flatnonzero(self.goal_met):
             if self.next_goal(env, index):
                 self._last_distance[index] = self.distance(env)[index]
