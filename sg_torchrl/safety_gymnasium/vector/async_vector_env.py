@@ -177,13 +177,7 @@ class SafetyAsyncVectorEnv(SafeVectorEnv):
         self._check_open()
         return tuple(self._all("call", [(name, args, kwargs)] * self.num_envs))
 
-    def set_attr(self, name: str, values: Any) -> None:
-        """Set attribute ``name`` of every env: ``values`` is one value per env, or one for all."""
-        self._check_open()
-        if not isinstance(values, (list, tuple)):
-            values = [values] * self.num_envs
-        if len(values) != self.num_envs:
-            raise ValueError(f"{len(values)} values for {self.num_envs} envs")
+    def _set_attrs(self, name: str, values: list[Any]) -> None:
         self._all("setattr", [(name, value) for value in values])
 
     def _close_envs(self) -> None:

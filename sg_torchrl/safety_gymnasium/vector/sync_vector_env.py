@@ -61,13 +61,7 @@ class SafetySyncVectorEnv(SafeVectorEnv):
             results.append(attribute(*args, **kwargs) if callable(attribute) else attribute)
         return tuple(results)
 
-    def set_attr(self, name: str, values: Any) -> None:
-        """Set attribute ``name`` of every env: ``values`` is one value per env, or one for all."""
-        self._check_open()
-        if not isinstance(values, (list, tuple)):
-            values = [values] * self.num_envs
-        if len(values) != self.num_envs:
-            raise ValueError(f"{len(values)} values for {self.num_envs} envs")
+    def _set_attrs(self, name: str, values: list[Any]) -> None:
         for env, value in zip(self.envs, values):
             set_wrapper_attr(env, name, value)
 

@@ -62,6 +62,10 @@ class SafeVectorEnv(gymnasium.vector.VectorEnv, gymnasium.Env):
     def _close_envs(self) -> None:
         raise NotImplementedError
 
+    def _set_attrs(self, name: str, values: list[Any]) -> None:
+        """Set attribute ``name`` of env ``i`` to ``values[i]`` (one value per env, checked by :meth:`set_attr`)."""
+        raise NotImplementedError
+
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None) -> tuple:
         """Reset every env: ``(obs, infos)``; ``seed``: an int (env ``i`` gets ``seed + i``) or one per env."""
@@ -110,6 +114,15 @@ class SafeVectorEnv(gymnasium.vector.VectorEnv, gymnasium.Env):
     def get_attr(self, name: str) -> tuple:
         """Attribute ``name`` of every env (``call`` of a non-callable attribute)."""
         return self.call(name)
+
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set attribute ``name`` of every env: ``values`` is one value per env, or one for all."""
+        self._check_open()
+        if not isinstance(values, (list, tuple)):
+            values = [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError(f"{len(values)} values for {self.num_envs} envs")
+        self._set_attrs(name, list(values))
 
     def close(self, **kwargs: Any) -> None:
         """Close every env; calling it twice is allowed."""
