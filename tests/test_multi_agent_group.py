@@ -39,6 +39,7 @@ from sg_torchrl.train import (  # noqa: E402
 )
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.seed_runs import seed_entry  # noqa: E402
+from trainer_checks import recording  # noqa: E402
 
 ENV_ID = "Safety2x3HalfCheetahVelocity-v0"
 OPTIONS = {"max_episode_steps": 100, "velocity_threshold": 0.5}
@@ -52,19 +53,6 @@ def config(tmp_path, **overrides) -> TrainConfig:
     )
     values.update(overrides)
     return TrainConfig(**values)
-
-
-def recording(trainer) -> list:
-    """Keep a copy of every batch ``trainer`` collects."""
-    batches, collect = [], trainer.collector.collect
-
-    def collect_and_keep():
-        batch = collect()
-        batches.append(batch.clone())
-        return batch
-
-    trainer.collector.collect = collect_and_keep
-    return batches
 
 
 def progress(run_dir) -> list[dict[str, str]]:

@@ -51,7 +51,7 @@ from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts  # 
 from sg_torchrl.train.models import make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_group import seed_entry  # noqa: E402
 from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
-from trainer_checks import flat_parameters, tiny_config  # noqa: E402
+from trainer_checks import flat_parameters, recording, tiny_config  # noqa: E402
 
 POINT, CHEETAH = "SafetyPointGoal1-v0", "SafetyHalfCheetahVelocity-v1"
 RTOL, ATOL = 1e-4, 1e-6
@@ -67,19 +67,6 @@ def group_config(tmp_path, seeds, **overrides) -> TrainConfig:
     )
     values.update(overrides)
     return TrainConfig(**values)
-
-
-def recording(trainer: GroupTrainer) -> list:
-    """Keep a copy of every batch ``trainer`` collects."""
-    batches, collect = [], trainer.collector.collect
-
-    def collect_and_keep():
-        batch = collect()
-        batches.append(batch.clone())
-        return batch
-
-    trainer.collector.collect = collect_and_keep
-    return batches
 
 
 def progress(run_dir) -> list[dict[str, str]]:

@@ -22,3 +22,16 @@ def tiny_config(tmp_path, **overrides) -> TrainConfig:
     )
     values.update(overrides)
     return TrainConfig(**values)
+
+
+def recording(trainer) -> list:
+    """Keep a copy of every batch ``trainer`` collects (any trainer with a ``collector``)."""
+    batches, collect = [], trainer.collector.collect
+
+    def collect_and_keep():
+        batch = collect()
+        batches.append(batch.clone())
+        return batch
+
+    trainer.collector.collect = collect_and_keep
+    return batches
