@@ -6,9 +6,10 @@
   what the group achieves on average.
 
 Both read ``progress.csv`` rows (:meth:`sg_torchrl.train.logging.RunLogger.history`) and share the
-axis formatting below: env steps run to millions, and matplotlib's plain integer ticks
-("200000 400000 ...") overlapped in a half-width panel, so the step axis has at most five ticks
-written as 250k / 1.5M.
+panels of :func:`figure_panels` and :func:`finish_figure` (public because a sweep's per-env figure,
+:func:`sg_torchrl.sweep.report.plot_env_curves`, draws on the same panels) and their axis formatting:
+env steps run to millions, and matplotlib's plain integer ticks ("200000 400000 ...") overlapped in a
+half-width panel, so the step axis has at most five ticks written as 250k / 1.5M.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
 
-__all__ = ["format_steps", "plot_curves", "plot_group_curves", "training_rows"]
+__all__ = ["figure_panels", "finish_figure", "format_steps", "plot_curves", "plot_group_curves", "training_rows"]
 
 Row = Mapping[str, float]
 #: The two panels of every figure: (metric, panel title, y label, colour).
@@ -53,10 +54,10 @@ def plot_curves(history: Sequence[Row], path: Path, *, cost_limit: float, title:
     """Write a two-panel PNG (EpRet, EpCost vs env steps) from one run's ``progress.csv`` rows."""
     rows = training_rows(history)
     steps = [row["Train/TotalSteps"] for row in rows]
-    fig, axes = _figure(title)
+    fig, axes = figure_panels(title)
     for ax, (metric, _, _, color) in zip(axes, PANELS):
         ax.plot(steps, [row.get(metric, float("nan")) for row in rows], color=color)
-    _finish(fig, axes, path, cost_limit)
+    finish_figure(fig, axes, path, cost_limit)
     return path
 
 
@@ -68,7 +69,7 @@ def plot_group_curves(histories: Mapping[int, Sequence[Row]], path: Path, *, cos
     thin line ends where it was frozen) or had not finished an episode yet.
     """
     runs = {seed: training_rows(rows) for seed, rows in histories.items()}
-    fig, axes = _figure(title)
+    fig, axes = figure_panels(title)
     for ax, (metric, _, _, color) in zip(axes, PANELS):
         by_step: dict[float, list[float]] = {}
         for seed, rows in runs.items():
@@ -83,11 +84,11 @@ def plot_group_curves(histories: Mapping[int, Sequence[Row]], path: Path, *, cos
                 label=f"mean of {len(runs)} seeds")
         # One legend entry for all the thin lines: they share a style.
         ax.plot([], [], color=color, linewidth=0.8, alpha=0.35, label="each seed")
-    _finish(fig, axes, path, cost_limit)
+    finish_figure(fig, axes, path, cost_limit)
     return path
 
 
-def _figure(title: str) -> tuple[plt.Figure, tuple[Axes, Axes]]:
+def figure_panels(title: str) -> tuple[plt.Figure, tuple[Axes, Axes]]:
     """The two side-by-side panels with their titles, labels, step axis and grid."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for ax, (_, panel_title, ylabel, _) in zip(axes, PANELS):
@@ -99,7 +100,7 @@ def _figure(title: str) -> tuple[plt.Figure, tuple[Axes, Axes]]:
     return fig, tuple(axes)
 
 
-def _finish(fig: plt.Figure, axes: tuple[Axes, Axes], path: Path, cost_limit: float) -> None:
+def finish_figure(fig: plt.Figure, axes: tuple[Axes, Axes], path: Path, cost_limit: float) -> None:
     """Draw the cost limit on the cost panel, add the legends, write ``path`` and free the figure."""
     ax_ret, ax_cost = axes
     ax_cost.axhline(cost_limit, color="black", linestyle="--", linewidth=1, label=f"cost limit {cost_limit:g}")
