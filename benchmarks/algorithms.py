@@ -13,7 +13,7 @@ over seeds of the last 10 training episodes' return and cost), the normalised J^
 PPO run on the same env and budget, when it is in the benchmark; MAPPO for the multi-agent
 algorithms on the multi-agent ids) and J^C / cost limit, the seconds per update of one epoch
 (20,000 steps; multi-agent 10,000), and the published numbers from
-``benchmarks/paper_results.csv`` (10M steps) with their own normalisation. ``--per-seed``
+``sg_torchrl/sweep/paper_results.csv`` (10M steps) with their own normalisation. ``--per-seed``
 adds one row per finished run (its figures, evaluation, update seconds and wall minutes).
 
     python benchmarks/algorithms.py --envs SafetyPointGoal1-v0 --algos ppo ppo_lag cpo --seeds 0 1 2 \\
@@ -25,44 +25,14 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import re
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-#: The Safety-Gymnasium paper's published J^R / J^C tables (Ji et al. 2023), kept in the project as data.
-PAPER_RESULTS = Path(__file__).resolve().parent / "paper_results.csv"
-PAPER_NAMES = {
-    "pg": "PG", "ppo": "PPO", "ppo_lag": "PPO-Lag", "cppo_pid": "CPPO-PID", "focops": "FOCOPS", "cup": "CUP",
-    "npg": "NPG", "trpo": "TRPO", "trpo_lag": "TRPO-Lag", "rcpo": "RCPO", "cpo": "CPO", "pcpo": "PCPO",
-    "mappo": "MAPPO", "happo": "HAPPO", "mappo_lag": "MAPPO-Lag", "macpo": "MACPO",
-}
-#: The unconstrained baseline each algorithm's J^R is normalised by (the paper's tables).
-MULTI_AGENT = frozenset({"mappo", "happo", "mappo_lag", "macpo"})
-PAPER_TABLES = ("single_agent_raw", "multi_agent_raw")
-
-
-def baseline(algo: str) -> str:
-    """``"mappo"`` for the multi-agent algorithms, ``"ppo"`` for the single-agent ones."""
-    return "mappo" if algo in MULTI_AGENT else "ppo"
-
-
-def paper_env_name(env_id: str) -> str:
-    """``SafetyPointGoal1-v0`` -> ``PointGoal1``; ``SafetyHalfCheetahVelocity-v1`` -> ``HalfCheetahVel``;
-    ``Safety2x3HalfCheetahVelocity-v0`` -> ``2x3HalfCheetahVel``."""
-    name = re.sub(r"^Safety|-v\d+$", "", env_id)
-    return re.sub(r"Velocity$", "Vel", name)
-
-
-def load_paper_results(path: Path = PAPER_RESULTS) -> dict[tuple[str, str], tuple[float, float]]:
-    """``{(paper env, paper algorithm): (reward, cost)}`` of the single- and multi-agent tables (empty if absent)."""
-    if not path.exists():
-        return {}
-    with path.open() as handle:
-        return {(row["env"], row["algorithm"]): (float(row["reward"]), float(row["cost"]))
-                for row in csv.DictReader(handle) if row["table"] in PAPER_TABLES}
+# The paper's names and published tables live with the sweep report (sg_torchrl.sweep.report).
+from sg_torchrl.sweep.report import PAPER_NAMES, baseline, load_paper_results, paper_env_name
 
 
 def run_dir(output_dir: str, env_id: str, algo: str, seed: int) -> Path:

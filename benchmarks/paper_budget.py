@@ -27,9 +27,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from sg_torchrl.sweep.report import PAPER_NAMES, load_paper_results, paper_env_name
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from algorithms import PAPER_NAMES, load_paper_results, paper_env_name  # noqa: E402
 
 OUTPUT = HERE / "paper_budget"
 
