@@ -1,0 +1,233 @@
+"""One sweep cell on a Ray worker: ``sg-train`` in a child process, resumed from its checkpoint when one exists.
+
+:func:`run_cell` is the body of the sweep's Ray task. It starts ``python -m sg_torchrl.train`` for the
+cell (``--resume`` when the cell's directory holds a checkpoint, else a fresh run), sends its output to
+the cell's ``sweep.log`` and records each attempt in ``attempts.jsonl``. The child process rather than
+the worker itself trains because:
+
+* a retried task must never run beside its predecessor in the same directory. The task holds an
+  exclusive ``flock`` on ``<cell>/.lock`` and the child inherits it, so a new attempt waits until an
+  orphaned ``sg-train`` has checkpointed and exited;
+* the child dies with the worker (``PR_SET_PDEATHSIG``). It gets ``SIGTERM``, which ``sg-train`` turns into
+  "finish this epoch, checkpoint, stop" (:mod:`sg_torchrl.train.interrupt`), so a killed worker loses at
+  most the epoch under way and whatever ran since the last checkpoint;
+* Ray's cancel (the sweep's Ctrl-C) raises ``KeyboardInterrupt`` in the task, which passes it on to the
+  child as ``SIGINT``: the same checkpointed stop;
+* the child runs in its own session, so a Ctrl-C at the sweep's terminal reaches it only through the sweep.
+
+How a child's exit maps to the task's outcome: 0, or 1 with a summary (every seed diverged), is a finished
+cell; a death by a signal (``SIGKILL``, the OOM killer) raises :class:`CellKilled`, which Ray retries;
+130 / 143 (a stop request) raises :class:`CellInterrupted`; any other exit raises :class:`CellFailed` with
+the end of the log. A finished cell is never trained again: the task returns at once when the cell's
+``summary.json`` exists.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import fcntl
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["AttemptLog", "CellFailed", "CellInterrupted", "CellKilled", "SweepStorageError", "run_cell",
+           "SWEEP_RECORD"]
+
+#: The sweep's record at the root of its output directory (grid, shared options, cells, storage token).
+SWEEP_RECORD = "sweep.json"
+#: Exit codes of an ``sg-train`` stopped on request (128 + SIGINT / SIGTERM), checkpointed.
+STOPPED_CODES = frozenset({128 + signal.SIGINT, 128 + signal.SIGTERM})
+_PR_SET_PDEATHSIG = 1
+
+
+class CellKilled(RuntimeError):
+    """``sg-train`` was killed by a signal it did not ask for: the cell is retried from its checkpoint."""
+
+
+class CellFailed(RuntimeError):
+    """``sg-train`` exited with an error (a bad config, a crash): retrying would fail again."""
+
+
+class CellInterrupted(RuntimeError):
+    """The cell stopped on request after a checkpointed epoch; running the sweep again continues it."""
+
+
+class SweepStorageError(RuntimeError):
+    """A worker cannot see the sweep's output directory: cells need storage every node shares."""
+
+
+class AttemptLog:
+    """``<cell>/attempts.jsonl``: one JSON line per attempt at the cell (node, pid, start, end, status, ...).
+
+    Written only by the task that holds the cell's lock, rewritten whole (it has a few lines). An
+    attempt still ``"running"`` when the next one begins was lost with its worker: it is marked ``"lost"``.
+    """
+
+    def __init__(self, directory: Path) -> None:
+        self.path = directory / "attempts.jsonl"
+
+    def read(self) -> list[dict[str, Any]]:
+        if not self.path.exists():
+            return []
+        return [json.loads(line) for line in self.path.read_text().splitlines() if line.strip()]
+
+    def _write(self, attempts: list[dict[str, Any]]) -> None:
+        temporary = self.path.with_suffix(".tmp")
+        temporary.write_text("".join(json.dumps(a) + "\n" for a in attempts))
+        temporary.replace(self.path)
+
+    def begin(self, **fields: Any) -> int:
+        attempts = self.read()
+        for attempt in attempts:
+            if attempt.get("status") == "running":
+                attempt["status"] = "lost"
+        number = len(attempts) + 1
+        attempts.append({"attempt": number, "start": time.time(), "end": None, "status": "running", **fields})
+        self._write(attempts)
+        return number
+
+    def end(self, number: int, status: str, **fields: Any) -> None:
+        attempts = self.read()
+        attempts[number - 1].update(end=time.time(), status=status, **fields)
+        self._write(attempts)
+
+
+def _node_address() -> str:
+    try:
+        import ray
+
+        return ray.util.get_node_ip_address()
+    except Exception:  # outside Ray (tests call run_cell directly)
+        return socket.gethostname()
+
+
+def _die_with_parent() -> None:
+    """In the child before ``exec``: receive ``SIGTERM`` when the worker dies (a checkpointed stop)."""
+    parent = os.getppid()
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    if os.getppid() != parent:  # the worker died before the request took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _wait(pid: int, poll: bool = True) -> tuple[int, Any]:
+    """The wait status and resource usage of child ``pid`` once it exits.
+
+    Polled (``poll``) rather than blocking: Ray cancels a task by raising ``KeyboardInterrupt`` in its
+    thread (``_thread.interrupt_main``), which only takes effect between Python instructions, never
+    inside a blocking ``wait4``.
+    """
+    while poll:
+        done, status, usage = os.wait4(pid, os.WNOHANG)
+        if done:
+            return status, usage
+        time.sleep(0.25)
+    _, status, usage = os.wait4(pid, 0)
+    return status, usage
+
+
+def _log_tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return ""
+
+
+def epochs_logged(directory: Path, seeds: list[int]) -> int:
+    """Epoch rows in the first seed's ``progress.csv`` (training rows: those with an epoch number)."""
+    progress = directory / f"seed-{seeds[0]:03d}" / "progress.csv"
+    if not progress.exists():
+        return 0
+    lines = progress.read_text().splitlines()
+    if not lines:
+        return 0
+    column = lines[0].split(",").index("Train/Epoch") if "Train/Epoch" in lines[0] else None
+    if column is None:
+        return max(len(lines) - 1, 0)
+    return sum(1 for line in lines[1:] if len(line.split(",")) > column and line.split(",")[column])
+
+
+def check_storage(output_dir: Path, token: str) -> None:
+    """Raise :class:`SweepStorageError` unless this node sees the sweep's own ``sweep.json`` (same token)."""
+    record = output_dir / SWEEP_RECORD
+    try:
+        seen = json.loads(record.read_text()).get("token")
+    except (OSError, ValueError):
+        seen = None
+    if seen != token:
+        raise SweepStorageError(
+            f"node {_node_address()} cannot see this sweep's {record}: a sweep's output directory must be on "
+            "storage every node of the cluster shares (the same path on each), since cells resume from their "
+            "checkpoints wherever Ray runs them")
+
+
+def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], arguments: list[str]) -> dict[str, Any]:
+    """Train one cell to its end (or continue it), in ``<output_dir>/<run_name>``.
+
+    Args:
+        output_dir: the sweep's root folder (the same path on every node).
+        token: the sweep's storage token (:func:`check_storage`).
+        run_name: the cell's directory relative to ``output_dir``.
+        seeds: the cell's seeds (for the progress count of a resumed attempt).
+        arguments: the ``sg-train`` arguments of a fresh start (:meth:`SweepGrid.train_arguments`).
+
+    Returns:
+        ``{"status": "done", "ran": bool, "attempt": n, "wall_s": ..., "cpu_s": ...}``.
+
+    Raises:
+        CellKilled / CellFailed / CellInterrupted / SweepStorageError: see the module docstring.
+    """
+    root = Path(output_dir)
+    check_storage(root, token)
+    directory = root / run_name
+    directory.mkdir(parents=True, exist_ok=True)
+    with open(directory / ".lock", "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # an orphaned sg-train of a lost attempt may still be checkpointing
+        if (directory / "summary.json").exists():
+            return {"status": "done", "ran": False}
+        resume = (directory / "checkpoint.pt").exists()
+        if resume:
+            command = ["--resume", str(directory), "--progress", "false"]
+        else:  # a new cell, or one whose first attempt died before its first checkpoint: start it over
+            command = [*arguments, "--overwrite", "--progress", "false"]
+        attempts = AttemptLog(directory)
+        number = attempts.begin(node=_node_address(), pid=os.getpid(), resumed=resume,
+                                epochs_before=epochs_logged(directory, seeds))
+        start = time.monotonic()
+        with open(directory / "sweep.log", "ab") as log:
+            log.write(f"\n=== attempt {number} on {_node_address()} ({time.ctime()}): sg-train "
+                      f"{' '.join(command)}\n".encode())
+            log.flush()
+            child = subprocess.Popen([sys.executable, "-m", "sg_torchrl.train", *command], stdout=log,
+                                     stderr=subprocess.STDOUT, start_new_session=True, pass_fds=(lock.fileno(),),
+                                     preexec_fn=_die_with_parent)
+            try:
+                status, usage = _wait(child.pid)
+            except KeyboardInterrupt:  # Ray's cancel (the sweep's Ctrl-C): a checkpointed stop
+                child.send_signal(signal.SIGINT)
+                status, usage = _wait(child.pid, poll=False)
+                attempts.end(number, "interrupted", code=os.waitstatus_to_exitcode(status),
+                             wall_s=time.monotonic() - start, cpu_s=usage.ru_utime + usage.ru_stime)
+                raise
+            child.returncode = code = os.waitstatus_to_exitcode(status)
+        outcome = {"attempt": number, "wall_s": time.monotonic() - start, "cpu_s": usage.ru_utime + usage.ru_stime,
+                   "code": code}
+        finished = (directory / "summary.json").exists()
+        if code == 0 or (code == 1 and finished):
+            attempts.end(number, "done", **{k: v for k, v in outcome.items() if k != "attempt"})
+            return {"status": "done", "ran": True, **outcome}
+        if code < 0:
+            attempts.end(number, "killed", **{k: v for k, v in outcome.items() if k != "attempt"})
+            raise CellKilled(f"sg-train was killed by {signal.Signals(-code).name} (attempt {number}); "
+                             f"log: {directory / 'sweep.log'}")
+        if code in STOPPED_CODES:
+            attempts.end(number, "interrupted", **{k: v for k, v in outcome.items() if k != "attempt"})
+            raise CellInterrupted(f"stopped on request after a checkpointed epoch (exit {code})")
+        attempts.end(number, "failed", **{k: v for k, v in outcome.items() if k != "attempt"})
+        raise CellFailed(f"sg-train exited with {code}; log: {directory / 'sweep.log'}\n"
+                         f"{_log_tail(directory / 'sweep.log')}")

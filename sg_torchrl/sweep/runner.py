@@ -1,0 +1,238 @@
+"""The sweep's driver: every unfinished cell of a :class:`~sg_torchrl.sweep.grid.SweepGrid` as a Ray task.
+
+:func:`run_sweep` starts a local Ray instance (or joins ``address``), skips the cells whose
+``summary.json`` exists, submits the others as tasks asking for ``cpus_per_cell`` CPUs (and
+``gpus_per_cell`` GPUs), and reports as it goes: a line per cell that starts, restarts from its
+checkpoint, finishes or fails, and every ``progress_every`` seconds the counts and the env steps per
+second of the running cells. Cells run :func:`sg_torchrl.sweep.cell.run_cell`; read its docstring for
+what happens when a worker dies.
+
+Fault tolerance is Ray's task retry: a task whose worker process or node dies is resubmitted (up to
+``max_retries`` times), as is one whose ``sg-train`` was killed by a signal; the new attempt resumes the
+cell from its checkpoint. Ctrl-C cancels the tasks: each running cell finishes its epoch, checkpoints
+and stops, and the same command continues the sweep. A second Ctrl-C stops at once (at most the work
+since the cells' last checkpoints is lost).
+
+The output directory is the whole state: ``sweep.json`` (the grid, its shared options, a storage
+token), one directory per cell (``sg-train``'s files, ``sweep.log``, ``attempts.jsonl``) and, once
+cells finish, ``report/``. It can be copied anywhere and reported on there (:mod:`sg_torchrl.sweep.report`).
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellKilled, check_storage, run_cell
+from sg_torchrl.sweep.grid import Cell, SweepGrid, merge_records
+
+__all__ = ["SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
+
+#: Seconds a Ctrl-C'd sweep waits for its running cells to checkpoint before it gives up on them.
+STOP_GRACE_S = 600.0
+
+
+@dataclass
+class SweepOutcome:
+    """What a call of :func:`run_sweep` did: cells finished now, found finished, failed (with why), stopped."""
+
+    finished: list[Cell] = field(default_factory=list)
+    skipped: list[Cell] = field(default_factory=list)
+    failed: dict[Cell, str] = field(default_factory=dict)
+    interrupted: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not self.interrupted
+
+
+def prepare_output(grid: SweepGrid) -> str:
+    """Create the output directory and write (or extend) its ``sweep.json``; returns the storage token.
+
+    Raises:
+        SweepGridError: the directory holds a sweep with another budget or other shared options.
+    """
+    grid.output_dir.mkdir(parents=True, exist_ok=True)
+    path = grid.output_dir / SWEEP_RECORD
+    previous = json.loads(path.read_text()) if path.exists() else None
+    record = merge_records(previous, grid)
+    record["token"] = (previous or {}).get("token") or secrets.token_hex(8)
+    temporary = path.with_suffix(".tmp")
+    temporary.write_text(json.dumps(record, indent=2))
+    temporary.replace(path)
+    return record["token"]
+
+
+def cell_state(grid: SweepGrid, cell: Cell) -> dict[str, Any]:
+    """A cell's state read from its directory: ``finished``, env steps per seed so far, its attempts."""
+    directory = grid.cell_dir(cell)
+    steps = 0
+    progress = directory / f"seed-{cell.seeds[0]:03d}" / "progress.csv"
+    if progress.exists():
+        lines = progress.read_text().splitlines()
+        header = lines[0].split(",") if lines else []
+        if "Train/TotalSteps" in header:
+            column = header.index("Train/TotalSteps")
+            values = [line.split(",")[column] for line in lines[1:] if len(line.split(",")) > column]
+            steps = int(float(next((v for v in reversed(values) if v), 0)))
+    return {"finished": (directory / "summary.json").exists(), "steps": steps,
+            "attempts": AttemptLog(directory).read()}
+
+
+def _summary_line(grid: SweepGrid, cell: Cell) -> str:
+    path = grid.cell_dir(cell) / "summary.json"
+    try:
+        mean = json.loads(path.read_text()).get("mean", {})
+        return f"J^R {mean['Final/EpRetLast10']:.2f}  J^C {mean['Final/EpCostLast10']:.2f}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
+class _Progress:
+    """The driver's reports: cell events as they happen and a status line every ``every`` seconds."""
+
+    def __init__(self, grid: SweepGrid, cells: list[Cell], every: float, out: Callable[[str], None]) -> None:
+        self.grid, self.cells, self.every, self.out = grid, cells, every, out
+        self.seen_attempts = {cell: len(cell_state(grid, cell)["attempts"]) for cell in cells}
+        self.last_line = time.monotonic()
+        self.last_steps: dict[Cell, tuple[float, int]] = {}
+
+    def poll(self, open_cells: list[Cell], done: int, failed: int, force: bool = False) -> None:
+        running, rate = 0, 0.0
+        now = time.monotonic()
+        for cell in open_cells:
+            state = cell_state(self.grid, cell)
+            attempts = state["attempts"]
+            if len(attempts) > self.seen_attempts[cell]:
+                self.seen_attempts[cell] = len(attempts)
+                latest = attempts[-1]
+                verb = "restart" if latest.get("resumed") else "start"
+                detail = (f" from its checkpoint (attempt {latest['attempt']}, {latest.get('epochs_before', 0)} epochs "
+                          "logged before)") if latest.get("resumed") else ""
+                self.out(f"[{verb}] {cell.label} on {latest.get('node')}{detail}; log {self.grid.cell_dir(cell)}/sweep.log")
+            if attempts and attempts[-1].get("status") == "running":
+                running += 1
+                steps = state["steps"] * len(cell.seeds)
+                if cell in self.last_steps:
+                    then, before = self.last_steps[cell]
+                    rate += max(steps - before, 0) / max(now - then, 1e-9)
+                self.last_steps[cell] = (now, steps)
+        if force or now - self.last_line >= self.every:
+            self.last_line = now
+            pending = len(open_cells) - running
+            self.out(f"[sweep {time.strftime('%H:%M:%S')}] {done} done, {running} running, {failed} failed, "
+                     f"{pending} waiting; {rate:,.0f} env steps/s")
+
+
+def _init_ray(address: str | None, num_cpus: int | None) -> None:
+    import ray
+
+    if address:  # join a running cluster (``ray start --head`` elsewhere); its resources are its own
+        ray.init(address=address, log_to_driver=False, logging_level="warning")
+    else:  # a private local instance: never attach silently to another user's cluster on this machine
+        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                 logging_level="warning")
+
+
+def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | None = None,
+              cpus_per_cell: float = 1.0, gpus_per_cell: float = 0.0, max_retries: int = 3,
+              progress_every: float = 30.0, out: Callable[[str], None] = print) -> SweepOutcome:
+    """Run every unfinished cell of ``grid`` on Ray; see the module docstring.
+
+    Args:
+        grid: the cells, their shared options and the output directory.
+        address: a running Ray cluster to join (``"auto"``, ``"10.0.0.1:6379"``); None starts a local instance.
+        num_cpus: CPUs of the local instance (default: all of this machine's).
+        cpus_per_cell, gpus_per_cell: what each cell's task asks Ray for.
+        max_retries: how often a cell whose worker died (or whose ``sg-train`` was killed) is resubmitted.
+        progress_every: seconds between status lines.
+        out: where reports go (``print``).
+
+    Raises:
+        SweepGridError: a bad cell command line, or an output directory holding another kind of sweep.
+        KeyboardInterrupt: after a Ctrl-C, once the running cells have checkpointed (``outcome.interrupted``
+            is not returned then: the exception is the report).
+    """
+    grid.validate()
+    token = prepare_output(grid)
+    outcome = SweepOutcome()
+    todo = []
+    for cell in grid.cells:
+        if cell_state(grid, cell)["finished"]:
+            outcome.skipped.append(cell)
+            out(f"[skip] {cell.label}: finished ({_summary_line(grid, cell)})")
+        else:
+            todo.append(cell)
+    if not todo:
+        return outcome
+    import ray
+
+    _init_ray(address, num_cpus)
+    try:
+        check_storage(grid.output_dir, token)
+        task = ray.remote(run_cell)
+        resources = {"num_cpus": cpus_per_cell, "num_gpus": gpus_per_cell, "max_retries": max_retries,
+                     "retry_exceptions": [CellKilled]}
+        refs = {task.options(name=cell.run_name, **resources).remote(
+                    str(grid.output_dir), token, cell.run_name, list(cell.seeds), grid.train_arguments(cell)): cell
+                for cell in todo}
+        out(f"[sweep] {len(refs)} cell(s) submitted, {len(outcome.skipped)} already finished; output {grid.output_dir}")
+        progress = _Progress(grid, todo, progress_every, out)
+        try:
+            _wait_all(refs, grid, outcome, progress, out)
+        except KeyboardInterrupt:
+            _stop(refs, progress, outcome, out)
+            outcome.interrupted = True
+            raise
+    finally:
+        ray.shutdown()
+    return outcome
+
+
+def _collect(ref: Any, cell: Cell, grid: SweepGrid, outcome: SweepOutcome, out: Callable[[str], None]) -> None:
+    import ray
+
+    try:
+        ray.get(ref)
+    except ray.exceptions.RayError as error:
+        cause = getattr(error, "cause", None) or error
+        reason = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+        outcome.failed[cell] = str(cause)
+        out(f"[failed] {cell.label}: {reason}; log {grid.cell_dir(cell)}/sweep.log")
+        return
+    outcome.finished.append(cell)
+    out(f"[done] {cell.label}: {_summary_line(grid, cell)}")
+
+
+def _wait_all(refs: dict[Any, Cell], grid: SweepGrid, outcome: SweepOutcome, progress: _Progress,
+              out: Callable[[str], None]) -> None:
+    import ray
+
+    remaining = dict(refs)
+    while remaining:
+        ready, _ = ray.wait(list(remaining), num_returns=1, timeout=min(progress.every, 5.0))
+        progress.poll(list(remaining.values()), len(outcome.finished), len(outcome.failed))
+        for ref in ready:
+            _collect(ref, remaining.pop(ref), grid, outcome, out)
+    progress.poll([], len(outcome.finished), len(outcome.failed), force=True)
+
+
+def _stop(refs: dict[Any, Cell], progress: _Progress, outcome: SweepOutcome, out: Callable[[str], None]) -> None:
+    """Cancel every open task; wait (up to :data:`STOP_GRACE_S`) for the running cells to checkpoint."""
+    import ray
+
+    open_refs = [ref for ref, cell in refs.items() if cell not in outcome.finished and cell not in outcome.failed]
+    out(f"[stopping] {len(open_refs)} open cell(s): the running ones finish their epoch and checkpoint; "
+        "run the same command again to continue (Ctrl-C again stops at once)")
+    for ref in open_refs:
+        ray.cancel(ref, force=False)
+    deadline = time.monotonic() + STOP_GRACE_S
+    while open_refs and time.monotonic() < deadline:
+        ready, open_refs = ray.wait(open_refs, num_returns=len(open_refs), timeout=2.0)
+    if open_refs:
+        out(f"[stopping] {len(open_refs)} cell(s) did not stop within {STOP_GRACE_S:.0f} s; they continue from their "
+            "last checkpoint")
