@@ -224,40 +224,36 @@ def test_resume_flags_that_would_move_the_run_are_refused(run_copy, tmp_path, ca
     assert load_checkpoint(run_copy)["epoch"] == 3
 
 
-def test_the_benchmark_runner_resumes_or_starts_cells_over(finished_run, tmp_path, monkeypatch):
-    import argparse
-    import importlib.util
+def test_a_sweep_cell_resumes_from_its_checkpoint_or_starts_over(finished_run, tmp_path):
+    """sg-sweep's cell task (run here without Ray): a cell with a checkpoint continues it (``--resume``);
+    one killed before its first checkpoint starts over (``--overwrite``); a finished one is never run again."""
+    import json
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "algorithms.py"
-    spec = importlib.util.spec_from_file_location("benchmark_algorithms_runner", script)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    env_id = "SafetyHalfCheetahVelocity-v1"
-    shutil.copytree(finished_run, bench.run_dir(str(tmp_path), env_id, "ppo", 0))  # checkpointed, unfinished
-    (bench.run_dir(str(tmp_path), env_id, "ppo", 0) / "summary.json").unlink()
-    killed = bench.run_dir(str(tmp_path), env_id, "ppo", 1)  # killed before its first checkpoint
-    killed.mkdir(parents=True)
-    (killed / "progress.csv").write_text("Train/Epoch\n")
-    commands = []
+    from sg_torchrl.sweep.cell import AttemptLog, run_cell
 
-    class Done:
-        returncode = 0
+    root = tmp_path / "sweep"
+    root.mkdir()
+    (root / "sweep.json").write_text(json.dumps({"token": "t"}))
+    unfinished = root / "unfinished"
+    shutil.copytree(finished_run, unfinished)
+    (unfinished / "summary.json").unlink()  # checkpointed at its last epoch, summary not written yet
+    killed = root / "killed"
+    killed.mkdir()
+    (killed / "progress.csv").write_text("Train/Epoch\n")  # killed before its first checkpoint
 
-        def __init__(self, cmd, **_):
-            commands.append(cmd)
+    assert run_cell(str(root), "t", "unfinished", [0], ["--never-used-when-resuming"])["ran"]
+    assert "sg-train --resume " + str(unfinished) in (unfinished / "sweep.log").read_text()
+    assert (unfinished / "summary.json").exists() and AttemptLog(unfinished).read()[-1]["resumed"] is True
 
-        def poll(self):
-            return 0
+    assert run_cell(str(root), "t", "killed", [0], cli_args(root, "killed"))["ran"]
+    header = next(line for line in (killed / "sweep.log").read_text().splitlines() if line.startswith("=== attempt"))
+    assert "--overwrite" in header and "--resume" not in header and (killed / "summary.json").exists()
 
-    monkeypatch.setattr(bench.subprocess, "Popen", Done)
-    monkeypatch.setattr(bench.time, "sleep", lambda _: None)
-    args = argparse.Namespace(envs=[env_id], algos=["ppo"], seeds=[0, 1, 2], seed_major=False, jobs=1,
-                              output_dir=str(tmp_path), force=False, total_steps=400, wandb="disabled", extra=[])
-    bench.run_all(args)
-    resumed, killed_cell, new_cell = commands
-    assert resumed[-2:] == ["--resume", str(bench.run_dir(str(tmp_path), env_id, "ppo", 0))]
-    for cmd in (killed_cell, new_cell):
-        assert cmd[-1] == "--overwrite" and "--resume" not in cmd
+    before = snapshot(unfinished)
+    assert run_cell(str(root), "t", "unfinished", [0], [])["ran"] is False  # finished: skipped
+    assert snapshot(unfinished) == before
+    assert [a["status"] for a in AttemptLog(killed).read()] == ["done"]
+
 
 
 def test_resume_validates_new_options_against_the_saved_config(tmp_path):
