@@ -63,7 +63,8 @@ class SweepStorageError(RuntimeError):
 
 
 class AttemptLog:
-    """``<cell>/attempts.jsonl``: one JSON line per attempt at the cell (node, pid, start, end, status, ...).
+    """``<cell>/attempts.jsonl``: one JSON line per attempt at the cell (node address and Ray node id, worker pid,
+    start, end, status, ...).
 
     Written only by the task that holds the cell's lock, rewritten whole (it has a few lines). An
     attempt still ``"running"`` when the next one begins was lost with its worker: it is marked ``"lost"``.
@@ -105,6 +106,17 @@ def _node_address() -> str:
         return ray.util.get_node_ip_address()
     except Exception:  # outside Ray (tests call run_cell directly)
         return socket.gethostname()
+
+
+def _node_id() -> str | None:
+    """The Ray node running this task (None outside Ray): unlike the address, it tells apart two nodes of
+    one machine, and a node restarted on the same host."""
+    try:
+        import ray
+
+        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
+    except Exception:
+        return None
 
 
 def _die_with_parent() -> None:
@@ -196,7 +208,7 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
         else:  # a new cell, or one whose first attempt died before its first checkpoint: start it over
             command = [*arguments, "--overwrite", "--progress", "false"]
         attempts = AttemptLog(directory)
-        number = attempts.begin(node=_node_address(), pid=os.getpid(), resumed=resume,
+        number = attempts.begin(node=_node_address(), node_id=_node_id(), pid=os.getpid(), resumed=resume,
                                 epochs_before=epochs_logged(directory, seeds))
         start = time.monotonic()
         with open(directory / "sweep.log", "ab") as log:

@@ -133,8 +133,8 @@ class SweepGrid:
     @classmethod
     def from_seeds(cls, seeds: Sequence[int], seeds_per_cell: int | None = None, **kwargs: Any) -> SweepGrid:
         """A grid whose seed groups are ``seeds`` cut into groups of ``seeds_per_cell`` (default: one group)."""
-        size = seeds_per_cell or len(seeds)
-        if size < 1:
+        size = len(seeds) if seeds_per_cell is None else seeds_per_cell
+        if size < 1:  # 0 included: it is no group size, not "all seeds"
             raise SweepGridError(f"seeds per cell must be >= 1, got {seeds_per_cell}")
         if len(set(seeds)) != len(seeds):
             raise SweepGridError(f"a seed is listed twice: {list(seeds)}")
