@@ -259,6 +259,19 @@ def test_running_a_finished_sweep_again_skips_every_cell(ray_cluster, finished_s
     assert {cell: (grid.cell_dir(cell) / "attempts.jsonl").read_bytes() for cell in grid.cells} == before
 
 
+@pytest.mark.timeout(300)
+def test_a_driver_without_the_clusters_token_is_told_how_to_give_it(ray_cluster, tmp_path):
+    without_token = {key: value for key, value in os.environ.items() if not key.startswith("RAY_AUTH")}
+    without_token["RAY_gcs_server_port_wait_time_s"] = "2"  # tries to connect twice, not for 20 s
+    grid = tiny_grid(tmp_path / "out", ("ppo",))
+    result = subprocess.run([sys.executable, "-m", "sg_torchrl.sweep", *sweep_arguments(grid, ray_cluster.address)],
+                            env=without_token, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert "refused this driver's authentication token" in result.stderr, result.stderr[-3000:]
+    assert "RAY_AUTH_MODE=token" in result.stderr and "Traceback" not in result.stderr
+    assert not grid.cell_dir(grid.cells[0]).exists()
+
+
 def _children(pid: int) -> list[int]:
     """The processes whose parent is ``pid``."""
     found = []

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from sg_torchrl.sweep.cell import SWEEP_RECORD
 from sg_torchrl.sweep.grid import SweepGrid, SweepGridError, parse_grid_option
+from sg_torchrl.sweep.runner import ClusterUnreachable, run_sweep  # imports Ray only when a sweep runs
 
 __all__ = ["main", "build_parser", "grid_from_args"]
 
@@ -100,12 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     previous_sigterm = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         grid = grid_from_args(args)
-        from sg_torchrl.sweep.runner import run_sweep
-
         outcome = run_sweep(grid, address=args.address, num_cpus=args.num_cpus, cpus_per_cell=args.cpus_per_cell,
                             gpus_per_cell=args.gpus_per_cell, max_retries=args.max_retries,
                             progress_every=args.progress_every)
-    except SweepGridError as error:
+    except (SweepGridError, ClusterUnreachable) as error:  # a bad grid, or a bad --address (or no token for it)
         print(f"sg-sweep: error: {error}", file=sys.stderr)
         return 2
     except ModuleNotFoundError as error:

@@ -30,10 +30,15 @@ from typing import Any, Callable
 from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellKilled, check_storage, run_cell
 from sg_torchrl.sweep.grid import Cell, SweepGrid, merge_records
 
-__all__ = ["SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
+__all__ = ["ClusterUnreachable", "SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
 
 #: Seconds a Ctrl-C'd sweep waits for its running cells to checkpoint before it gives up on them.
 STOP_GRACE_S = 600.0
+
+
+class ClusterUnreachable(ConnectionError):
+    """The driver could not join the Ray cluster at ``address`` (wrong address, cluster down, or a missing or
+    wrong authentication token: Ray clusters require one by default)."""
 
 
 @dataclass
@@ -132,10 +137,29 @@ def _init_ray(address: str | None, num_cpus: int | None) -> None:
     import ray
 
     if address:  # join a running cluster (``ray start --head`` elsewhere); its resources are its own
-        ray.init(address=address, log_to_driver=False, logging_level="warning")
+        try:
+            ray.init(address=address, log_to_driver=False, logging_level="warning")
+        except ConnectionError as error:
+            raise ClusterUnreachable(_join_failure(address, error)) from error
     else:  # a private local instance: never attach silently to another user's cluster on this machine
         ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
                  logging_level="warning")
+
+
+def _join_failure(address: str, error: BaseException) -> str:
+    """Why joining ``address`` failed, in a line: Ray buries a refused token under a chain of connection errors
+    (Ray 2.60: as the text of the last one's cause), and an explicit address, unlike ``auto``, never turns token
+    authentication on by itself."""
+    from ray.exceptions import AuthenticationError
+
+    cause: BaseException | None = error
+    while cause is not None and not (isinstance(cause, AuthenticationError) or "InvalidAuthToken" in str(cause)):
+        cause = cause.__cause__ or cause.__context__
+    if cause is None:
+        return f"cannot join the Ray cluster at {address}: {error}"
+    return (f"the Ray cluster at {address} refused this driver's authentication token. Ray clusters require one by "
+            "default: set RAY_AUTH_MODE=token and give the cluster's token (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or "
+            "~/.ray/auth_token; `ray get-auth-token` on the head node prints it)")
 
 
 def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | None = None,
@@ -154,6 +178,7 @@ def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | No
 
     Raises:
         SweepGridError: a bad cell command line, or an output directory holding another kind of sweep.
+        ClusterUnreachable: ``address`` could not be joined.
         KeyboardInterrupt: after a Ctrl-C, once the running cells have checkpointed (``outcome.interrupted``
             is not returned then: the exception is the report).
     """
