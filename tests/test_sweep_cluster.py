@@ -334,3 +334,39 @@ def test_a_cell_whose_process_is_killed_is_retried_and_ends_as_if_never_interrup
         assert second["pid"] != killed["worker"]
     assert final_results(directory) == final_results(finished_sweep.grid.cell_dir(cell_of(finished_sweep.grid,
                                                                                             "ppo_lag")))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_a_stopped_sweep_checkpoints_its_cell_and_the_same_command_finishes_it(ray_cluster, finished_sweep, tmp_path):
+    """``sg-sweep`` stopped with SIGTERM (a cluster scheduler's stop; Ctrl-C is the same path) cancels its cell's
+    task, which has ``sg-train`` finish the epoch under way, checkpoint and exit; running it again continues."""
+    grid = tiny_grid(tmp_path / "out", ("ppo_lag",))
+    (cell,) = grid.cells
+    directory = grid.cell_dir(cell)
+    sweep = subprocess.Popen([sys.executable, "-m", "sg_torchrl.sweep", *sweep_arguments(grid, ray_cluster.address)],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while epochs_logged(directory, list(SEEDS)) < KILL_AFTER_EPOCHS:
+            assert sweep.poll() is None and time.monotonic() < deadline, sweep.communicate()[0][-3000:]
+            time.sleep(0.1)
+        stopped_at = epochs_logged(directory, list(SEEDS))
+        sweep.send_signal(signal.SIGTERM)
+        output = sweep.communicate(timeout=300)[0]
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+            sweep.wait()
+    assert sweep.returncode == 130, output[-3000:]
+    assert "the same command continues the sweep" in output
+    (attempt,) = AttemptLog(directory).read()
+    assert (attempt["status"], attempt["code"]) == ("interrupted", 128 + signal.SIGINT), output[-3000:]
+    assert not (directory / "summary.json").exists()
+
+    outcome = run_sweep(tiny_grid(grid.output_dir, grid.algos), address=ray_cluster.address, out=lambda line: None)
+    assert outcome.finished == [cell] and outcome.ok
+    first, second = AttemptLog(directory).read()
+    assert (second["status"], second["resumed"]) == ("done", True) and second["epochs_before"] >= stopped_at
+    assert final_results(directory) == final_results(finished_sweep.grid.cell_dir(cell_of(finished_sweep.grid,
+                                                                                            "ppo_lag")))

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import json
 import secrets
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -134,16 +136,27 @@ class _Progress:
 
 
 def _init_ray(address: str | None, num_cpus: int | None) -> None:
+    """Start or join Ray, keeping the caller's ``SIGTERM`` handler.
+
+    ``ray.init`` replaces it with one that exits at once (and Ray's core dumps a stack): ``sg-sweep``'s handler,
+    which makes a scheduler's ``SIGTERM`` a Ctrl-C (cells checkpoint, then the sweep stops), would be lost.
+    """
     import ray
 
-    if address:  # join a running cluster (``ray start --head`` elsewhere); its resources are its own
-        try:
-            ray.init(address=address, log_to_driver=False, logging_level="warning")
-        except ConnectionError as error:
-            raise ClusterUnreachable(_join_failure(address, error)) from error
-    else:  # a private local instance: never attach silently to another user's cluster on this machine
-        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
-                 logging_level="warning")
+    main_thread = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if main_thread else None
+    try:
+        if address:  # join a running cluster (``ray start --head`` elsewhere); its resources are its own
+            try:
+                ray.init(address=address, log_to_driver=False, logging_level="warning")
+            except ConnectionError as error:
+                raise ClusterUnreachable(_join_failure(address, error)) from error
+        else:  # a private local instance: never attach silently to another user's cluster on this machine
+            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                     logging_level="warning")
+    finally:
+        if main_thread and sigterm is not None:
+            signal.signal(signal.SIGTERM, sigterm)
 
 
 def _join_failure(address: str, error: BaseException) -> str:
