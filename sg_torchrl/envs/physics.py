@@ -129,6 +129,7 @@ class MujocoBatch:
         # Mocap trajectories (see drive_mocap): (rows of mocap_pos as a slice or index array, trajectory).
         self._mocap_drivers: list[tuple[slice | np.ndarray, MocapTrajectory]] = []
         self._mocap_views = [data.mocap_pos for data in self.datas]
+        self._substep_offsets: dict[int, np.ndarray] = {}  # nstep -> sub-step start times after the step's (s)
         # Threads (module docstring): each worker steps one contiguous slice of the simulators.
         self.threads = min(threads, num_sims)
         bounds = np.linspace(0, num_sims, self.threads + 1).round().astype(int)
@@ -144,10 +145,15 @@ class MujocoBatch:
             ``(N,)`` bool: the simulators MuJoCo found unstable during this step (and reset to
             the model's initial state, see the module docstring).
         """
+        if self._aliased:  # one simulator: nothing to gather, three counters to read
+            if not self._mocap_drivers:
+                return self._step_one(ctrl, nstep)
+            self._step_driven(self._slices[0], ctrl, nstep, self._mocap_plans(nstep))
+            self.version += 1
+            self._check_one()
+            return self.unstable
         if self._mocap_drivers:
             self._for_each_slice(self._step_driven, ctrl, nstep, self._mocap_plans(nstep))
-        elif self._aliased:
-            return self._step_one(ctrl, nstep)
         else:
             self._for_each_slice(self._step_plain, ctrl, nstep)
         self.version += 1
@@ -179,6 +185,11 @@ class MujocoBatch:
         if self.post_constraint:
             mujoco.mj_rnePostConstraint(self.model, data)
         self.version += 1
+        return self._check_one()
+
+    def _check_one(self) -> bool:
+        """Whether the one simulator turned unstable since the last check (sets :attr:`unstable`), read from
+        its three instability counters as Python ints (no ``(N,)`` arrays for one simulator)."""
         first, second, third = self._unstable_one.tolist()
         count = first + second + third
         unstable = count != int(self._unstable_counts[0])
@@ -243,8 +254,14 @@ class MujocoBatch:
 
     def _mocap_plans(self, nstep: int) -> list[tuple[slice | np.ndarray, np.ndarray]]:
         """Every driven mocap target of this step, vectorised: ``(rows, (N, nstep, K, 3) targets)`` per trajectory."""
-        start = np.fromiter((data.time for data in self.datas), dtype=np.float64, count=self.num_sims)
-        times = start[:, None] + np.arange(nstep) * self.model.opt.timestep
+        offsets = self._substep_offsets.get(nstep)
+        if offsets is None:  # computed once per nstep: the same products every step
+            offsets = self._substep_offsets[nstep] = np.arange(nstep) * self.model.opt.timestep
+        if self._aliased:  # one simulator: its clock as a Python float, the same sums
+            times = self.datas[0].time + offsets[None]
+        else:
+            start = np.fromiter((data.time for data in self.datas), dtype=np.float64, count=self.num_sims)
+            times = start[:, None] + offsets
         return [(rows, trajectory(times)) for rows, trajectory in self._mocap_drivers]
 
     def _step_driven(self, sims: range, ctrl: np.ndarray, nstep: int,
@@ -254,11 +271,23 @@ class MujocoBatch:
         for i in sims:
             data, mocap_pos = self.datas[i], self._mocap_views[i]
             self._ctrl_views[i][:] = ctrl[i]
-            paths = [(rows, targets[i]) for rows, targets in plans]  # this simulator's (nstep, K, 3) targets
-            for k in range(nstep):
-                for rows, path in paths:
-                    mocap_pos[rows] = path[k]
-                mujoco.mj_step(model, data)
+            if len(plans) == 1:  # one trajectory (the gremlins'): its rows of mocap_pos take each sub-step's targets
+                rows, targets = plans[0]
+                driven = mocap_pos[rows]  # a view when rows is a slice; an index array assigns through mocap_pos
+                if isinstance(rows, slice):
+                    for target in targets[i]:
+                        driven[...] = target
+                        mujoco.mj_step(model, data)
+                else:
+                    for target in targets[i]:
+                        mocap_pos[rows] = target
+                        mujoco.mj_step(model, data)
+            else:
+                paths = [(rows, targets[i]) for rows, targets in plans]  # this simulator's (nstep, K, 3) targets
+                for k in range(nstep):
+                    for rows, path in paths:
+                        mocap_pos[rows] = path[k]
+                    mujoco.mj_step(model, data)
             if self.forward_after_step:
                 mujoco.mj_forward(model, data)
             if self.post_constraint:
