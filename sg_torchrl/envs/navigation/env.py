@@ -36,7 +36,7 @@ from torchrl.data import Composite
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
-from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, pseudo_lidars
+from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, lidar_block, pseudo_lidars
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.tasks import Task, make_task
@@ -175,6 +175,15 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self._agent_reward = np.zeros((num_envs, count))
         self._agent_costs: dict[str, np.ndarray] = {name: np.zeros((num_envs, count)) for name in constraint_names}
         self._terminated = np.zeros(num_envs, dtype=bool)
+        # Per robot, where its pseudo-lidar readings go: one block view of the observation when its groups
+        # follow each other (pseudo_lidars then takes every group's maximum in one call), else one view each.
+        self._lidar_outs = []
+        for groups in self._lidar_groups:
+            parts = [part for _, part in groups]
+            block = lidar_block(self._observation, parts, self.task.lidar_bins)
+            self._lidar_outs.append([self._observation[:, part] for part in parts] if block is None else block)
+        # The robots whose death ends an episode (Robot.can_die), with their scenes; the others are not asked.
+        self._mortal = [(each, view) for each, view in zip(self.robots, self.scene.views) if each.can_die]
         low, high = self.physics.ctrl_range
         super().__init__(
             num_envs=num_envs,
@@ -332,7 +341,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self.task.agent_costs(self, self._agent_costs)
         self._terminated[:] = self.task.after_step(self)
         terminated = self._terminated  # |= on the attribute would reassign it (an nn.Module __setattr__)
-        for robot, view in zip(self.robots, views):  # one robot dead ends the episode (the reference's rule)
+        for robot, view in self._mortal:  # one robot dead ends the episode (the reference's rule)
             terminated |= ~robot.is_alive(view)
         if self.vision is not None:  # the state the observation describes (a reached goal already moved)
             self.vision.render(range(self.num_envs))
@@ -344,15 +353,16 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             robot.observe(sensordata, obs[:, columns])
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
         natural = self._natural_lidar
-        for view, lidar_groups, compass_groups in zip(scene.views, self._lidar_groups, self._compass_groups):
+        for view, lidar_groups, lidar_outs, compass_groups in zip(scene.views, self._lidar_groups, self._lidar_outs,
+                                                                  self._compass_groups):
             position, rotation = view.agent_pos(), view.agent_mat()
             if natural is not None:
                 natural.prepare(view)
                 for obj, part in lidar_groups:
                     natural.observe(view, obj, out=obs[:, part])
             elif lidar_groups:  # every group in one pass (pseudo_lidars)
-                pseudo_lidars(position, rotation, [obj.positions(scene) for obj, _ in lidar_groups],
-                              [obs[:, part] for _, part in lidar_groups], num_bins=bins, max_dist=max_dist)
+                pseudo_lidars(position, rotation, [obj.positions(scene) for obj, _ in lidar_groups], lidar_outs,
+                              num_bins=bins, max_dist=max_dist)
             for obj, part in compass_groups:
                 compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
         self.task.after_observe(self, obs)

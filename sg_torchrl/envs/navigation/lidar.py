@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
     from sg_torchrl.envs.navigation.world import Scene
 
-__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "pseudo_lidar", "pseudo_lidars", "egocentric_xy"]
+__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "lidar_block", "pseudo_lidar", "pseudo_lidars", "egocentric_xy"]
 
 LidarMode = Literal["pseudo", "natural"]
 
@@ -45,12 +45,18 @@ TWO_PI = 2.0 * np.pi
 
 
 def egocentric_xy(agent_pos: np.ndarray, agent_mat: np.ndarray, targets_xy: np.ndarray) -> np.ndarray:
-    """Targets ``(N, K, 2)`` in each robot frame (``agent_pos`` ``(N, 3)``, ``agent_mat`` ``(N, 3, 3)``)."""
-    offset = np.empty((*targets_xy.shape[:2], 3))
-    offset[..., :2] = targets_xy - agent_pos[:, None, :2]
-    offset[..., 2] = -agent_pos[:, None, 2]  # targets are taken at z = 0
-    # Row vector times the body-to-world matrix = the world offset rotated into the body frame.
-    return np.einsum("nki,nij->nkj", offset, agent_mat[:, :, :2])
+    """Targets ``(N, K, 2)`` in each robot frame (``agent_pos`` ``(N, 3)``, ``agent_mat`` ``(N, 3, 3)``).
+
+    The world offset ``(dx, dy, -z_robot)`` (targets at z = 0) as a row vector times the first two
+    columns of the body-to-world matrix, i.e. rotated into the body frame: ``x_j = dx m0j + dy m1j +
+    dz m2j``, summed in that order (``np.einsum``'s order, so the values are the same bit for bit),
+    in six array operations whatever ``K`` (issue 19: a one-simulator step is mostly per-operation
+    overhead, and einsum's own is several of them).
+    """
+    delta = targets_xy - agent_pos[:, None, :2]  # (N, K, 2): dx, dy
+    products = delta[..., None] * agent_mat[:, None, :2, :2]  # (N, K, 2, 2): d_i m_ij
+    lift = -agent_pos[:, 2, None] * agent_mat[:, 2, :2]  # (N, 2): dz m_2j
+    return products[..., 0, :] + products[..., 1, :] + lift[:, None]
 
 
 def pseudo_lidar(
@@ -79,7 +85,7 @@ def pseudo_lidars(
     agent_pos: np.ndarray,
     agent_mat: np.ndarray,
     groups: Sequence[np.ndarray],
-    outs: Sequence[np.ndarray],
+    outs: Sequence[np.ndarray] | np.ndarray,
     *,
     num_bins: int = 16,
     max_dist: float | None = 3.0,
@@ -87,19 +93,23 @@ def pseudo_lidars(
     alias: bool = True,
 ) -> None:
     """:func:`pseudo_lidar` of several target groups (``(N, K_g, 2)`` each) seen from the same robots,
-    readings written to ``outs`` (``(N, num_bins)`` each).
+    readings written to ``outs``: one ``(N, num_bins)`` array per group, or one ``(N, G, num_bins)``
+    array holding them all (e.g. a view of the observation columns where the groups' readings follow
+    each other: :func:`lidar_block`).
 
     Why: every lidar group of an observation is seen from the same robot pose, so the targets of all
     groups go through the frame change, distances, angles and bin writes together (one pass of
     array operations instead of one per group, which is most of a one-simulator navigation step);
-    only the per-bin maximum is taken per group. Each target's values do not depend on the others,
-    so every group reads as it would alone.
+    only the per-bin maximum is taken per group (into a block: one ``np.maximum.reduceat`` over all
+    groups, the same maxima). Each target's values do not depend on the others, so every group reads
+    as it would alone.
     """
     sizes = [targets.shape[1] for targets in groups]
     total = sum(sizes)
+    block = outs if isinstance(outs, np.ndarray) else None
     if total == 0:
-        for out in outs:
-            out[:] = 0.0
+        for out in (outs if block is None else [block]):
+            out[...] = 0.0
         return
     targets_xy = groups[0] if len(groups) == 1 else np.concatenate(groups, axis=1)
     n, k = targets_xy.shape[:2]
@@ -119,6 +129,11 @@ def pseudo_lidars(
         flat[offsets + (bins + 1) % num_bins] = fraction * reading
         flat[offsets + (bins - 1) % num_bins] = (1.0 - fraction) * reading
     flat[offsets + bins] = reading
+    if block is not None and all(sizes):
+        np.maximum.reduceat(contributions, _group_starts(tuple(sizes)), axis=1, out=block)
+        return
+    if block is not None:
+        outs = [block[:, g] for g in range(block.shape[1])]
     start = 0
     for size, out in zip(sizes, outs):
         if size:
@@ -134,6 +149,26 @@ def _target_offsets(n: int, k: int, num_bins: int) -> np.ndarray:
     offsets = np.arange(n * k, dtype=np.int64).reshape(n, k) * num_bins
     offsets.flags.writeable = False
     return offsets
+
+
+@functools.lru_cache(maxsize=64)
+def _group_starts(sizes: tuple[int, ...]) -> np.ndarray:
+    """Index of each group's first target among all targets (``np.maximum.reduceat``'s), read-only."""
+    starts = np.cumsum((0, *sizes[:-1]), dtype=np.intp)
+    starts.flags.writeable = False
+    return starts
+
+
+def lidar_block(observation: np.ndarray, parts: Sequence[slice], num_bins: int) -> np.ndarray | None:
+    """The ``(N, G, num_bins)`` view of ``observation``'s lidar columns ``parts`` (``G`` slices of
+    ``num_bins`` columns) when they follow each other, for :func:`pseudo_lidars`; else ``None``."""
+    if not parts or any(part.stop - part.start != num_bins for part in parts) or any(
+            a.stop != b.start for a, b in zip(parts, parts[1:])):
+        return None
+    columns = observation[:, parts[0].start : parts[-1].stop]
+    block = columns.view()
+    block.shape = (columns.shape[0], len(parts), num_bins)  # raises rather than copy: it must stay a view
+    return block
 
 
 def _reading(distance: np.ndarray, max_dist: float | None, exp_gain: float) -> np.ndarray:

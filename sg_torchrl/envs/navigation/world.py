@@ -287,6 +287,7 @@ class Scene:
         self._mocap_quat[order] = model.body_quat[mocap_bodies]
         self._xpos = self.physics.field("xpos")
         self._xmat = self.physics.field("xmat").reshape(num_envs, model.nbody, 3, 3)
+        self._sensordata = self.physics.field("sensordata")
         self._attach(self.robots[0])
         views = [self]
         for other in self.robots[1:]:
@@ -307,6 +308,11 @@ class Scene:
         self.robot_geoms = model.body_rootid[model.geom_bodyid] == self.agent_body
         self._robot_contacts = np.zeros((self.num_envs, model.ngeom))  # see robot_contacts
         self._contacts_version = -1
+        # The robot's rows of the state cache, taken once: the cache is filled in place, so these views
+        # follow every step (a step reads them several times; each fresh view costs an indexing).
+        self._agent_pos = self._xpos[:, self.agent_body]
+        self._agent_xy = self._xpos[:, self.agent_body, :2]
+        self._agent_mat = self._xmat[:, self.agent_body]
 
     def for_robot(self, index: int) -> Scene:
         """These simulators seen from robot ``index`` (0: this scene): its agent-relative views refer
@@ -325,30 +331,42 @@ class Scene:
 
     # ------------------------------------------------------------------ state views (updated in place)
     def agent_pos(self) -> np.ndarray:
-        """Position of the robot's root body, ``(N, 3)``."""
-        return self._xpos[:, self.agent_body]
+        """Position of the robot's root body, ``(N, 3)`` (a view of the state cache: do not write)."""
+        return self._agent_pos
 
     def agent_xy(self) -> np.ndarray:
-        return self._xpos[:, self.agent_body, :2]
+        """Planar position of the robot's root body, ``(N, 2)`` (a view of the state cache: do not write)."""
+        return self._agent_xy
 
     def agent_mat(self) -> np.ndarray:
-        """Rotation matrix (body to world) of the robot's root body, ``(N, 3, 3)``."""
-        return self._xmat[:, self.agent_body]
+        """Rotation matrix (body to world) of the robot's root body, ``(N, 3, 3)`` (a view: do not write)."""
+        return self._agent_mat
 
     def body_xpos(self, bodies: np.ndarray) -> np.ndarray:
         """Positions of ``bodies`` (ids), ``(N, len(bodies), 3)`` (a new array)."""
         return self._xpos[:, bodies]
 
     def sensordata(self) -> np.ndarray:
-        return self.physics.field("sensordata")
+        """Sensor readings, ``(N, nsensordata)`` (the state cache: do not write)."""
+        return self._sensordata
 
     def qvel(self) -> np.ndarray:
         return self.physics.qvel()
 
     def planar_distance(self, xy: np.ndarray) -> np.ndarray:
-        """Planar distance from the robot's root to points ``xy`` (``(N, K, 2)``), ``(N, K)``."""
-        delta = xy - self.agent_xy()[:, None, :]
-        return np.sqrt(np.einsum("nki,nki->nk", delta, delta))
+        """Planar distance from the robot's root to points ``xy`` (``(N, K, 2)``), ``(N, K)``.
+
+        ``sqrt(dx * dx + dy * dy)``: the products and the sum ``np.einsum`` would take, in its order
+        (same values bit for bit), without its call overhead; one simulator reads the robot's position
+        as two Python floats (issue 19: a one-simulator step is mostly per-operation overhead).
+        """
+        if self.num_envs == 1:
+            x, y = self._agent_xy[0].tolist()
+        else:
+            x, y = self._agent_xy[:, 0, None], self._agent_xy[:, 1, None]
+        dx = xy[..., 0] - x
+        dy = xy[..., 1] - y
+        return np.sqrt(dx * dx + dy * dy)
 
     def robot_contacts(self) -> np.ndarray:
         """Number of contacts between each geom and the robot, ``(N, ngeom)``, for the current state.
