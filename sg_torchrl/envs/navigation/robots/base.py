@@ -134,6 +134,7 @@ class Robot(abc.ABC):
         for term in self.observation_terms:
             sensor = model.sensor(self.qualified(term.sensor))
             self._columns.append((term, int(sensor.adr[0]), int(sensor.dim[0])))
+        self._observe_plan = _observe_plan(self._columns)
         self.actuator_ids = np.array(
             [u for u in range(model.nu) if model.actuator(u).name.startswith(self.prefix)], dtype=np.int64)
 
@@ -164,26 +165,27 @@ class Robot(abc.ABC):
 
     def observe(self, sensordata: np.ndarray, out: np.ndarray) -> None:
         """Fill ``out`` (``(N, observation_size)``) from ``sensordata`` (``(N, nsensordata)``)."""
-        column = 0
-        for term, address, width in self._columns:
-            reading = sensordata[:, address : address + width]
-            if term.transform == "raw":
-                out[:, column : column + width] = reading
-                column += width
-            elif term.transform == "z":
+        for transform, source, column in self._observe_plan:
+            reading = sensordata[:, source]
+            if transform == "raw":
+                out[:, column] = reading
+            elif transform == "z":
                 out[:, column] = reading[:, -1]
-                column += 1
-            elif term.transform == "sincos":
+            elif transform == "sincos":
                 out[:, column] = np.sin(reading[:, 0])
                 out[:, column + 1] = np.cos(reading[:, 0])
-                column += 2
             else:  # rotmat
-                _quat_to_mat(reading, out[:, column : column + 9])
-                column += 9
+                _quat_to_mat(reading, out[:, column])
 
     def is_alive(self, scene: Scene) -> np.ndarray:
-        """Which simulators' robots are still alive, ``(N,)`` bool (reference section 5). Default: always."""
+        """Which simulators' robots are still alive, ``(N,)`` bool (reference section 5). Default: always
+        (a robot that keeps this default is not asked: :attr:`can_die`)."""
         return np.ones(scene.num_envs, dtype=bool)
+
+    @property
+    def can_die(self) -> bool:
+        """Whether :meth:`is_alive` may say False (a subclass overrides it); the env skips asking otherwise."""
+        return type(self).is_alive is not Robot.is_alive
 
 
 class FreeBodyRobot(Robot):
@@ -204,6 +206,31 @@ class FreeBodyRobot(Robot):
         qpos[:, root : root + 2] = xy
         qpos[:, root + 2] = self.height
         qpos[:, root + 3 : root + 7] = yaw_quat(yaw)
+
+
+def _observe_plan(columns: list[tuple[SensorTerm, int, int]]) -> list[tuple[str, slice, int | slice]]:
+    """:meth:`Robot.observe`'s steps: ``(transform, sensordata columns, observation column(s))``.
+
+    Raw terms that follow each other in ``sensordata`` as in the observation are one copy (the same
+    values; a Point's sensors are then a couple of copies instead of one per sensor).
+    """
+    plan: list[tuple[str, slice, int | slice]] = []
+    column = 0
+    for term, address, width in columns:
+        source = slice(address, address + width)
+        size = _WIDTH.get(term.transform, width)
+        if term.transform == "raw":
+            if plan and plan[-1][0] == "raw" and plan[-1][1].stop == address and plan[-1][2].stop == column:
+                _, previous, target = plan.pop()
+                plan.append(("raw", slice(previous.start, source.stop), slice(target.start, column + size)))
+            else:
+                plan.append(("raw", source, slice(column, column + size)))
+        elif term.transform == "rotmat":
+            plan.append(("rotmat", source, slice(column, column + size)))
+        else:  # z, sincos: single columns
+            plan.append((term.transform, source, column))
+        column += size
+    return plan
 
 
 def _quat_to_mat(quat: np.ndarray, out: np.ndarray) -> None:

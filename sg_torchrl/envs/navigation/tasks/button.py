@@ -68,7 +68,7 @@ class ButtonTask(GoalTask):
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
         timer = self.buttons.timer
-        if self._buttons_lidar is not None and timer.any():  # no timer running: the masked write is a no-op
+        if self._buttons_lidar is not None and np.count_nonzero(timer):  # no timer running: the masked write is a no-op
             observation[timer > 0, self._buttons_lidar] = 0.0
 
 

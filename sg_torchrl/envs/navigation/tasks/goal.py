@@ -58,7 +58,7 @@ class GoalTask(Task):
 
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         terminated = np.zeros(env.num_envs, dtype=bool)
-        if not self.goal_met.any():  # most steps: nothing to move (skips flatnonzero and the loop)
+        if not np.count_nonzero(self.goal_met):  # most steps: nothing to move (count_nonzero: cheaper than .any())
             return terminated
         for index in np.flatnonzero(self.goal_met):
             if self.next_goal(env, index):
