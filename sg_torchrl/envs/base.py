@@ -370,15 +370,30 @@ class SafeEnv(EnvBase, abc.ABC):
         return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
 
     def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
-        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator."""
-        cost, cost_info = self._aggregate_cost(costs)
+        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator.
+
+        The cost is :meth:`_aggregate_cost`'s, taken on Python floats (the same float64 sum from 0 in
+        the same order, the same ``> 0`` indicators), then rounded to float32 as the TorchRL step
+        emits it: a one-simulator step skips that method's one-element arrays (issue 19).
+        """
+        f32 = np.float32
+        raw = {name: value.item(0) for name, value in costs.items()}
+        total = 0.0
+        for value in raw.values():
+            total += value
+        if self.cost_mode == "indicator":
+            cost = 1.0 if total > 0 else 0.0
+            cost_info = {name: 1.0 if value > 0 else 0.0 for name, value in raw.items()}
+        else:
+            cost = float(f32(total))
+            cost_info = {name: float(f32(value)) for name, value in raw.items()}
         return (
-            observation[0].astype(np.float32).astype(np.float64),
-            float(np.float32(reward[0])),
-            float(np.float32(cost[0])),
+            observation[0].astype(f32).astype(np.float64),
+            float(f32(reward.item(0))),
+            cost,
             bool(terminated[0]),
             bool(truncated[0]),
-            {name: float(np.float32(value[0])) for name, value in cost_info.items()},
+            cost_info,
         )
 
     def aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
