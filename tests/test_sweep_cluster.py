@@ -163,7 +163,7 @@ def ray_cluster():
             yield RayCluster(address, by_port[head_ports[head_ports.index(port) + 1]],
                              by_port[worker_ports[worker_ports.index(port) + 1]])
         finally:
-            for node in reversed(nodes):  # the worker first: a node drains faster while the head is up
+            for node in reversed(nodes):  # the worker first, while the head it reports to is still up
                 _stop_node(node)
             shutil.rmtree(temp_dir, ignore_errors=True)
     _reload_ray_auth()
@@ -344,20 +344,23 @@ def test_a_stopped_sweep_checkpoints_its_cell_and_the_same_command_finishes_it(r
     grid = tiny_grid(tmp_path / "out", ("ppo_lag",))
     (cell,) = grid.cells
     directory = grid.cell_dir(cell)
-    sweep = subprocess.Popen([sys.executable, "-m", "sg_torchrl.sweep", *sweep_arguments(grid, ray_cluster.address)],
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "sg-sweep.log"
+    with open(log, "wb") as handle:
+        sweep = subprocess.Popen([sys.executable, "-m", "sg_torchrl.sweep",
+                                  *sweep_arguments(grid, ray_cluster.address)], stdout=handle, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 300
         while epochs_logged(directory, list(SEEDS)) < KILL_AFTER_EPOCHS:
-            assert sweep.poll() is None and time.monotonic() < deadline, sweep.communicate()[0][-3000:]
+            assert sweep.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.1)
         stopped_at = epochs_logged(directory, list(SEEDS))
         sweep.send_signal(signal.SIGTERM)
-        output = sweep.communicate(timeout=300)[0]
+        sweep.wait(timeout=300)
     finally:
         if sweep.poll() is None:
             sweep.kill()
             sweep.wait()
+    output = log.read_text()
     assert sweep.returncode == 130, output[-3000:]
     assert "the same command continues the sweep" in output
     (attempt,) = AttemptLog(directory).read()
