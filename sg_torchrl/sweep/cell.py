@@ -83,11 +83,23 @@ class AttemptLog:
         temporary.write_text("".join(json.dumps(a) + "\n" for a in attempts))
         temporary.replace(self.path)
 
+    @staticmethod
+    def _mark_lost(attempts: list[dict[str, Any]]) -> bool:
+        lost = [attempt for attempt in attempts if attempt.get("status") == "running"]
+        for attempt in lost:
+            attempt["status"] = "lost"
+        return bool(lost)
+
+    def mark_lost(self) -> None:
+        """Mark attempts still ``"running"`` as ``"lost"``: their task ended without saying how (its worker
+        died). The next attempt does it when it begins; the driver does it for a cell whose retries ran out."""
+        attempts = self.read()
+        if self._mark_lost(attempts):
+            self._write(attempts)
+
     def begin(self, **fields: Any) -> int:
         attempts = self.read()
-        for attempt in attempts:
-            if attempt.get("status") == "running":
-                attempt["status"] = "lost"
+        self._mark_lost(attempts)
         number = len(attempts) + 1
         attempts.append({"attempt": number, "start": time.time(), "end": None, "status": "running", **fields})
         self._write(attempts)

@@ -120,7 +120,8 @@ class _Progress:
                 verb = "restart" if latest.get("resumed") else "start"
                 detail = (f" from its checkpoint (attempt {latest['attempt']}, {latest.get('epochs_before', 0)} epochs "
                           "logged before)") if latest.get("resumed") else ""
-                self.out(f"[{verb}] {cell.label} on {latest.get('node')}{detail}; log {self.grid.cell_dir(cell)}/sweep.log")
+                node = latest.get("node") + (f" (node {latest['node_id'][:8]})" if latest.get("node_id") else "")
+                self.out(f"[{verb}] {cell.label} on {node}{detail}; log {self.grid.cell_dir(cell)}/sweep.log")
             if attempts and attempts[-1].get("status") == "running":
                 running += 1
                 steps = state["steps"] * len(cell.seeds)
@@ -240,6 +241,7 @@ def _collect(ref: Any, cell: Cell, grid: SweepGrid, outcome: SweepOutcome, out: 
         cause = getattr(error, "cause", None) or error
         reason = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
         outcome.failed[cell] = str(cause)
+        AttemptLog(grid.cell_dir(cell)).mark_lost()  # a worker that died on the last retry left its attempt open
         out(f"[failed] {cell.label}: {reason}; log {grid.cell_dir(cell)}/sweep.log")
         return
     outcome.finished.append(cell)
