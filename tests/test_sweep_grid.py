@@ -9,6 +9,8 @@ records its arguments and exits or dies as told), so every exit path runs in mil
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -305,3 +307,21 @@ def test_a_node_that_cannot_see_the_sweeps_record_refuses_the_cell(fake_train):
     with pytest.raises(SweepStorageError, match="storage every node of the cluster shares"):
         run_cell(str(grid.output_dir), "another-sweeps-token", cell.run_name, list(cell.seeds), [])
     assert calls(grid, cell) == []
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="no autogroup scheduling on this kernel")
+def test_a_cells_session_keeps_the_sweeps_niceness():
+    # A cell's sg-train runs in its own session; under autogroup scheduling its nice value would count only
+    # inside that session, so `nice sg-sweep` would not yield to the rest of the machine.
+    script = (
+        "import os, subprocess, sys, time\n"
+        "from sg_torchrl.sweep.cell import _keep_niceness\n"
+        "child = subprocess.Popen(['sleep', '5'], start_new_session=True)\n"
+        "_keep_niceness(child.pid)\n"
+        "print(open(f'/proc/{child.pid}/autogroup').read().strip())\n"
+        "child.kill()\n"
+    )
+    result = subprocess.run(["nice", "-n", "7", sys.executable, "-c", script], capture_output=True, text=True,
+                            check=True)
+    expected = min(os.getpriority(os.PRIO_PROCESS, 0) + 7, 19)  # nice adds to this test's own niceness
+    assert result.stdout.strip().endswith(f"nice {expected}"), result.stdout

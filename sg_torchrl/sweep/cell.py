@@ -131,12 +131,33 @@ def _node_id() -> str | None:
         return None
 
 
+#: libc, loaded once at import: the child's ``preexec_fn`` must not load libraries after ``fork`` in a
+#: threaded worker (a lock held by another thread at fork time would never be released there).
+_LIBC = ctypes.CDLL(None, use_errno=True)
+
+
 def _die_with_parent() -> None:
     """In the child before ``exec``: receive ``SIGTERM`` when the worker dies (a checkpointed stop)."""
     parent = os.getppid()
-    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
     if os.getppid() != parent:  # the worker died before the request took effect
         os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _keep_niceness(pid: int) -> None:
+    """Give child ``pid``'s new session this process's niceness.
+
+    Linux with autogroup scheduling (the default on desktops and many servers) shares the CPU between
+    sessions first and applies a process's nice value only within its session. A child in its own session
+    (``start_new_session``) would compete at full weight with everything else on the machine, so that
+    ``nice sg-sweep`` would not yield to other work; its session's nice value (``/proc/<pid>/autogroup``)
+    restores that. A no-op where autogroup is absent.
+    """
+    niceness = os.getpriority(os.PRIO_PROCESS, 0)
+    try:
+        Path(f"/proc/{pid}/autogroup").write_text(str(niceness))
+    except OSError:
+        pass
 
 
 def _wait(pid: int, poll: bool = True) -> tuple[int, Any]:
@@ -230,6 +251,7 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
             child = subprocess.Popen([sys.executable, "-m", "sg_torchrl.train", *command], stdout=log,
                                      stderr=subprocess.STDOUT, start_new_session=True, pass_fds=(lock.fileno(),),
                                      preexec_fn=_die_with_parent)
+            _keep_niceness(child.pid)
             try:
                 status, usage = _wait(child.pid)
             except KeyboardInterrupt:  # Ray's cancel (the sweep's Ctrl-C): a checkpointed stop
