@@ -370,12 +370,9 @@ class SafeEnv(EnvBase, abc.ABC):
         return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
 
     def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
-        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator.
-
-        The cost is :meth:`_aggregate_cost`'s, taken on Python floats (the same float64 sum from 0 in
-        the same order, the same ``> 0`` indicators), then rounded to float32 as the TorchRL step
-        emits it: a one-simulator step skips that method's one-element arrays (issue 19).
-        """
+        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator. The cost is
+        :meth:`_aggregate_cost`'s on Python floats (the same float64 sum from 0 in the same order, the same
+        ``> 0`` indicators, float32 rounding): no one-element arrays per constraint (issue 19)."""
         f32 = np.float32
         raw = {name: value.item(0) for name, value in costs.items()}
         total = 0.0
