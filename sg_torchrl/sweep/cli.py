@@ -14,7 +14,7 @@ finished, also in a copy of the output directory on another machine.
     sg-sweep ... --address auto          # join the cluster started with `ray start --head` on this machine
 
 Flags after ``--`` go to every cell's ``sg-train`` (``sg-train --help`` lists them). Exit status: 0 when
-every cell finished, 1 when some failed, 2 for bad arguments, 130 after a Ctrl-C.
+every cell finished, 1 when some failed (or were stopped from outside the sweep), 2 for bad arguments, 130 after a Ctrl-C.
 """
 
 from __future__ import annotations
@@ -124,5 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sg-sweep: {len(outcome.failed)} cell(s) failed: "
               + "; ".join(cell.label for cell in outcome.failed), file=sys.stderr)
         return 1
+    if outcome.stopped:
+        print(f"sg-sweep: {len(outcome.stopped)} cell(s) were stopped from outside the sweep, checkpointed: "
+              + "; ".join(cell.label for cell in outcome.stopped) + ". The same command continues them",
+              file=sys.stderr)
+        return 1
     return 0
-

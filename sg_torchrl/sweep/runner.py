@@ -26,10 +26,9 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
-from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellKilled, check_storage, run_cell
+from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellInterrupted, CellKilled, check_storage, run_cell
 from sg_torchrl.sweep.grid import Cell, SweepGrid, merge_records
 
 __all__ = ["ClusterUnreachable", "SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
@@ -50,11 +49,13 @@ class SweepOutcome:
     finished: list[Cell] = field(default_factory=list)
     skipped: list[Cell] = field(default_factory=list)
     failed: dict[Cell, str] = field(default_factory=dict)
+    #: Cells whose ``sg-train`` was stopped (SIGINT / SIGTERM) from outside the sweep, checkpointed.
+    stopped: list[Cell] = field(default_factory=list)
     interrupted: bool = False
 
     @property
     def ok(self) -> bool:
-        return not self.failed and not self.interrupted
+        return not self.failed and not self.stopped and not self.interrupted
 
 
 def prepare_output(grid: SweepGrid) -> str:
@@ -106,10 +107,10 @@ class _Progress:
         self.grid, self.cells, self.every, self.out = grid, cells, every, out
         self.seen_attempts = {cell: len(cell_state(grid, cell)["attempts"]) for cell in cells}
         self.last_line = time.monotonic()
-        self.last_steps: dict[Cell, tuple[float, int]] = {}
+        self.line_steps: dict[Cell, int] = {}  # each running cell's env steps (all seeds) at the last status line
 
     def poll(self, open_cells: list[Cell], done: int, failed: int, force: bool = False) -> None:
-        running, rate = 0, 0.0
+        running, steps_now = 0, {}
         now = time.monotonic()
         for cell in open_cells:
             state = cell_state(self.grid, cell)
@@ -124,13 +125,13 @@ class _Progress:
                 self.out(f"[{verb}] {cell.label} on {node}{detail}; log {self.grid.cell_dir(cell)}/sweep.log")
             if attempts and attempts[-1].get("status") == "running":
                 running += 1
-                steps = state["steps"] * len(cell.seeds)
-                if cell in self.last_steps:
-                    then, before = self.last_steps[cell]
-                    rate += max(steps - before, 0) / max(now - then, 1e-9)
-                self.last_steps[cell] = (now, steps)
+                steps_now[cell] = state["steps"] * len(cell.seeds)
         if force or now - self.last_line >= self.every:
-            self.last_line = now
+            # Rows come once per epoch (a minute or more at the paper's sizes): the rate is over the whole interval
+            # since the last status line, for the cells running at both ends (a resumed cell's log may step back).
+            rate = sum(max(steps - self.line_steps[cell], 0) for cell, steps in steps_now.items()
+                       if cell in self.line_steps) / max(now - self.last_line, 1e-9)
+            self.last_line, self.line_steps = now, steps_now
             pending = len(open_cells) - running
             self.out(f"[sweep {time.strftime('%H:%M:%S')}] {done} done, {running} running, {failed} failed, "
                      f"{pending} waiting; {rate:,.0f} env steps/s")
@@ -239,6 +240,10 @@ def _collect(ref: Any, cell: Cell, grid: SweepGrid, outcome: SweepOutcome, out: 
         ray.get(ref)
     except ray.exceptions.RayError as error:
         cause = getattr(error, "cause", None) or error
+        if isinstance(cause, CellInterrupted):  # its sg-train was stopped from outside the sweep, checkpointed
+            outcome.stopped.append(cell)
+            out(f"[stopped] {cell.label}: {cause}; the same command continues it")
+            return
         reason = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
         outcome.failed[cell] = str(cause)
         AttemptLog(grid.cell_dir(cell)).mark_lost()  # a worker that died on the last retry left its attempt open
