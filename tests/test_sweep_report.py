@@ -143,7 +143,8 @@ def test_collect_reads_both_layouts_finished_or_not(sweep):
     assert cells[(SINGLE, "ppo_lag", TAG, (0,))].directory == Path(SINGLE, "ppo_lag", TAG, "seeds-0")
     cpo = cells[(SINGLE, "cpo", "", (0, 1))]
     assert not cpo.finished and cpo.steps == 500 and cpo.per_seed == {}  # two epochs of 250 so far
-    assert (cpo.attempts, cpo.wall_s, cpo.status) == (1, 0.0, "killed")  # an attempt without an end adds nothing
+    # an attempt without an end adds nothing to the attempts' sum; the 200 s of training it logged count instead
+    assert (cpo.attempts, cpo.wall_s, cpo.status) == (1, 200.0, "killed")
     mappo = cells[(MULTI, "mappo", "", (1,))]
     assert not mappo.group and mappo.directory == Path(MULTI, "mappo", "seed-001") and mappo.wall_s == 1800.0
     assert mappo.per_seed == {1: {**_figures(3000.0, 300.0), "Train/TotalSteps": BUDGET, "Time/Total": 1800.0}}

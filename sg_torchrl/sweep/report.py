@@ -17,7 +17,8 @@ Two layouts of a cell are read (:func:`collect`):
 ``<tag>`` is the folder of a cell's grid options (``lr=0.001,num_envs=20``); cells that differ only
 by it are different experiments, so it is part of every row's key (the ``options`` column). The
 runner appends one JSON line per attempt to a cell's ``attempts.jsonl``; where it is present, a
-cell's wall time is the sum of its finished attempts' durations, else the ``Time/Total`` it logged.
+cell's wall time is the sum of its ended attempts' durations or the ``Time/Total`` it logged (training
+time over all its resumes), whichever is larger (an attempt lost with its worker has no end).
 
 The paper table (:func:`paper_rows`) gives, as the Safety-Gymnasium paper's tables do (Ji et al.
 2023), J^R and J^C (mean over seeds of the last 10 training episodes' return and cost), J^R
@@ -92,8 +93,8 @@ class CellResult:
     ``directory`` is relative to ``root`` (the output directory :func:`collect` read), so rows and
     reports name a cell the same way wherever the output directory was copied to. ``steps`` is the
     latest ``Train/TotalSteps`` seen (per seed), ``total_steps`` the budget the cell was started with,
-    ``update_s`` the mean ``Time/Update`` of its epochs, ``wall_s`` its wall time (finished attempts
-    of ``attempts.jsonl``, else the ``Time/Total`` it logged) and ``status`` its last attempt's status.
+    ``update_s`` the mean ``Time/Update`` of its epochs, ``wall_s`` its wall time (the ended attempts
+    of ``attempts.jsonl`` or the ``Time/Total`` it logged, whichever is larger) and ``status`` its last attempt's status.
     """
 
     env_id: str
@@ -209,8 +210,11 @@ def _read_cell(root: Path, path: Path) -> CellResult:
     attempts = _read_attempts(path / "attempts.jsonl")
     if attempts:
         cell.attempts, cell.status = len(attempts), str(attempts[-1].get("status", ""))
-        cell.wall_s = sum(float(a["end"]) - float(a["start"]) for a in attempts
-                          if _finite(a.get("end")) and _finite(a.get("start")))
+        ended = sum(float(a["end"]) - float(a["start"]) for a in attempts
+                    if _finite(a.get("end")) and _finite(a.get("start")))
+        # An attempt lost with its worker has no end: its time is then only in the training time sg-train logged
+        # (accumulated over resumes), which in turn leaves out start-ups. The larger is the closer to the truth.
+        cell.wall_s = max(ended, logged_s) if _finite(logged_s) else ended
     else:  # no runner log (an older benchmark cell): one attempt as far as we know, its logged training time
         cell.attempts, cell.wall_s = int(cell.finished or bool(rows)), logged_s
     return cell
