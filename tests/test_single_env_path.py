@@ -24,7 +24,8 @@ import sg_torchrl.gym as sg_gym
 
 VELOCITY_IDS = ["SafetyHalfCheetahVelocity-v1", "SafetyHopperVelocity-v1", "SafetySwimmerVelocity-v0",
                 "SafetyWalker2dVelocity-v1", "SafetyAntVelocity-v1", "SafetyHumanoidVelocity-v1"]
-NAVIGATION_IDS = ["SafetyPointGoal1-v0", "SafetyCarButton1-v0", "SafetyRacecarPush1-v0", "SafetyPointGoal0-v0"]
+NAVIGATION_IDS = ["SafetyPointGoal1-v0", "SafetyCarButton1-v0", "SafetyRacecarPush1-v0", "SafetyPointGoal0-v0",
+                  "SafetyPointGoal2-v0", "SafetyPointButton1-v0"]
 STEPS = 60
 EPISODE = 25  # short episodes, so that resets happen inside the trajectory
 
@@ -134,3 +135,72 @@ def test_one_simulator_faults_are_still_isolated(corruption):
     obs, reward, cost, terminated, truncated, _ = env.step(action)
     assert truncated and not terminated and reward == 0.0 and cost == 0.0
     assert np.isfinite(obs).all() and core.physics_errors == 1
+
+
+# ------------------------------------------------------------------ navigation's one-simulator step
+def test_navigation_one_simulator_step_applies_where_it_should():
+    """The façade's navigation envs take SingleNavigationStep; batched, multi-robot and pixel envs do not."""
+    assert sg_torchrl.make("SafetyPointGoal1-v0", num_envs=1)._single is not None
+    assert sg_torchrl.make("SafetyPointButton1-v0", num_envs=1)._single is not None
+    assert sg_torchrl.make("SafetyPointGoal1-v0", num_envs=2)._single is None
+    assert sg_torchrl.make("SafetyPointGoal1-v0", num_envs=1, obs_mode="vector+rgb", image_size=16)._single is None
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointGoal2-v0", "SafetyPointButton1-v0"])
+def test_navigation_float_costs_and_distances_equal_the_array_forms(env_id):
+    """Scene.planar_distances_one and Hazards.agent_costs_one (Python floats) give planar_distance's and
+    Hazards.costs' values bit for bit, with the robot inside 0 to 4 hazards at once (3+ take the array form)."""
+    from sg_torchrl.envs.navigation.objects import Hazards
+
+    env = sg_torchrl.make(env_id, num_envs=1, seed=3)
+    env.reset()
+    hazards, sampler, scene = env.task.find(Hazards), env.layout_sampler, env.scene
+    part = sampler.slice_of(hazards)
+    rng = np.random.default_rng(0)
+    buffers = {name: np.zeros((1, 1)) for name in hazards.cost_names}
+    for trial in range(200):
+        xy = rng.uniform(-1.5, 1.5, size=(1, sampler.size, 2))
+        robot = xy[0, 0]
+        inside = trial % 5  # hazards whose centre is within reach of the robot
+        xy[0, part.start : part.start + inside] = robot + rng.uniform(-0.15, 0.15, size=(inside, 2))
+        env.set_layout([0], xy, rng.uniform(-np.pi, np.pi, size=(1, sampler.size)))
+        positions = hazards.positions(scene)
+        assert np.array(scene.planar_distances_one(positions)).tobytes() == scene.planar_distance(positions)[0].tobytes()
+        hazards.agent_costs_one(scene, buffers)
+        assert buffers["hazards"].tobytes() == hazards.costs(scene)["hazards"].reshape(1, 1).tobytes()
+
+
+def test_navigation_one_simulator_faults_are_still_isolated():
+    env = sg_gym.make("SafetyPointGoal1-v0")
+    env.reset(seed=0)
+    core = env.torchrl_env
+    core.physics.datas[0].qvel[:] = np.nan
+    obs, reward, cost, terminated, truncated, _ = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    assert truncated and not terminated and reward == 0.0 and cost == 0.0
+    assert np.isfinite(obs).all() and core.physics_errors == 1
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointGoal1-v0", "SafetyPointButton1-v0"])
+def test_navigation_goal_reached_on_one_simulator(env_id):
+    """Steps that reach the goal (the robot starts on it, or drives into the goal button): the façade's
+    one-simulator step and the TorchRL step at N=1 emit the same values."""
+    facade = sg_gym.make(env_id)
+    facade.reset(seed=2)
+    batched = sg_torchrl.make(env_id, num_envs=1, seed=2)
+    td = batched.reset()
+    for env in (facade.torchrl_env, batched):
+        xy = env.layout[0].copy()
+        if env_id.endswith("Goal1-v0"):
+            xy[env.layout_sampler.slice_of(env.task.goal)] = xy[0]
+        else:  # the robot just behind the goal button, facing it
+            xy[0] = env.task.goal.positions(env.scene)[0, 0] - (0.3, 0.0)
+        env.set_layout([0], xy[None])
+    actions = np.tile(np.array([1.0, 0.0], dtype=np.float32), (40, 1))
+    facade_records = [facade.step(action)[:5] for action in actions]
+    records = []
+    for action in actions:
+        nxt = batched.step(td.set("action", torch.from_numpy(action[None])))["next"]
+        records.append((nxt["observation"][0].numpy().astype(np.float64), float(nxt["reward"][0, 0]),
+                        float(nxt["cost"][0, 0]), bool(nxt["terminated"][0, 0]), bool(nxt["truncated"][0, 0])))
+    assert any(record[1] > 0.5 for record in records), "a goal should be reached"
+    _assert_same([tuple(record) for record in facade_records], records)

@@ -370,20 +370,9 @@ class SafeEnv(EnvBase, abc.ABC):
         return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
 
     def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
-        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator. The cost is
-        :meth:`_aggregate_cost`'s on Python floats (the same float64 sum from 0 in the same order, the same
-        ``> 0`` indicators, float32 rounding): no one-element arrays per constraint (issue 19)."""
+        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator."""
         f32 = np.float32
-        raw = {name: value.item(0) for name, value in costs.items()}
-        total = 0.0
-        for value in raw.values():
-            total += value
-        if self.cost_mode == "indicator":
-            cost = 1.0 if total > 0 else 0.0
-            cost_info = {name: 1.0 if value > 0 else 0.0 for name, value in raw.items()}
-        else:
-            cost = float(f32(total))
-            cost_info = {name: float(f32(value)) for name, value in raw.items()}
+        cost, cost_info = self._single_cost({name: value.item(0) for name, value in costs.items()})
         return (
             observation[0].astype(f32).astype(np.float64),
             float(f32(reward.item(0))),
@@ -392,6 +381,18 @@ class SafeEnv(EnvBase, abc.ABC):
             bool(truncated[0]),
             cost_info,
         )
+
+    def _single_cost(self, raw: dict[str, float]) -> tuple[float, dict[str, float]]:
+        """One simulator's emitted ``(cost, cost_info)`` from its raw costs as Python floats: :meth:`_aggregate_cost`'s
+        values (the same float64 sum from 0 in the same order, the same ``> 0`` indicators, float32 rounding)
+        without one-element arrays per constraint (issue 19)."""
+        total = 0.0
+        for value in raw.values():
+            total += value
+        if self.cost_mode == "indicator":
+            return 1.0 if total > 0 else 0.0, {name: 1.0 if value > 0 else 0.0 for name, value in raw.items()}
+        f32 = np.float32
+        return float(f32(total)), {name: float(f32(value)) for name, value in raw.items()}
 
     def aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """``(cost, cost_info)`` of raw per-constraint ``costs`` under :attr:`cost_mode`: the total the

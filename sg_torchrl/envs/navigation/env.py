@@ -39,6 +39,7 @@ from sg_torchrl.envs.navigation.layout import LayoutSampler
 from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, lidar_block, pseudo_lidars
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
+from sg_torchrl.envs.navigation.single import SingleNavigationStep
 from sg_torchrl.envs.navigation.tasks import Task, make_task
 from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model, world_extent
 from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, GeomAlpha, RenderMixin
@@ -208,6 +209,17 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
                                         geom_alpha=self.geom_alpha)
             self._declare_pixels()
         self.task.bind(self)
+        #: the one-simulator step of :meth:`step_one` (``None``: SafeEnv's, see :mod:`.single`)
+        self._single = SingleNavigationStep.of(self)
+
+    def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
+        """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>`, through
+        :class:`~sg_torchrl.envs.navigation.single.SingleNavigationStep` where it applies (one simulator,
+        one robot, no pixels): the same values, its bookkeeping on Python floats (issue 19)."""
+        single = self._single
+        if single is None:
+            return super().step_one(action)
+        return single(action)
 
     def _declare_pixels(self) -> None:
         """Put the image entries in the observation spec (and drop the flat vector in pixels-only modes)."""

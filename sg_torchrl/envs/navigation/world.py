@@ -368,6 +368,21 @@ class Scene:
         dy = xy[..., 1] - y
         return np.sqrt(dx * dx + dy * dy)
 
+    def planar_distances_one(self, xy: np.ndarray) -> list[float]:
+        """:meth:`planar_distance` of simulator 0 as Python floats, ``[d_k]`` for ``xy[0]`` (``(1, K, 2)``).
+
+        Why two forms: a one-simulator step (:mod:`~sg_torchrl.envs.navigation.single`) computes a
+        goal distance or a hazard depth on floats, without the five array operations. The values are
+        the same: the same float64 differences, products and sum, and ``math.sqrt`` and ``np.sqrt`` are
+        both IEEE's correctly rounded square root (tested against :meth:`planar_distance`).
+        """
+        x, y = self._agent_xy[0].tolist()
+        distances = []
+        for px, py in xy[0].tolist():
+            dx, dy = px - x, py - y
+            distances.append(math.sqrt(dx * dx + dy * dy))
+        return distances
+
     def robot_contacts(self) -> np.ndarray:
         """Number of contacts between each geom and the robot, ``(N, ngeom)``, for the current state.
 

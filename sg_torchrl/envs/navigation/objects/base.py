@@ -161,6 +161,12 @@ class NavObject(abc.ABC):
             for name, value in self.costs(view).items():
                 out[name][:, agent] = value
 
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        """:meth:`agent_costs` of one simulator and one robot (``scene``), into ``out[name][0, 0]``: the
+        one-simulator step's (:mod:`~sg_torchrl.envs.navigation.single`). Default: :meth:`agent_costs`
+        itself; an object may compute the same values on Python floats (:class:`Hazards`)."""
+        self.agent_costs(scene.views, out)
+
     # ------------------------------------------------------------------ snapshots
     def state_dict(self) -> dict:
         """Per-simulator state kept outside ``MjData`` (for checkpoints)."""

@@ -43,3 +43,22 @@ class Hazards(StaticObject):
             return {}
         depth = self.size - scene.planar_distance(self.positions(scene))
         return {self.name: np.where(depth >= 0.0, depth, 0.0).sum(axis=1)}
+
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        """:meth:`costs` of one simulator on Python floats (issue 19): the same depths ``size - d``
+        (:meth:`Scene.planar_distances_one <sg_torchrl.envs.navigation.world.Scene.planar_distances_one>`),
+        the same ``>= 0`` test (NaN fails it). The array sum adds the other hazards' ``+0.0`` in numpy's
+        pairwise order; with at most two positive depths every order gives the same sum, so this adds
+        them from 0. A robot inside three or more hazards at once takes :meth:`costs` itself."""
+        if not self.constrained:
+            return
+        size = self.size
+        inside = [depth for depth in [size - d for d in scene.planar_distances_one(self.positions(scene))]
+                  if depth >= 0.0]
+        if len(inside) > 2:
+            super().agent_costs_one(scene, out)
+            return
+        total = 0.0
+        for depth in inside:
+            total += depth
+        out[self.name][0, 0] = total

@@ -99,6 +99,12 @@ class Task(abc.ABC):
         """Reward of the step just simulated, ``(N,)`` (before clipping); ``(N, A)``, one per agent, when
         the task has several agents."""
 
+    def reward_one(self, env: NavigationEnv) -> float:
+        """:meth:`reward` of a one-simulator, one-robot env as a Python float (the one-simulator step's,
+        :mod:`~sg_torchrl.envs.navigation.single`). Default: :meth:`reward`'s one value; a task may
+        compute the same value on Python floats (:class:`~sg_torchrl.envs.navigation.tasks.goal.GoalTask`)."""
+        return np.asarray(self.reward(env)).item(0)
+
     @property
     def cost_names(self) -> tuple[str, ...]:
         """Constraints of the task itself, beyond its objects' (e.g. robots touching each other). Default: none."""

@@ -52,9 +52,30 @@ class GoalTask(Task):
     def reward(self, env: NavigationEnv) -> np.ndarray:
         distance = self.distance(env)
         self.goal_met[:] = self.reached(env, distance)
-        reward = (self._last_distance - distance) * self.goal.reward_distance + self.goal.reward_goal * self.goal_met
+        reward = self._shaped(self._last_distance, distance, self.goal_met)
         self._last_distance[:] = distance
         return reward
+
+    def reward_one(self, env: NavigationEnv) -> float:
+        """:meth:`reward` of one simulator on Python floats (issue 19): the distance from
+        :meth:`Scene.planar_distances_one <sg_torchrl.envs.navigation.world.Scene.planar_distances_one>`
+        (the same value), :meth:`reached` given that float (a task may ignore it and answer from its own
+        state: a one-element array reads as its bool), the same :meth:`_shaped` arithmetic. A subclass
+        with its own :meth:`reward` or :meth:`distance` (Push) takes :meth:`Task.reward_one`'s."""
+        if type(self).reward is not GoalTask.reward or type(self).distance is not GoalTask.distance:
+            return super().reward_one(env)
+        distance = env.scene.planar_distances_one(self.goal.positions(env.scene))[0]
+        met = bool(self.reached(env, distance))
+        self.goal_met[0] = met
+        reward = self._shaped(self._last_distance.item(0), distance, met)
+        self._last_distance[0] = distance
+        return reward
+
+    def _shaped(self, last_distance, distance, met):
+        """The reward: distance gained times ``reward_distance``, plus ``reward_goal`` when the goal is met.
+        On ``(N,)`` arrays (``met`` bool) or one simulator's Python floats (``met`` a bool): ``reward_goal
+        * met`` is ``reward_goal * 1.0`` or ``reward_goal * 0.0`` either way, so the values are the same."""
+        return (last_distance - distance) * self.goal.reward_distance + self.goal.reward_goal * met
 
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         terminated = np.zeros(env.num_envs, dtype=bool)
@@ -68,7 +89,8 @@ class GoalTask(Task):
         return terminated
 
     def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
-        """Which simulators reached the goal this step, ``(N,)`` bool. Here: within the goal's radius."""
+        """Which simulators reached the goal this step, ``(N,)`` bool (given one simulator's distance as a
+        Python float, :meth:`reward_one`: a bool or a one-element array). Here: within the goal's radius."""
         return distance <= self.goal.size
 
     def next_goal(self, env: NavigationEnv, index: int) -> bool:

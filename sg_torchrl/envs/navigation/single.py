@@ -1,0 +1,122 @@
+"""One navigation simulator stepped on Python values: the gymnasium façade's step (issue 19).
+
+:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>` runs the batched step
+(:meth:`~sg_torchrl.envs.base.SafeEnv._transition_arrays`) on ``N = 1`` and reads its outputs. On one
+simulator of a small robot that batched bookkeeping (the reward's clip and its sum over agents, the
+costs' sums over agents, the termination flags, the step counter, the fault screen's reductions, the
+``(N,)`` arrays of each) costs as much as a third of the physics: each numpy call on a one-element array
+costs about a microsecond whatever it computes. :class:`SingleNavigationStep` is that step for one
+simulator of a single-robot :class:`~sg_torchrl.envs.navigation.env.NavigationEnv`, with the bookkeeping
+on Python floats and bools:
+
+* the physics, the task's and objects' reward, cost and event hooks and the observation are the env's
+  own (:meth:`Task.reward_one <sg_torchrl.envs.navigation.tasks.base.Task.reward_one>` and
+  :meth:`NavObject.agent_costs_one <sg_torchrl.envs.navigation.objects.base.NavObject.agent_costs_one>`
+  are the one-simulator faces of ``reward`` and ``agent_costs``: by default the batched hooks themselves;
+  the Goal tasks' shaping and the hazards' depths are computed on floats, each with one formula or with
+  its two forms documented and tested equal);
+* what :class:`~sg_torchrl.envs.navigation.env.NavigationEnv` and
+  :class:`~sg_torchrl.envs.base.SafeEnv` do around them is done here on floats with the same float64
+  operations in the same order: the reward's clip (``min``/``max`` keep NaN as ``np.minimum``/``np.maximum``
+  do), the sum over one agent (the value itself), the step counter and truncation, the fault screen's
+  magnitude (:func:`~sg_torchrl.envs.base._magnitude`'s sum) and the cost aggregation
+  (:meth:`SafeEnv._single_cost <sg_torchrl.envs.base.SafeEnv._single_cost>`, shared with the batched
+  path's one-simulator outputs);
+* the env's buffers that tasks and snapshots read (the per-agent reward and costs, the termination flags,
+  the step counter) are filled as the batched step fills them;
+* a faulty step (an unstable simulator, a non-finite observation or outcome) goes through the env's own
+  exact test and isolation on the arrays the batched step would have had.
+
+``tests/test_single_env_path.py`` checks that the façade (this path), the TorchRL env at ``N = 1`` and
+simulator 0 of a batched env emit the same values bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sg_torchrl.envs.base import _FLOAT32_MAX
+from sg_torchrl.envs.physics import MujocoBatch
+
+if TYPE_CHECKING:
+    from sg_torchrl.envs.navigation.env import NavigationEnv
+
+__all__ = ["SingleNavigationStep"]
+
+# The env hooks whose work this step does: an env class overriding one of them steps through SafeEnv's path.
+_HOOKS = ("_before_step", "_advance", "_observe", "_compute_reward", "_compute_cost", "_compute_terminated",
+          "_transition_arrays", "_fault_free", "_aggregate_cost", "_single_outputs", "_single_cost")
+
+
+class SingleNavigationStep:
+    """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>` of ``env``, bookkeeping on Python values.
+
+    Build it with :meth:`of`, which answers ``None`` for the envs it does not cover: more than one
+    simulator or robot, pixel observations, another physics backend, or an env class that overrides one of
+    the hooks it replaces.
+    """
+
+    def __init__(self, env: NavigationEnv) -> None:
+        self.env = env
+        self._clipped = np.zeros((1, env.action_dim))
+        self._agent_costs = list(env._agent_costs.items())  # {name: (1, 1)} buffers, in constraint order
+
+    @classmethod
+    def of(cls, env: NavigationEnv) -> SingleNavigationStep | None:
+        from sg_torchrl.envs.navigation.env import NavigationEnv
+
+        if (env.num_envs != 1 or len(env.robots) != 1 or env.vision is not None
+                or not isinstance(env.physics, MujocoBatch) or not env.physics.aliased
+                or any(getattr(type(env), name) is not getattr(NavigationEnv, name) for name in _HOOKS)):
+            return None
+        return cls(env)
+
+    def __call__(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
+        env = self.env
+        task, scene, physics = env.task, env.scene, env.physics
+        # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
+        clipped = self._clipped
+        np.maximum(np.asarray(action).reshape(1, -1), env._clip_low, out=clipped)
+        np.minimum(clipped, env._clip_high, out=clipped)
+        physics.step(clipped, env.frame_skip)
+        unstable = physics.unstable.item(0)
+        reward = task.reward_one(env)
+        clip = task.reward_clip
+        if clip is not None:
+            reward = min(max(reward, -clip), clip)  # np.clip's value, NaN kept
+        agent_reward = env._agent_reward
+        agent_reward[0, 0] = reward
+        reward = agent_reward.item(0)  # the float64 value the batched step reads (one agent: its own)
+        buffers = env._agent_costs
+        for obj in env._constrained:
+            obj.agent_costs_one(scene, buffers)
+        task.agent_costs(env, buffers)
+        raw = {name: buffer.item(0) for name, buffer in self._agent_costs}  # one agent: its sum is its value
+        terminated = bool(task.after_step(env)[0])
+        for robot, view in env._mortal:
+            terminated = terminated or not robot.is_alive(view)[0]
+        env._terminated[0] = terminated
+        observation = env._observe()
+        # SafeEnv: the step counter, truncation and the fault screen (MujocoSafeEnv's and SafeEnv's _fault_free).
+        elapsed = env._elapsed
+        steps = elapsed.item(0) + 1
+        elapsed[0] = steps
+        truncated = steps >= env.max_episode_steps
+        magnitude = abs(reward)
+        for value in raw.values():
+            magnitude += abs(value)
+        if not unstable and math.isfinite(np.add.reduce(observation, axis=None)) and magnitude <= _FLOAT32_MAX:
+            cost, cost_info = env._single_cost(raw)
+            return (observation[0].astype(np.float32).astype(np.float64), float(np.float32(reward)), cost,
+                    terminated, truncated, cost_info)
+        # A faulty step: the env's exact test and isolation on the arrays of the batched step.
+        rewards = np.array((reward,))
+        costs = {name: np.array((value,)) for name, value in raw.items()}
+        flags = np.array((terminated,)), np.array((truncated,))
+        diverged = env._diverged(observation) | env._nonfinite_outcome(rewards, costs)
+        if diverged.any():
+            return env._single_outputs(*env._isolate(diverged, observation, rewards, costs, *flags))
+        return env._single_outputs(observation, rewards, costs, *flags)
