@@ -276,7 +276,7 @@ def test_write_report_works_on_a_copied_directory(sweep, tmp_path, monkeypatch):
     assert str(tmp_path) not in text  # names cells relative to the output directory
     assert "| Safety2x3HalfCheetahVelocity-v0 | MAPPO-Lag |  | 1,000 | 2 |" in text
     assert f"- `{SINGLE}/cpo/seeds-0-1`: {SINGLE} CPO, seeds 0 1: 500 / 1,000 (50%) steps, 1 attempt(s), " \
-           "0.00 h, last attempt killed" in text
+           "0.06 h, last attempt killed" in text
     assert f"- `{SINGLE}/pg/seeds-0`: {SINGLE} PG, seeds 0: 0 / 1,000 (0%) steps, 0 attempt(s), " \
            "last attempt not started" in text  # listed in sweep.json, no directory yet
     with paths["seeds.csv"].open() as handle:
