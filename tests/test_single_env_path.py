@@ -204,3 +204,47 @@ def test_navigation_goal_reached_on_one_simulator(env_id):
                         float(nxt["cost"][0, 0]), bool(nxt["terminated"][0, 0]), bool(nxt["truncated"][0, 0])))
     assert any(record[1] > 0.5 for record in records), "a goal should be reached"
     _assert_same([tuple(record) for record in facade_records], records)
+
+
+def _reference_lidar(pos, mat, groups, num_bins, max_dist, alias):
+    """The pseudo-lidar in its textbook form: einsum frame change, one target and one bin at a time."""
+    out = np.zeros((pos.shape[0], len(groups), num_bins))
+    for g, targets in enumerate(groups):
+        offset = np.concatenate([targets - pos[:, None, :2], np.broadcast_to(-pos[:, None, 2:3], targets.shape[:2] + (1,))],
+                                axis=-1)
+        ego = np.einsum("nki,nij->nkj", offset, mat[:, :, :2])
+        distance = np.hypot(ego[..., 0], ego[..., 1])
+        position = (np.arctan2(ego[..., 1], ego[..., 0]) % (2 * np.pi)) * (num_bins / (2 * np.pi))
+        reading = np.exp(-distance) if max_dist is None else np.maximum(0.0, max_dist - distance) / max_dist
+        for n in range(pos.shape[0]):
+            for k in range(targets.shape[1]):
+                row = np.zeros(num_bins)
+                b = min(int(position[n, k]), num_bins - 1)
+                if alias:
+                    fraction = min(max(position[n, k] - b, 0.0), 1.0)
+                    row[(b + 1) % num_bins] = fraction * reading[n, k]
+                    row[(b - 1) % num_bins] = (1.0 - fraction) * reading[n, k]
+                row[b] = reading[n, k]
+                out[n, g] = np.maximum(out[n, g], row)
+    return out
+
+
+def test_pseudo_lidars_equal_the_textbook_form():
+    """The pseudo-lidar's rewritten arithmetic (frame change without einsum, every group's and bin's writes
+    in one pass: issue 19) gives the textbook form's readings bit for bit, blocks and separate outputs."""
+    from sg_torchrl.envs.navigation.lidar import pseudo_lidars
+
+    rng = np.random.default_rng(4)
+    for trial in range(300):
+        n, num_bins = int(rng.integers(1, 4)), int(rng.choice([16, 16, 8, 3, 2]))
+        alias, max_dist = bool(trial % 2), (None if trial % 5 == 0 else 3.0)
+        pos = np.concatenate([rng.uniform(-2, 2, (n, 2)), rng.uniform(0, 0.3, (n, 1))], axis=1)
+        mat = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+        groups = [rng.uniform(-3, 3, size=(n, int(size), 2)) for size in rng.integers(0, 5, size=3)]
+        expected = _reference_lidar(pos, mat, groups, num_bins, max_dist, alias)
+        block = np.full((n, len(groups), num_bins), 7.0)
+        pseudo_lidars(pos, mat, groups, block, num_bins=num_bins, max_dist=max_dist, alias=alias)
+        outs = [np.full((n, num_bins), 7.0) for _ in groups]
+        pseudo_lidars(pos, mat, groups, outs, num_bins=num_bins, max_dist=max_dist, alias=alias)
+        assert block.tobytes() == expected.tobytes(), trial
+        assert np.stack(outs, axis=1).tobytes() == expected.tobytes(), trial

@@ -50,13 +50,13 @@ def egocentric_xy(agent_pos: np.ndarray, agent_mat: np.ndarray, targets_xy: np.n
     The world offset ``(dx, dy, -z_robot)`` (targets at z = 0) as a row vector times the first two
     columns of the body-to-world matrix, i.e. rotated into the body frame: ``x_j = dx m0j + dy m1j +
     dz m2j``, summed in that order (``np.einsum``'s order, so the values are the same bit for bit),
-    in six array operations whatever ``K`` (issue 19: a one-simulator step is mostly per-operation
+    in five array operations whatever ``K`` (issue 19: a one-simulator step is mostly per-operation
     overhead, and einsum's own is several of them).
     """
     delta = targets_xy - agent_pos[:, None, :2]  # (N, K, 2): dx, dy
     products = delta[..., None] * agent_mat[:, None, :2, :2]  # (N, K, 2, 2): d_i m_ij
-    lift = -agent_pos[:, 2, None] * agent_mat[:, 2, :2]  # (N, 2): dz m_2j
-    return products[..., 0, :] + products[..., 1, :] + lift[:, None]
+    lift = agent_pos[:, 2, None, None] * agent_mat[:, 2, None, :2]  # (N, 1, 2): -dz m_2j (exact negation)
+    return products[..., 0, :] + products[..., 1, :] - lift  # x + (-z m) and x - z m: the same IEEE value
 
 
 def pseudo_lidar(
@@ -119,16 +119,23 @@ def pseudo_lidars(
     position = angle * (num_bins / TWO_PI)  # in bins
     bins = np.minimum(position.astype(np.int64), num_bins - 1)  # angles a hair below 2 pi round up to 2 pi
     reading = _reading(distance, max_dist, exp_gain)
-    # Every target writes three distinct bins of its own row; the per-bin maximum over targets is taken after.
-    # The writes go through flat indices (row and target offsets computed once per shape): cheaper than
-    # indexing with three broadcast index arrays, and the same elements get the same values.
+    # Every target writes its bins of its own row; the per-bin maximum over targets is taken after. The
+    # writes go through flat indices (row and target offsets computed once per shape): cheaper than
+    # indexing with broadcast index arrays, and the same elements get the same values. Aliased, a target's
+    # three bins b + 1, b - 1, b (distinct unless num_bins < 3) take fraction * reading, (1 - fraction) *
+    # reading and reading (1.0 * reading: the same value) in one assignment, in that order (with fewer
+    # than three bins the later of repeated indices wins, as with three assignments in that order).
     contributions = np.zeros((n, k, num_bins))
-    flat, offsets = contributions.reshape(-1), _target_offsets(n, k, num_bins)
+    flat = contributions.reshape(-1)
     if alias:
-        fraction = np.minimum(np.maximum(position - bins, 0.0), 1.0)  # np.clip(.., 0, 1), cheaper
-        flat[offsets + (bins + 1) % num_bins] = fraction * reading
-        flat[offsets + (bins - 1) % num_bins] = (1.0 - fraction) * reading
-    flat[offsets + bins] = reading
+        offsets = _target_offsets(n, k, num_bins, 3)
+        weights = np.empty((n, k, 3))
+        np.minimum(np.maximum(position - bins, 0.0), 1.0, out=weights[..., 0])  # np.clip(.., 0, 1), cheaper
+        np.subtract(1.0, weights[..., 0], out=weights[..., 1])
+        weights[..., 2] = 1.0
+        flat[offsets + (bins[..., None] + _NEIGHBOURS) % num_bins] = weights * reading[..., None]
+    else:
+        flat[_target_offsets(n, k, num_bins, 0) + bins] = reading
     if block is not None and all(sizes):
         np.maximum.reduceat(contributions, _group_starts(tuple(sizes)), axis=1, out=block)
         return
@@ -143,10 +150,17 @@ def pseudo_lidars(
         start += size
 
 
+_NEIGHBOURS = np.array((1, -1, 0), dtype=np.int64)  # the aliased bins of a target, in writing order
+_NEIGHBOURS.flags.writeable = False
+
+
 @functools.lru_cache(maxsize=64)
-def _target_offsets(n: int, k: int, num_bins: int) -> np.ndarray:
-    """Flat index of bin 0 of each target's row in an ``(n, k, num_bins)`` array, ``(n, k)`` (read-only)."""
+def _target_offsets(n: int, k: int, num_bins: int, per_target: int) -> np.ndarray:
+    """Flat index of bin 0 of each target's row in an ``(n, k, num_bins)`` array: ``(n, k)``, or ``(n, k,
+    per_target)`` (repeated, one per written bin) when ``per_target`` > 0 (read-only)."""
     offsets = np.arange(n * k, dtype=np.int64).reshape(n, k) * num_bins
+    if per_target:
+        offsets = np.repeat(offsets[..., None], per_target, axis=2)
     offsets.flags.writeable = False
     return offsets
 

@@ -62,6 +62,7 @@ class SingleNavigationStep:
     def __init__(self, env: NavigationEnv) -> None:
         self.env = env
         self._clipped = np.zeros((1, env.action_dim))
+        self._ctrl = env.physics.datas[0].ctrl[None]  # (1, nu) view of the one simulator's control
         self._agent_costs = list(env._agent_costs.items())  # {name: (1, 1)} buffers, in constraint order
 
     @classmethod
@@ -80,9 +81,13 @@ class SingleNavigationStep:
         # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
         clipped = self._clipped
         np.maximum(np.asarray(action).reshape(1, -1), env._clip_low, out=clipped)
-        np.minimum(clipped, env._clip_high, out=clipped)
-        physics.step(clipped, env.frame_skip)
-        unstable = physics.unstable.item(0)
+        if physics.drives_mocap:
+            np.minimum(clipped, env._clip_high, out=clipped)
+            physics.step(clipped, env.frame_skip)
+            unstable = physics.unstable.item(0)
+        else:  # MujocoBatch.step's own one-simulator path, the control written straight into MjData
+            np.minimum(clipped, env._clip_high, out=self._ctrl)
+            unstable = physics.advance_one(env.frame_skip)
         reward = task.reward_one(env)
         clip = task.reward_clip
         if clip is not None:
