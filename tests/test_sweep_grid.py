@@ -325,3 +325,14 @@ def test_a_cells_session_keeps_the_sweeps_niceness():
                             check=True)
     expected = min(os.getpriority(os.PRIO_PROCESS, 0) + 7, 19)  # nice adds to this test's own niceness
     assert result.stdout.strip().endswith(f"nice {expected}"), result.stdout
+
+
+def test_one_driver_per_output_directory(tmp_path):
+    from sg_torchrl.sweep.runner import _driver_lock
+
+    with _driver_lock(tmp_path):
+        with pytest.raises(SweepGridError, match=f"another sg-sweep \\(pid {os.getpid()}\\) is running"):
+            with _driver_lock(tmp_path):
+                pass
+    with _driver_lock(tmp_path):  # released with the first driver
+        pass

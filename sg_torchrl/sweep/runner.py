@@ -20,16 +20,20 @@ cells finish, ``report/``. It can be copied anywhere and reported on there (:mod
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import secrets
 import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from pathlib import Path
+from typing import Any, Callable, Iterator
 
 from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellInterrupted, CellKilled, check_storage, run_cell
-from sg_torchrl.sweep.grid import Cell, SweepGrid, merge_records
+from sg_torchrl.sweep.grid import Cell, SweepGrid, SweepGridError, merge_records
 
 __all__ = ["ClusterUnreachable", "SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
 
@@ -177,6 +181,32 @@ def _join_failure(address: str, error: BaseException) -> str:
             "~/.ray/auth_token; `ray get-auth-token` on the head node prints it)")
 
 
+@contextlib.contextmanager
+def _driver_lock(output_dir: Path) -> Iterator[None]:
+    """Hold ``<output_dir>/.sweep.lock`` while a driver runs the sweep there.
+
+    Two drivers on one output directory would submit every cell twice (the cells' own locks keep the
+    attempts apart, but each would train a cell the other had queued). Holding the lock also makes the
+    driver the only one that marks attempts left ``"running"`` by a killed sweep as ``"lost"``.
+
+    Raises:
+        SweepGridError: another ``sg-sweep`` holds the lock (its pid is in the message).
+    """
+    with open(output_dir / ".sweep.lock", "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            holder = lock.read().strip() or "unknown"
+            raise SweepGridError(f"another sg-sweep (pid {holder}) is running on {output_dir}; wait for it or stop "
+                                 "it (Ctrl-C) first") from None
+        lock.seek(0)
+        lock.truncate()
+        lock.write(str(os.getpid()))
+        lock.flush()
+        yield
+
+
 def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | None = None,
               cpus_per_cell: float = 1.0, gpus_per_cell: float = 0.0, max_retries: int = 3,
               progress_every: float = 30.0, out: Callable[[str], None] = print) -> SweepOutcome:
@@ -198,39 +228,42 @@ def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | No
             is not returned then: the exception is the report).
     """
     grid.validate()
-    token = prepare_output(grid)
-    outcome = SweepOutcome()
-    todo = []
-    for cell in grid.cells:
-        if cell_state(grid, cell)["finished"]:
-            outcome.skipped.append(cell)
-            out(f"[skip] {cell.label}: finished ({_summary_line(grid, cell)})")
-        else:
-            todo.append(cell)
-    if not todo:
-        return outcome
-    import ray
+    grid.output_dir.mkdir(parents=True, exist_ok=True)
+    with _driver_lock(grid.output_dir):
+        token = prepare_output(grid)
+        outcome = SweepOutcome()
+        todo = []
+        for cell in grid.cells:
+            if cell_state(grid, cell)["finished"]:
+                outcome.skipped.append(cell)
+                out(f"[skip] {cell.label}: finished ({_summary_line(grid, cell)})")
+            else:
+                todo.append(cell)
+                AttemptLog(grid.cell_dir(cell)).mark_lost()  # "running" left by a sweep that was killed
+        if not todo:
+            return outcome
+        import ray
 
-    _init_ray(address, num_cpus)
-    try:
-        check_storage(grid.output_dir, token)
-        task = ray.remote(run_cell)
-        resources = {"num_cpus": cpus_per_cell, "num_gpus": gpus_per_cell, "max_retries": max_retries,
-                     "retry_exceptions": [CellKilled]}
-        refs = {task.options(name=cell.run_name, **resources).remote(
-                    str(grid.output_dir), token, cell.run_name, list(cell.seeds), grid.train_arguments(cell)): cell
-                for cell in todo}
-        out(f"[sweep] {len(refs)} cell(s) submitted, {len(outcome.skipped)} already finished; output {grid.output_dir}")
-        progress = _Progress(grid, todo, progress_every, out)
+        _init_ray(address, num_cpus)
         try:
-            _wait_all(refs, grid, outcome, progress, out)
-        except KeyboardInterrupt:
-            _stop(refs, progress, outcome, out)
-            outcome.interrupted = True
-            raise
-    finally:
-        ray.shutdown()
-    return outcome
+            check_storage(grid.output_dir, token)
+            task = ray.remote(run_cell)
+            resources = {"num_cpus": cpus_per_cell, "num_gpus": gpus_per_cell, "max_retries": max_retries,
+                         "retry_exceptions": [CellKilled]}
+            refs = {task.options(name=cell.run_name, **resources).remote(
+                        str(grid.output_dir), token, cell.run_name, list(cell.seeds), grid.train_arguments(cell)): cell
+                    for cell in todo}
+            out(f"[sweep] {len(refs)} cell(s) submitted, {len(outcome.skipped)} already finished; output {grid.output_dir}")
+            progress = _Progress(grid, todo, progress_every, out)
+            try:
+                _wait_all(refs, grid, outcome, progress, out)
+            except KeyboardInterrupt:
+                _stop(refs, progress, outcome, out)
+                outcome.interrupted = True
+                raise
+        finally:
+            ray.shutdown()
+        return outcome
 
 
 def _collect(ref: Any, cell: Cell, grid: SweepGrid, outcome: SweepOutcome, out: Callable[[str], None]) -> None:
