@@ -435,12 +435,19 @@ def markdown(rows: list[dict], summary: dict[str, Any], labels: dict[str, str]) 
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def cell_parser(description: str, total_steps: int) -> argparse.ArgumentParser:
+    """A benchmark's command line with the cell's flags: algorithm, env id, seeds and env steps per seed."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algo", default="ppo_lag")
     parser.add_argument("--env-id", default="SafetyPointGoal1-v0")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--total-steps", type=int, default=20_000, help="env steps per seed (default 20,000)")
+    parser.add_argument("--total-steps", type=int, default=total_steps,
+                        help=f"env steps per seed (default {total_steps:,})")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = cell_parser(__doc__, 20_000)
     parser.add_argument("--repeats", type=int, default=3, help="runs of each kind, interleaved (default 3)")
     parser.add_argument("--kinds", nargs="+", choices=KINDS, default=["direct", "sweep"],
                         help="which runs (default: direct sweep); direct+env: sg-train directly with --direct-env")

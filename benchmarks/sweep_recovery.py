@@ -52,7 +52,7 @@ from typing import Any
 
 from sg_torchrl.sweep.cell import AttemptLog
 from sg_torchrl.train.checkpoint import load_checkpoint
-from sweep_overhead import (Launched, become_subreaper, cmdline, descendants, ray_environment, sweep_cell,
+from sweep_overhead import (Launched, cell_parser, become_subreaper, cmdline, descendants, ray_environment, sweep_cell,
                             sweep_command)
 
 DEFAULT_EXTRA = ("--wandb", "disabled", "--steps-per-epoch", "1000", "--eval-episodes", "2")
@@ -233,11 +233,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", default="ppo_lag")
-    parser.add_argument("--env-id", default="SafetyPointGoal1-v0")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--total-steps", type=int, default=12_000, help="env steps per seed (default 12,000)")
+    parser = cell_parser(__doc__, 12_000)
     parser.add_argument("--kill-after", type=int, default=5, help="kill once this many epochs are logged (default 5)")
     parser.add_argument("--kill-into-epoch", type=float, default=0.5,
                         help="... and this fraction of an epoch (the median so far) later (default 0.5)")
