@@ -130,7 +130,9 @@ def pseudo_lidars(
     if alias:
         offsets = _target_offsets(n, k, num_bins, 3)
         weights = np.empty((n, k, 3))
-        np.minimum(np.maximum(position - bins, 0.0), 1.0, out=weights[..., 0])  # np.clip(.., 0, 1), cheaper
+        # np.clip(position - bins, 0, 1): position >= 0 (a remainder by 2 pi) and bins <= position, so the
+        # difference is >= +0.0 (and NaN stays NaN either way): only the upper bound can bite.
+        np.minimum(position - bins, 1.0, out=weights[..., 0])
         np.subtract(1.0, weights[..., 0], out=weights[..., 1])
         weights[..., 2] = 1.0
         flat[offsets + (bins[..., None] + _NEIGHBOURS) % num_bins] = weights * reading[..., None]

@@ -80,7 +80,7 @@ class SingleNavigationStep:
         task, scene, physics = env.task, env.scene, env.physics
         # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
         clipped = self._clipped
-        np.maximum(np.asarray(action).reshape(1, -1), env._clip_low, out=clipped)
+        np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row
         if physics.drives_mocap:
             np.minimum(clipped, env._clip_high, out=clipped)
             physics.step(clipped, env.frame_skip)
