@@ -119,25 +119,19 @@ def pseudo_lidars(
     position = angle * (num_bins / TWO_PI)  # in bins
     bins = np.minimum(position.astype(np.int64), num_bins - 1)  # angles a hair below 2 pi round up to 2 pi
     reading = _reading(distance, max_dist, exp_gain)
-    # Every target writes its bins of its own row; the per-bin maximum over targets is taken after. The
-    # writes go through flat indices (row and target offsets computed once per shape): cheaper than
-    # indexing with broadcast index arrays, and the same elements get the same values. Aliased, a target's
-    # three bins b + 1, b - 1, b (distinct unless num_bins < 3) take fraction * reading, (1 - fraction) *
-    # reading and reading (1.0 * reading: the same value) in one assignment, in that order (with fewer
-    # than three bins the later of repeated indices wins, as with three assignments in that order).
+    # Every target writes three distinct bins of its own row; the per-bin maximum over targets is taken after.
+    # The writes go through flat indices (row and target offsets computed once per shape): cheaper than
+    # indexing with three broadcast index arrays, and the same elements get the same values. (Measured: one
+    # assignment of all three bins, through (N, K, 3) index and value arrays, is slower than three.)
     contributions = np.zeros((n, k, num_bins))
-    flat = contributions.reshape(-1)
+    flat, offsets = contributions.reshape(-1), _target_offsets(n, k, num_bins)
     if alias:
-        offsets = _target_offsets(n, k, num_bins, 3)
-        weights = np.empty((n, k, 3))
         # np.clip(position - bins, 0, 1): position >= 0 (a remainder by 2 pi) and bins <= position, so the
         # difference is >= +0.0 (and NaN stays NaN either way): only the upper bound can bite.
-        np.minimum(position - bins, 1.0, out=weights[..., 0])
-        np.subtract(1.0, weights[..., 0], out=weights[..., 1])
-        weights[..., 2] = 1.0
-        flat[offsets + (bins[..., None] + _NEIGHBOURS) % num_bins] = weights * reading[..., None]
-    else:
-        flat[_target_offsets(n, k, num_bins, 0) + bins] = reading
+        fraction = np.minimum(position - bins, 1.0)
+        flat[offsets + (bins + 1) % num_bins] = fraction * reading
+        flat[offsets + (bins - 1) % num_bins] = (1.0 - fraction) * reading
+    flat[offsets + bins] = reading
     if block is not None and all(sizes):
         np.maximum.reduceat(contributions, _group_starts(tuple(sizes)), axis=1, out=block)
         return
@@ -152,17 +146,10 @@ def pseudo_lidars(
         start += size
 
 
-_NEIGHBOURS = np.array((1, -1, 0), dtype=np.int64)  # the aliased bins of a target, in writing order
-_NEIGHBOURS.flags.writeable = False
-
-
 @functools.lru_cache(maxsize=64)
-def _target_offsets(n: int, k: int, num_bins: int, per_target: int) -> np.ndarray:
-    """Flat index of bin 0 of each target's row in an ``(n, k, num_bins)`` array: ``(n, k)``, or ``(n, k,
-    per_target)`` (repeated, one per written bin) when ``per_target`` > 0 (read-only)."""
+def _target_offsets(n: int, k: int, num_bins: int) -> np.ndarray:
+    """Flat index of bin 0 of each target's row in an ``(n, k, num_bins)`` array, ``(n, k)`` (read-only)."""
     offsets = np.arange(n * k, dtype=np.int64).reshape(n, k) * num_bins
-    if per_target:
-        offsets = np.repeat(offsets[..., None], per_target, axis=2)
     offsets.flags.writeable = False
     return offsets
 
