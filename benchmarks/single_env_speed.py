@@ -12,6 +12,15 @@ second (``time.process_time``: other jobs on a shared machine do not count), at 
   façade's first timed repeat reset (a time limit, or a fall of Hopper, Walker2d, Ant, Humanoid), so
   both simulate episodes of the same lengths (a fallen robot in contact with the floor steps slower)
   and it pays for resets only what MuJoCo itself pays.
+* **bare + driven mocaps** (only for ids whose physics drives mocap bodies, the Button levels'
+  gremlins; ``–`` elsewhere): the bare loop, but sub-step by sub-step (``mj_step(model, data)``
+  ``frame_skip`` times) writing before each sub-step the mocap positions the env writes there, as
+  the env's physics does (``MujocoBatch._step_driven``). The targets come from the env's own
+  trajectories (the task's mover objects, ``obj.trajectory`` at ``data.time + k * timestep``, the
+  circle centres of the layout the bare loop starts from), computed once before timing, so the loop
+  pays for the motion MuJoCo must simulate (the extra ``mj_step`` calls, the moving welds) but not
+  for computing the targets. This is the floor for such envs: Safety-Gymnasium moves its gremlins
+  the same way, so the plain bare column understates what any implementation has to pay there.
 * **façade**: ``sg_torchrl.gym.make(id)``: ``env.step(action)`` with a numpy action, the 6-tuple
   and its info, ``env.reset()`` when an episode ends (what a Safety-Gymnasium user migrates to).
 * **torchrl N=1**: ``sg_torchrl.make(id, num_envs=1)`` stepped with ``step_and_maybe_reset`` and a
@@ -24,8 +33,9 @@ second (``time.process_time``: other jobs on a shared machine do not count), at 
 
 Actions are drawn uniformly within the action bounds from a fixed seed (the same sequence for every
 column). Each column is timed ``--repeats`` times, interleaved, and the best repeat counts. The
-table gives steps per CPU second and each column as a fraction of bare MuJoCo; the last column is
-the façade's speed over the original's (the issue's bars: façade >= 60% of bare, >= 1.5x the
+table gives steps per CPU second and each column as a fraction of bare MuJoCo (and the façade as a
+fraction of bare + driven mocaps where that column exists); the last column is the façade's speed
+over the original's (the issue's bars: façade >= 60% of bare, >= 1.5x the
 original). Timings on a shared machine are noisy: compare ratios measured in the same run.
 
 Usage::
@@ -113,6 +123,87 @@ def time_bare(physics, start: np.ndarray, actions: np.ndarray, frame_skip: int, 
     return time.process_time() - begin
 
 
+def mocap_drivers(core) -> list:
+    """The mover objects (gremlins) whose mocap bodies ``core``'s physics drives, ``[]`` when none."""
+    if not getattr(core.physics, "drives_mocap", False):
+        return []
+    return [obj for obj in core.task.objects if hasattr(obj, "trajectory") and hasattr(obj, "mocap_ids")]
+
+
+def driven_targets(core, drivers: list, start: np.ndarray, steps: int) -> list:
+    """Per driver, ``(rows of mocap_pos, (steps, frame_skip, K, 3) targets)``: the mocap positions the env
+    writes before each sub-step of the first ``steps`` steps of an episode started from ``start``. Computed
+    untimed by the env's own ``trajectory`` at the times the env passes it (``data.time`` at the step's
+    start plus ``k * timestep``, ``MujocoBatch._mocap_plans``), with the circle centres of the current
+    layout, the one ``start`` was taken in: call before the façade steps (its resets move the centres)."""
+    model, frame_skip = core.physics.model, core.frame_skip
+    data = mujoco.MjData(model)
+    mujoco.mj_setState(model, data, start, _STATE)
+    offsets = np.arange(frame_skip) * model.opt.timestep  # as MujocoBatch._mocap_plans
+    plans = []
+    for obj in drivers:
+        ids = np.asarray(obj.mocap_ids, dtype=np.int64)
+        rows = slice(int(ids[0]), int(ids[-1]) + 1) if len(ids) and (np.diff(ids) == 1).all() else ids
+        plans.append((rows, np.empty((steps, frame_skip, len(ids), 3))))
+    # The clock only (no physics): MuJoCo advances data.time by one timestep per sub-step.
+    clock = data.time
+    for step in range(steps):
+        times = clock + offsets[None]
+        for obj, (_, targets) in zip(drivers, plans):
+            targets[step] = obj.trajectory(times)[0]
+        for _ in range(frame_skip):
+            clock += model.opt.timestep
+    return plans
+
+
+def along_episodes(plans: list, resets: np.ndarray) -> list:
+    """:func:`driven_targets`' per-episode-step targets laid along the loop's steps: after a step where
+    ``resets`` is set the bare loop restarts from ``start`` (the clock too), so the targets start over."""
+    since, episode_step = 0, np.empty(len(resets), dtype=np.int64)
+    for step, reset in enumerate(resets.tolist()):
+        episode_step[step] = since
+        since = 0 if reset else since + 1
+    return [(rows, np.ascontiguousarray(targets[episode_step])) for rows, targets in plans]
+
+
+def time_bare_driven(physics, start: np.ndarray, actions: np.ndarray, frame_skip: int, resets: np.ndarray,
+                     plans: list) -> float:
+    """CPU seconds of the bare + driven mocaps loop (module docstring): :func:`time_bare` one sub-step per
+    ``mj_step``, the mocap rows of ``plans`` (:func:`driven_targets`) written before each sub-step."""
+    model = physics.model
+    data = mujoco.MjData(model)
+    forward, post = physics.forward_after_step, physics.post_constraint
+    mocap_pos = data.mocap_pos
+
+    def restart() -> None:
+        mujoco.mj_setState(model, data, start, _STATE)
+        mujoco.mj_forward(model, data)
+
+    restart()
+    ctrl = data.ctrl
+    single = len(plans) == 1 and isinstance(plans[0][0], slice)
+    driven = mocap_pos[plans[0][0]] if single else None  # a view, as MujocoBatch._step_driven
+    begin = time.process_time()
+    for step, (action, reset) in enumerate(zip(actions, resets.tolist())):
+        ctrl[:] = action
+        if single:
+            for target in plans[0][1][step]:
+                driven[...] = target
+                mujoco.mj_step(model, data)
+        else:
+            for k in range(frame_skip):
+                for rows, targets in plans:
+                    mocap_pos[rows] = targets[step, k]
+                mujoco.mj_step(model, data)
+        if forward:
+            mujoco.mj_forward(model, data)
+        if post:
+            mujoco.mj_rnePostConstraint(model, data)
+        if reset:
+            restart()
+    return time.process_time() - begin
+
+
 def time_facade(env, actions: np.ndarray, resets: np.ndarray | None = None) -> float:
     """CPU seconds of the gymnasium façade's loop over ``actions`` (resetting as episodes end); marks
     in ``resets`` the steps after which it reset."""
@@ -157,14 +248,22 @@ def measure(env_id: str, steps: int, repeats: int, seed: int, oracle_python: str
     start = start_states(core)[0]
     actions = random_actions(facade.action_space.low, facade.action_space.high, steps, seed)
     action_tensors = torch.from_numpy(actions).unsqueeze(1)
+    drivers = mocap_drivers(core)
+    # Targets of the layout start was taken in, per episode step; laid along the loop's steps once the
+    # façade's first repeat has told where episodes end.
+    episode_plans = driven_targets(core, drivers, start, steps) if drivers else None
     warm = min(steps, 100)
     time_facade(facade, actions[:warm])
     time_torchrl(single, td, action_tensors[:warm])
-    bare, ours, torchrl = [], [], []
+    bare, driven, ours, torchrl = [], [], [], []
     resets = np.zeros(steps, dtype=bool)
     for repeat in range(repeats):  # interleaved, so machine-load drift hits every column alike
         ours.append(time_facade(facade, actions, resets if repeat == 0 else None))
         bare.append(time_bare(core.physics, start, actions, core.frame_skip, resets))
+        if drivers:
+            if repeat == 0:
+                plans = along_episodes(episode_plans, resets)
+            driven.append(time_bare_driven(core.physics, start, actions, core.frame_skip, resets, plans))
         seconds, td = time_torchrl(single, td, action_tensors)
         torchrl.append(seconds)
     facade.close()
@@ -172,11 +271,14 @@ def measure(env_id: str, steps: int, repeats: int, seed: int, oracle_python: str
     row = {
         "env_id": env_id, "steps": steps, "repeats": repeats, "facade_resets": int(resets.sum()),
         "bare_steps_per_s": steps / min(bare),
+        "bare_driven_steps_per_s": steps / min(driven) if driven else None,
         "facade_steps_per_s": steps / min(ours),
         "torchrl_n1_steps_per_s": steps / min(torchrl),
         "original_steps_per_s": time_original(oracle_python, env_id, steps, repeats, seed) if oracle_python else None,
     }
     row["facade_vs_bare"] = row["facade_steps_per_s"] / row["bare_steps_per_s"]
+    floor = row["bare_driven_steps_per_s"]
+    row["facade_vs_bare_driven"] = None if floor is None else row["facade_steps_per_s"] / floor
     row["torchrl_n1_vs_bare"] = row["torchrl_n1_steps_per_s"] / row["bare_steps_per_s"]
     original = row["original_steps_per_s"]
     row["original_vs_bare"] = None if original is None else original / row["bare_steps_per_s"]
@@ -187,13 +289,15 @@ def measure(env_id: str, steps: int, repeats: int, seed: int, oracle_python: str
 def markdown_table(rows: list[dict]) -> str:
     lines = [
         "| env id | bare MuJoCo (steps/CPU-s) | façade | façade / bare | TorchRL N=1 | TorchRL / bare "
-        "| original 1.0.0 | original / bare | façade / original |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| original 1.0.0 | original / bare | façade / original | bare + driven mocaps | façade / bare + driven |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
         original = row["original_steps_per_s"]
         extra = ("| – | – | – |" if original is None else
                  f"| {original:,.0f} | {row['original_vs_bare']:.0%} | {row['facade_vs_original']:.2f}x |")
+        floor = row["bare_driven_steps_per_s"]
+        extra += (" – | – |" if floor is None else f" {floor:,.0f} | {row['facade_vs_bare_driven']:.0%} |")
         lines.append(
             f"| {row['env_id']} | {row['bare_steps_per_s']:,.0f} | {row['facade_steps_per_s']:,.0f} "
             f"| {row['facade_vs_bare']:.0%} | {row['torchrl_n1_steps_per_s']:,.0f} | {row['torchrl_n1_vs_bare']:.0%} "
@@ -225,7 +329,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print(f"{env_id}: bare {row['bare_steps_per_s']:,.0f}/s, façade {row['facade_steps_per_s']:,.0f}/s "
               f"({row['facade_vs_bare']:.0%}), torchrl N=1 {row['torchrl_n1_steps_per_s']:,.0f}/s "
               f"({row['torchrl_n1_vs_bare']:.0%})"
-              + ("" if original is None else f", original {original:,.0f}/s ({row['facade_vs_original']:.2f}x)"),
+              + ("" if original is None else f", original {original:,.0f}/s ({row['facade_vs_original']:.2f}x)")
+              + ("" if row["bare_driven_steps_per_s"] is None else
+                 f", bare + driven mocaps {row['bare_driven_steps_per_s']:,.0f}/s "
+                 f"(façade {row['facade_vs_bare_driven']:.0%} of it)"),
               flush=True)
     print()
     print(markdown_table(rows))
