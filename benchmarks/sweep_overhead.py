@@ -68,9 +68,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sg_torchrl.sweep.cell import AttemptLog
 from sg_torchrl.sweep.cli import build_parser, grid_from_args
 from sg_torchrl.sweep.grid import Cell, SweepGrid
+from sg_torchrl.sweep.records import AttemptLog
 
 _PR_SET_CHILD_SUBREAPER = 36
 _TICKS = os.sysconf("SC_CLK_TCK")

@@ -50,7 +50,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sg_torchrl.sweep.cell import AttemptLog
+from sg_torchrl.sweep.records import AttemptLog
 from sg_torchrl.train.checkpoint import load_checkpoint
 from sweep_overhead import (Launched, cell_parser, become_subreaper, cmdline, descendants, ray_environment, sweep_cell,
                             sweep_command)

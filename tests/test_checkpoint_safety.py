@@ -229,7 +229,8 @@ def test_a_sweep_cell_resumes_from_its_checkpoint_or_starts_over(finished_run, t
     one killed before its first checkpoint starts over (``--overwrite``); a finished one is never run again."""
     import json
 
-    from sg_torchrl.sweep.cell import AttemptLog, run_cell
+    from sg_torchrl.sweep.cell import run_cell
+    from sg_torchrl.sweep.records import AttemptLog
 
     root = tmp_path / "sweep"
     root.mkdir()

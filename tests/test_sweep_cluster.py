@@ -32,8 +32,8 @@ from pathlib import Path
 import pytest
 
 from sg_torchrl.sweep import cli
-from sg_torchrl.sweep.cell import AttemptLog, epochs_logged
 from sg_torchrl.sweep.grid import Cell, SweepGrid
+from sg_torchrl.sweep.records import AttemptLog, epochs_logged
 from sg_torchrl.sweep.runner import run_sweep
 
 ENV = "SafetyPointGoal1-v0"

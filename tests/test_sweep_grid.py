@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 
 from sg_torchrl.sweep import cli
-from sg_torchrl.sweep.cell import AttemptLog, CellFailed, CellInterrupted, CellKilled, SweepStorageError, run_cell
+from sg_torchrl.sweep.cell import CellFailed, CellInterrupted, CellKilled, SweepStorageError, run_cell
 from sg_torchrl.sweep.grid import Cell, SweepGrid, SweepGridError, merge_records, parse_grid_option, read_cells
+from sg_torchrl.sweep.records import AttemptLog
 from sg_torchrl.sweep.runner import prepare_output
 
 ENV, OTHER_ENV = "SafetyPointGoal1-v0", "SafetyCarGoal1-v0"

@@ -36,11 +36,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["AttemptLog", "CellFailed", "CellInterrupted", "CellKilled", "SweepStorageError", "run_cell",
-           "SWEEP_RECORD"]
+from sg_torchrl.sweep.records import SWEEP_RECORD, AttemptLog, epochs_logged
 
-#: The sweep's record at the root of its output directory (grid, shared options, cells, storage token).
-SWEEP_RECORD = "sweep.json"
+__all__ = ["CellFailed", "CellInterrupted", "CellKilled", "SweepStorageError", "check_storage", "run_cell"]
+
 #: Exit codes of an ``sg-train`` stopped on request (128 + SIGINT / SIGTERM), checkpointed.
 STOPPED_CODES = frozenset({128 + signal.SIGINT, 128 + signal.SIGTERM})
 _PR_SET_PDEATHSIG = 1
@@ -60,55 +59,6 @@ class CellInterrupted(RuntimeError):
 
 class SweepStorageError(RuntimeError):
     """A worker cannot see the sweep's output directory: cells need storage every node shares."""
-
-
-class AttemptLog:
-    """``<cell>/attempts.jsonl``: one JSON line per attempt at the cell (node address and Ray node id, worker pid,
-    start, end, status, ...).
-
-    Written only by the task that holds the cell's lock, rewritten whole (it has a few lines). An
-    attempt still ``"running"`` when the next one begins was lost with its worker: it is marked ``"lost"``.
-    """
-
-    def __init__(self, directory: Path) -> None:
-        self.path = directory / "attempts.jsonl"
-
-    def read(self) -> list[dict[str, Any]]:
-        if not self.path.exists():
-            return []
-        return [json.loads(line) for line in self.path.read_text().splitlines() if line.strip()]
-
-    def _write(self, attempts: list[dict[str, Any]]) -> None:
-        temporary = self.path.with_suffix(".tmp")
-        temporary.write_text("".join(json.dumps(a) + "\n" for a in attempts))
-        temporary.replace(self.path)
-
-    @staticmethod
-    def _mark_lost(attempts: list[dict[str, Any]]) -> bool:
-        lost = [attempt for attempt in attempts if attempt.get("status") == "running"]
-        for attempt in lost:
-            attempt["status"] = "lost"
-        return bool(lost)
-
-    def mark_lost(self) -> None:
-        """Mark attempts still ``"running"`` as ``"lost"``: their task ended without saying how (its worker
-        died). The next attempt does it when it begins; the driver does it for a cell whose retries ran out."""
-        attempts = self.read()
-        if self._mark_lost(attempts):
-            self._write(attempts)
-
-    def begin(self, **fields: Any) -> int:
-        attempts = self.read()
-        self._mark_lost(attempts)
-        number = len(attempts) + 1
-        attempts.append({"attempt": number, "start": time.time(), "end": None, "status": "running", **fields})
-        self._write(attempts)
-        return number
-
-    def end(self, number: int, status: str, **fields: Any) -> None:
-        attempts = self.read()
-        attempts[number - 1].update(end=time.time(), status=status, **fields)
-        self._write(attempts)
 
 
 def _node_address() -> str:
@@ -176,25 +126,17 @@ def _wait(pid: int, poll: bool = True) -> tuple[int, Any]:
     return status, usage
 
 
+def _figures(status: int, usage: Any, start: float) -> dict[str, Any]:
+    """An ended attempt's record: the child's exit code, wall seconds since ``start`` and CPU seconds."""
+    return {"code": os.waitstatus_to_exitcode(status), "wall_s": time.monotonic() - start,
+            "cpu_s": usage.ru_utime + usage.ru_stime}
+
+
 def _log_tail(path: Path, lines: int = 15) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
     except OSError:
         return ""
-
-
-def epochs_logged(directory: Path, seeds: list[int]) -> int:
-    """Epoch rows in the first seed's ``progress.csv`` (training rows: those with an epoch number)."""
-    progress = directory / f"seed-{seeds[0]:03d}" / "progress.csv"
-    if not progress.exists():
-        return 0
-    lines = progress.read_text().splitlines()
-    if not lines:
-        return 0
-    column = lines[0].split(",").index("Train/Epoch") if "Train/Epoch" in lines[0] else None
-    if column is None:
-        return max(len(lines) - 1, 0)
-    return sum(1 for line in lines[1:] if len(line.split(",")) > column and line.split(",")[column])
 
 
 def check_storage(output_dir: Path, token: str) -> None:
@@ -240,12 +182,12 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
             command = ["--resume", str(directory), "--progress", "false"]
         else:  # a new cell, or one whose first attempt died before its first checkpoint: start it over
             command = [*arguments, "--overwrite", "--progress", "false"]
-        attempts = AttemptLog(directory)
-        number = attempts.begin(node=_node_address(), node_id=_node_id(), pid=os.getpid(), resumed=resume,
+        attempts, node = AttemptLog(directory), _node_address()
+        number = attempts.begin(node=node, node_id=_node_id(), pid=os.getpid(), resumed=resume,
                                 epochs_before=epochs_logged(directory, seeds))
         start = time.monotonic()
         with open(directory / "sweep.log", "ab") as log:
-            log.write(f"\n=== attempt {number} on {_node_address()} ({time.ctime()}): sg-train "
+            log.write(f"\n=== attempt {number} on {node} ({time.ctime()}): sg-train "
                       f"{' '.join(command)}\n".encode())
             log.flush()
             child = subprocess.Popen([sys.executable, "-m", "sg_torchrl.train", *command], stdout=log,
@@ -257,23 +199,20 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
             except KeyboardInterrupt:  # Ray's cancel (the sweep's Ctrl-C): a checkpointed stop
                 child.send_signal(signal.SIGINT)
                 status, usage = _wait(child.pid, poll=False)
-                attempts.end(number, "interrupted", code=os.waitstatus_to_exitcode(status),
-                             wall_s=time.monotonic() - start, cpu_s=usage.ru_utime + usage.ru_stime)
+                attempts.end(number, "interrupted", **_figures(status, usage, start))
                 raise
-            child.returncode = code = os.waitstatus_to_exitcode(status)
-        outcome = {"attempt": number, "wall_s": time.monotonic() - start, "cpu_s": usage.ru_utime + usage.ru_stime,
-                   "code": code}
-        finished = (directory / "summary.json").exists()
-        if code == 0 or (code == 1 and finished):
-            attempts.end(number, "done", **{k: v for k, v in outcome.items() if k != "attempt"})
-            return {"status": "done", "ran": True, **outcome}
+        figures = _figures(status, usage, start)
+        child.returncode = code = figures["code"]
+        if code == 0 or (code == 1 and (directory / "summary.json").exists()):  # 1: every seed diverged
+            attempts.end(number, "done", **figures)
+            return {"status": "done", "ran": True, "attempt": number, **figures}
         if code < 0:
-            attempts.end(number, "killed", **{k: v for k, v in outcome.items() if k != "attempt"})
+            attempts.end(number, "killed", **figures)
             raise CellKilled(f"sg-train was killed by {signal.Signals(-code).name} (attempt {number}); "
                              f"log: {directory / 'sweep.log'}")
         if code in STOPPED_CODES:
-            attempts.end(number, "interrupted", **{k: v for k, v in outcome.items() if k != "attempt"})
+            attempts.end(number, "interrupted", **figures)
             raise CellInterrupted(f"stopped on request after a checkpointed epoch (exit {code})")
-        attempts.end(number, "failed", **{k: v for k, v in outcome.items() if k != "attempt"})
+        attempts.end(number, "failed", **figures)
         raise CellFailed(f"sg-train exited with {code}; log: {directory / 'sweep.log'}\n"
                          f"{_log_tail(directory / 'sweep.log')}")

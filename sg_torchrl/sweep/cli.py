@@ -24,7 +24,7 @@ import signal
 import sys
 from pathlib import Path
 
-from sg_torchrl.sweep.cell import SWEEP_RECORD
+from sg_torchrl.sweep.records import SWEEP_RECORD
 from sg_torchrl.sweep.grid import SweepGrid, SweepGridError, parse_grid_option
 from sg_torchrl.sweep.runner import ClusterUnreachable, run_sweep  # imports Ray only when a sweep runs
 

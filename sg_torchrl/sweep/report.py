@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from sg_torchrl.sweep.records import AttemptLog, parse_float, read_progress
+
 __all__ = [
     "CellResult", "MULTI_AGENT", "PAPER_NAMES", "PAPER_RESULTS", "baseline", "cell_histories", "collect",
     "load_paper_results", "markdown_table", "paper_env_name", "paper_rows", "plot_env_curves", "read_progress",
@@ -131,14 +133,6 @@ class CellResult:
         return PAPER_NAMES.get(self.algo, self.algo)
 
 
-def read_progress(path: Path) -> list[dict[str, float]]:
-    """The rows of a ``progress.csv`` with numbers parsed (an empty field is NaN); ``[]`` if absent."""
-    if not path.is_file():
-        return []
-    with path.open() as handle:
-        return [{key: _float(value) for key, value in row.items() if key is not None} for row in csv.DictReader(handle)]
-
-
 def cell_histories(cell: CellResult) -> dict[int, list[dict[str, float]]]:
     """Each seed's ``progress.csv`` rows (all of them: training and evaluation rows)."""
     return {seed: read_progress(cell.seed_dir(seed) / "progress.csv") for seed in cell.seeds}
@@ -207,7 +201,7 @@ def _read_cell(root: Path, path: Path) -> CellResult:
     cell.update_s = _mean(row.get("Time/Update", NAN) for row in rows)
     logged_s = summary.get("Time/Total") if _finite(summary.get("Time/Total")) else max(
         (row["Time/Total"] for row in rows if _finite(row.get("Time/Total"))), default=NAN)
-    attempts = _read_attempts(path / "attempts.jsonl")
+    attempts = AttemptLog(path).read()
     if attempts:
         cell.attempts, cell.status = len(attempts), str(attempts[-1].get("status", ""))
         ended = sum(float(a["end"]) - float(a["start"]) for a in attempts
@@ -295,10 +289,10 @@ def seed_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
         for seed, figures in sorted(cell.per_seed.items()):
             rows.append({
                 "env": cell.env_id, "algorithm": cell.name, "options": cell.tag, "seed": seed,
-                "EpRet (last 10)": _float(figures.get("Final/EpRetLast10")),
-                "EpCost (last 10)": _float(figures.get("Final/EpCostLast10")),
-                "eval EpRet": _float(figures.get("Metrics/EvalEpRet")),
-                "eval EpCost": _float(figures.get("Metrics/EvalEpCost")),
+                "EpRet (last 10)": parse_float(figures.get("Final/EpRetLast10")),
+                "EpCost (last 10)": parse_float(figures.get("Final/EpCostLast10")),
+                "eval EpRet": parse_float(figures.get("Metrics/EvalEpRet")),
+                "eval EpCost": parse_float(figures.get("Metrics/EvalEpCost")),
                 "diverged": seed in cell.diverged,
                 "steps": int(figures["Train/TotalSteps"]) if _finite(figures.get("Train/TotalSteps")) else cell.steps,
                 "compiled": cell.compiled, "directory": cell.directory.as_posix(),
@@ -461,13 +455,6 @@ def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _float(value: Any) -> float:
-    try:
-        return float(value) if value not in (None, "") else NAN
-    except (TypeError, ValueError):
-        return NAN
-
-
 def _read_json(path: Path) -> dict[str, Any]:
     """A JSON object file's content; ``{}`` if absent or not (yet) complete."""
     try:
@@ -475,18 +462,3 @@ def _read_json(path: Path) -> dict[str, Any]:
     except (OSError, ValueError):
         return {}
     return content if isinstance(content, dict) else {}
-
-
-def _read_attempts(path: Path) -> list[dict[str, Any]]:
-    """The lines of a cell's ``attempts.jsonl`` (a line cut short by a crash is skipped)."""
-    try:
-        lines = path.read_text().splitlines()
-    except OSError:
-        return []
-    attempts = []
-    for line in lines:
-        try:
-            attempts.append(json.loads(line))
-        except ValueError:
-            continue
-    return [attempt for attempt in attempts if isinstance(attempt, dict)]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import math
 import os
 import secrets
 import signal
@@ -32,10 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from sg_torchrl.sweep.cell import SWEEP_RECORD, AttemptLog, CellInterrupted, CellKilled, check_storage, run_cell
+from sg_torchrl.sweep.cell import CellInterrupted, CellKilled, check_storage, run_cell
 from sg_torchrl.sweep.grid import Cell, SweepGrid, SweepGridError, merge_records
+from sg_torchrl.sweep.records import SWEEP_RECORD, AttemptLog, latest, read_progress
 
-__all__ = ["ClusterUnreachable", "SweepOutcome", "cell_state", "run_sweep", "prepare_output"]
+__all__ = ["ClusterUnreachable", "SweepOutcome", "cell_finished", "cell_steps", "run_sweep", "prepare_output"]
 
 #: Seconds a Ctrl-C'd sweep waits for its running cells to checkpoint before it gives up on them.
 STOP_GRACE_S = 600.0
@@ -79,20 +81,15 @@ def prepare_output(grid: SweepGrid) -> str:
     return record["token"]
 
 
-def cell_state(grid: SweepGrid, cell: Cell) -> dict[str, Any]:
-    """A cell's state read from its directory: ``finished``, env steps per seed so far, its attempts."""
-    directory = grid.cell_dir(cell)
-    steps = 0
-    progress = directory / f"seed-{cell.seeds[0]:03d}" / "progress.csv"
-    if progress.exists():
-        lines = progress.read_text().splitlines()
-        header = lines[0].split(",") if lines else []
-        if "Train/TotalSteps" in header:
-            column = header.index("Train/TotalSteps")
-            values = [line.split(",")[column] for line in lines[1:] if len(line.split(",")) > column]
-            steps = int(float(next((v for v in reversed(values) if v), 0)))
-    return {"finished": (directory / "summary.json").exists(), "steps": steps,
-            "attempts": AttemptLog(directory).read()}
+def cell_steps(grid: SweepGrid, cell: Cell) -> int:
+    """Env steps per seed that ``cell`` has logged so far (its first seed's latest ``Train/TotalSteps``)."""
+    steps = latest(read_progress(grid.cell_dir(cell) / f"seed-{cell.seeds[0]:03d}" / "progress.csv"),
+                   "Train/TotalSteps")
+    return int(steps) if math.isfinite(steps) else 0
+
+
+def cell_finished(grid: SweepGrid, cell: Cell) -> bool:
+    return (grid.cell_dir(cell) / "summary.json").exists()
 
 
 def _summary_line(grid: SweepGrid, cell: Cell) -> str:
@@ -108,37 +105,36 @@ class _Progress:
     """The driver's reports: cell events as they happen and a status line every ``every`` seconds."""
 
     def __init__(self, grid: SweepGrid, cells: list[Cell], every: float, out: Callable[[str], None]) -> None:
-        self.grid, self.cells, self.every, self.out = grid, cells, every, out
-        self.seen_attempts = {cell: len(cell_state(grid, cell)["attempts"]) for cell in cells}
+        self.grid, self.every, self.out = grid, every, out
+        self.seen_attempts = {cell: len(AttemptLog(grid.cell_dir(cell)).read()) for cell in cells}
         self.last_line = time.monotonic()
         self.line_steps: dict[Cell, int] = {}  # each running cell's env steps (all seeds) at the last status line
 
     def poll(self, open_cells: list[Cell], done: int, failed: int, force: bool = False) -> None:
-        running, steps_now = 0, {}
-        now = time.monotonic()
+        running = []
         for cell in open_cells:
-            state = cell_state(self.grid, cell)
-            attempts = state["attempts"]
+            attempts = AttemptLog(self.grid.cell_dir(cell)).read()
             if len(attempts) > self.seen_attempts[cell]:
                 self.seen_attempts[cell] = len(attempts)
-                latest = attempts[-1]
-                verb = "restart" if latest.get("resumed") else "start"
-                detail = (f" from its checkpoint (attempt {latest['attempt']}, {latest.get('epochs_before', 0)} epochs "
-                          "logged before)") if latest.get("resumed") else ""
-                node = latest.get("node") + (f" (node {latest['node_id'][:8]})" if latest.get("node_id") else "")
+                attempt = attempts[-1]
+                verb = "restart" if attempt.get("resumed") else "start"
+                detail = (f" from its checkpoint (attempt {attempt['attempt']}, {attempt.get('epochs_before', 0)} "
+                          "epochs logged before)") if attempt.get("resumed") else ""
+                node = attempt.get("node") + (f" (node {attempt['node_id'][:8]})" if attempt.get("node_id") else "")
                 self.out(f"[{verb}] {cell.label} on {node}{detail}; log {self.grid.cell_dir(cell)}/sweep.log")
             if attempts and attempts[-1].get("status") == "running":
-                running += 1
-                steps_now[cell] = state["steps"] * len(cell.seeds)
+                running.append(cell)
+        now = time.monotonic()
         if force or now - self.last_line >= self.every:
-            # Rows come once per epoch (a minute or more at the paper's sizes): the rate is over the whole interval
-            # since the last status line, for the cells running at both ends (a resumed cell's log may step back).
+            # Progress files are read only for a status line. Rows come once per epoch (a minute or more at the
+            # paper's sizes): the rate is over the whole interval since the last line, for the cells running at
+            # both ends (a resumed cell's log may step back).
+            steps_now = {cell: cell_steps(self.grid, cell) * len(cell.seeds) for cell in running}
             rate = sum(max(steps - self.line_steps[cell], 0) for cell, steps in steps_now.items()
                        if cell in self.line_steps) / max(now - self.last_line, 1e-9)
             self.last_line, self.line_steps = now, steps_now
-            pending = len(open_cells) - running
-            self.out(f"[sweep {time.strftime('%H:%M:%S')}] {done} done, {running} running, {failed} failed, "
-                     f"{pending} waiting; {rate:,.0f} env steps/s")
+            self.out(f"[sweep {time.strftime('%H:%M:%S')}] {done} done, {len(running)} running, {failed} failed, "
+                     f"{len(open_cells) - len(running)} waiting; {rate:,.0f} env steps/s")
 
 
 def _init_ray(address: str | None, num_cpus: int | None) -> None:
@@ -234,7 +230,7 @@ def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | No
         outcome = SweepOutcome()
         todo = []
         for cell in grid.cells:
-            if cell_state(grid, cell)["finished"]:
+            if cell_finished(grid, cell):
                 outcome.skipped.append(cell)
                 out(f"[skip] {cell.label}: finished ({_summary_line(grid, cell)})")
             else:
