@@ -52,6 +52,7 @@ import json
 import os
 import subprocess
 import time
+from typing import Callable
 
 import mujoco
 import numpy as np
@@ -97,18 +98,25 @@ def random_actions(low: np.ndarray, high: np.ndarray, steps: int, seed: int) -> 
     return np.random.default_rng(seed).uniform(low, high, size=(steps, len(low))).astype(np.float32)
 
 
-def time_bare(physics, start: np.ndarray, actions: np.ndarray, frame_skip: int, resets: np.ndarray) -> float:
-    """CPU seconds of the bare loop (module docstring) over ``actions`` from the state ``start``, back to
-    ``start`` after each step where ``resets`` (``(steps,)`` bool) is set."""
-    model = physics.model
+def bare_simulator(model: mujoco.MjModel, start: np.ndarray) -> tuple[mujoco.MjData, Callable[[], None]]:
+    """A fresh ``MjData`` of ``model`` in the state ``start`` (forwarded), and the function that puts it back there
+    (the bare loops' reset)."""
     data = mujoco.MjData(model)
-    forward, post = physics.forward_after_step, physics.post_constraint
 
     def restart() -> None:
         mujoco.mj_setState(model, data, start, _STATE)
         mujoco.mj_forward(model, data)
 
     restart()
+    return data, restart
+
+
+def time_bare(physics, start: np.ndarray, actions: np.ndarray, frame_skip: int, resets: np.ndarray) -> float:
+    """CPU seconds of the bare loop (module docstring) over ``actions`` from the state ``start``, back to
+    ``start`` after each step where ``resets`` (``(steps,)`` bool) is set."""
+    model = physics.model
+    data, restart = bare_simulator(model, start)
+    forward, post = physics.forward_after_step, physics.post_constraint
     ctrl = data.ctrl
     begin = time.process_time()
     for action, reset in zip(actions, resets.tolist()):
@@ -171,15 +179,9 @@ def time_bare_driven(physics, start: np.ndarray, actions: np.ndarray, frame_skip
     """CPU seconds of the bare + driven mocaps loop (module docstring): :func:`time_bare` one sub-step per
     ``mj_step``, the mocap rows of ``plans`` (:func:`driven_targets`) written before each sub-step."""
     model = physics.model
-    data = mujoco.MjData(model)
+    data, restart = bare_simulator(model, start)
     forward, post = physics.forward_after_step, physics.post_constraint
     mocap_pos = data.mocap_pos
-
-    def restart() -> None:
-        mujoco.mj_setState(model, data, start, _STATE)
-        mujoco.mj_forward(model, data)
-
-    restart()
     ctrl = data.ctrl
     single = len(plans) == 1 and isinstance(plans[0][0], slice)
     driven = mocap_pos[plans[0][0]] if single else None  # a view, as MujocoBatch._step_driven
