@@ -13,6 +13,7 @@ Cells are tiny (two seeds, 2 envs, 200 env steps per epoch, 100-step episodes, a
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import csv
 import io
 import json
@@ -142,9 +143,11 @@ def ray_cluster():
         patch.delenv("RAY_ADDRESS", raising=False)
         try:
             head_ports, worker_ports = _node_ports(ports[:NODE_PORTS]), _node_ports(ports[NODE_PORTS:])
-            nodes.append(_start_node(["--head", "--port", str(gcs_port), "--include-dashboard", "false",
-                                      "--ray-client-server-port", str(client_port), "--temp-dir", str(temp_dir),
-                                      *head_ports], temp_dir / "head.log", env))
+            # Ray's client server exists only where ray[client] (grpcio) is installed; there it would take the
+            # fixed default port 10001, so it gets a free one. Without grpcio, `ray start` refuses the option.
+            client = ["--ray-client-server-port", str(client_port)] if importlib.util.find_spec("grpc") else []
+            nodes.append(_start_node(["--head", "--port", str(gcs_port), "--include-dashboard", "false", *client,
+                                      "--temp-dir", str(temp_dir), *head_ports], temp_dir / "head.log", env))
             _wait_for_log(nodes[0], temp_dir / "head.log", "Ray runtime started", timeout=180)
             nodes.append(_start_node(["--address", address, "--temp-dir", str(temp_dir), *worker_ports],
                                      temp_dir / "worker.log", env))
