@@ -66,6 +66,19 @@ assert int(mujoco.mjtWarning.mjWARN_BADQVEL) == _UNSTABLE.start + 1 and _UNSTABL
 _FEW_CONTACTS = 8
 
 
+def _partner_counts(pairs: list[list[int]], mask: list[bool]) -> dict[int, float]:
+    """``{geom: number of contacts between it and a geom of mask}`` from contact geom ``pairs``, counted in
+    a Python loop (whole numbers, so any order gives the same floats); a pair of two masked geoms counts
+    for both."""
+    counts: dict[int, float] = {}
+    for first, second in pairs:
+        if mask[first]:
+            counts[second] = counts.get(second, 0.0) + 1.0
+        if mask[second]:
+            counts[first] = counts.get(first, 0.0) + 1.0
+    return counts
+
+
 class MujocoBatch:
     """``num_sims`` MuJoCo simulators stepping one shared model.
 
@@ -387,11 +400,8 @@ class MujocoBatch:
                 if mask is None:
                     mask = geoms.tolist()
                 row = counts[i]
-                for first, second in data.contact.geom.tolist():
-                    if mask[first]:
-                        row[second] += 1.0
-                    if mask[second]:
-                        row[first] += 1.0
+                for geom, count in _partner_counts(data.contact.geom.tolist(), mask).items():
+                    row[geom] = count
             elif ncon:
                 pairs = data.contact.geom
                 first, second = pairs[:, 0], pairs[:, 1]
@@ -399,6 +409,18 @@ class MujocoBatch:
                 if len(partners):
                     counts[i] = np.bincount(partners, minlength=ngeom)
         return counts
+
+    def contact_counts_one(self, geoms: list[bool]) -> dict[int, float]:
+        """:meth:`contact_counts` of simulator 0 as ``{geom: count}`` over the geoms with a contact, ``geoms``
+        the mask as a list of bools.
+
+        Why a second form: a one-simulator step reads a handful of counts (a goal button, the gremlins) and
+        its contacts are one or two pairs; this is the same loop as :meth:`contact_counts`' few-contacts case
+        (:func:`_partner_counts`, the same whole-number counts) without the ``(1, ngeom)`` array or the
+        indexing of it, whatever the number of contacts.
+        """
+        data = self.datas[0]
+        return _partner_counts(data.contact.geom.tolist(), geoms) if data.ncon else {}
 
     def close(self) -> None:
         """Stop the stepping threads (if any); a later :meth:`step` starts them again."""

@@ -100,7 +100,7 @@ class SingleNavigationStep:
             obj.agent_costs_one(scene, buffers)
         task.agent_costs(env, buffers)
         raw = {name: buffer.item(0) for name, buffer in self._agent_costs}  # one agent: its sum is its value
-        terminated = bool(task.after_step(env)[0])
+        terminated = task.after_step_one(env)
         for robot, view in env._mortal:
             terminated = terminated or not robot.is_alive(view)[0]
         env._terminated[0] = terminated

@@ -308,6 +308,9 @@ class Scene:
         self.robot_geoms = model.body_rootid[model.geom_bodyid] == self.agent_body
         self._robot_contacts = np.zeros((self.num_envs, model.ngeom))  # see robot_contacts
         self._contacts_version = -1
+        self._robot_geom_list = self.robot_geoms.tolist()  # see robot_contacts_one
+        self._contacts_one: dict[int, float] = {}
+        self._contacts_one_version = -1
         # The robot's rows of the state cache, taken once: the cache is filled in place, so these views
         # follow every step (a step reads them several times; each fresh view costs an indexing).
         self._agent_pos = self._xpos[:, self.agent_body]
@@ -394,3 +397,15 @@ class Scene:
             self._robot_contacts = self.physics.contact_counts(self.robot_geoms)
             self._contacts_version = version
         return self._robot_contacts
+
+    def robot_contacts_one(self) -> dict[int, float]:
+        """:meth:`robot_contacts` of simulator 0 as ``{geom: count}`` over the geoms touching the robot
+        (absent: 0.0), cached until the physics state changes: the one-simulator step's form
+        (:mod:`~sg_torchrl.envs.navigation.single`), which the goal button, the buttons' cost and the
+        contact costs share within a step. The same whole-number counts
+        (:meth:`MujocoBatch.contact_counts_one <sg_torchrl.envs.physics.MujocoBatch.contact_counts_one>`)."""
+        version = self.physics.version
+        if self._contacts_one_version != version:
+            self._contacts_one = self.physics.contact_counts_one(self._robot_geom_list)
+            self._contacts_one_version = version
+        return self._contacts_one

@@ -50,6 +50,7 @@ class Buttons(StaticObject):
     def bind(self, scene: Scene) -> None:
         super().bind(scene)
         self.geom_ids = scene.model.body_geomadr[self.body_ids].astype(np.int64)  # one geom per button
+        self._geom_list = self.geom_ids.tolist()  # for the one-simulator forms (touches_one, ...)
         self._rows = np.arange(scene.num_envs)
         #: ``(N,)`` index of the goal button of each simulator
         self.goal_button = np.zeros(scene.num_envs, dtype=np.int64)
@@ -67,6 +68,13 @@ class Buttons(StaticObject):
         """One step of the resampling timer (it stops at 0)."""
         np.maximum(self.timer - 1, 0, out=self.timer)
 
+    def tick_one(self) -> None:
+        """:meth:`tick` of one simulator on a Python int: the same ``max(timer - 1, 0)``, written only
+        when the timer runs (at 0 the array form writes 0 again)."""
+        timer = self.timer.item(0)
+        if timer:
+            self.timer[0] = max(timer - 1, 0)
+
     # ------------------------------------------------------------------ contacts and cost
     def touches(self, scene: Scene) -> np.ndarray:
         """Robot contacts with each button, ``(N, num)``."""
@@ -75,6 +83,18 @@ class Buttons(StaticObject):
     def goal_pressed(self, scene: Scene) -> np.ndarray:
         """Whether a robot geom touches the goal button, ``(N,)`` bool."""
         return self.touches(scene)[self._rows, self.goal_button] > 0
+
+    def touches_one(self, scene: Scene) -> list[float]:
+        """:meth:`touches` of one simulator as Python floats, one per button: the same whole-number counts,
+        read from the step's shared :meth:`Scene.robot_contacts_one
+        <sg_torchrl.envs.navigation.world.Scene.robot_contacts_one>` (the goal test and the cost of a
+        one-simulator step both read it; the contacts are counted once per step)."""
+        counts = scene.robot_contacts_one()
+        return [counts.get(geom, 0.0) for geom in self._geom_list]
+
+    def goal_pressed_one(self, scene: Scene) -> bool:
+        """:meth:`goal_pressed` of one simulator, as a bool (from :meth:`touches_one`'s counts)."""
+        return scene.robot_contacts_one().get(self._geom_list[self.goal_button.item(0)], 0.0) > 0
 
     @property
     def cost_names(self) -> tuple[str, ...]:
@@ -88,6 +108,19 @@ class Buttons(StaticObject):
         # whole numbers, so summing the touches equals summing the buttons' geom columns in model order.
         wrong = touches.sum(axis=1) - touches[self._rows, self.goal_button]
         return {self.name: np.where(self.timer == 0, wrong, 0.0)}
+
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        """:meth:`costs` of one simulator on Python floats (:meth:`touches_one`): the same whole-number sum
+        (exact in any order) minus the goal button's count, 0.0 while the timer runs."""
+        if not self.constrained:
+            return
+        wrong = 0.0
+        if not self.timer.item(0):
+            touches = self.touches_one(scene)
+            for count in touches:
+                wrong += count
+            wrong -= touches[self.goal_button.item(0)]
+        out[self.name][0, 0] = wrong
 
     # ------------------------------------------------------------------ snapshots
     def state_dict(self) -> dict:

@@ -30,7 +30,24 @@ class ContactCost:
     def cost_names(self) -> tuple[str, ...]:
         return (self.name,) if self.constrained else ()
 
+    def bind(self, scene: Scene) -> None:
+        super().bind(scene)
+        self._contact_geoms = frozenset(np.flatnonzero(self.geom_mask).tolist())  # see agent_costs_one
+
     def costs(self, scene: Scene) -> dict[str, np.ndarray]:
         if not self.constrained:
             return {}
         return {self.name: robot_contacts(scene, self.geom_mask)}
+
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        """:meth:`costs` of one simulator and one robot on Python floats (the one-simulator step's form):
+        the contact counts of this object's geoms among the robot's few contacts
+        (:meth:`Scene.robot_contacts_one <sg_torchrl.envs.navigation.world.Scene.robot_contacts_one>`),
+        summed from 0: whole numbers, the same sum as the array form's in any order."""
+        if not self.constrained:
+            return
+        total, geoms = 0.0, self._contact_geoms
+        for geom, count in scene.robot_contacts_one().items():
+            if geom in geoms:
+                total += count
+        out[self.name][0, 0] = total

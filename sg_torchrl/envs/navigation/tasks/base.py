@@ -117,6 +117,12 @@ class Task(abc.ABC):
         """Events after reward and cost (goal reached, timers); returns which simulators terminate, ``(N,)`` bool."""
         return np.zeros(env.num_envs, dtype=bool)
 
+    def after_step_one(self, env: NavigationEnv) -> bool:
+        """:meth:`after_step` of a one-simulator, one-robot env: whether it terminates, as a bool (the
+        one-simulator step's, :mod:`~sg_torchrl.envs.navigation.single`). Default: :meth:`after_step`'s one
+        value; a task may answer its usual steps without arrays (:class:`~sg_torchrl.envs.navigation.tasks.goal.GoalTask`)."""
+        return bool(self.after_step(env)[0])
+
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
         """Adjust the assembled observation in place (e.g. Button blanks ``buttons_lidar`` while its timer runs)."""
 

@@ -53,6 +53,13 @@ class ButtonTask(GoalTask):
     def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
         return self.buttons.goal_pressed(env.scene)
 
+    def reached_one(self, env: NavigationEnv, distance: float) -> bool:
+        """:meth:`reached` of one simulator: the goal button's count among the step's shared contacts
+        (:meth:`Buttons.goal_pressed_one <sg_torchrl.envs.navigation.objects.buttons.Buttons.goal_pressed_one>`)."""
+        if type(self).reached is not ButtonTask.reached:
+            return super().reached_one(env, distance)
+        return self.buttons.goal_pressed_one(env.scene)
+
     def next_goal(self, env: NavigationEnv, index: int) -> bool:
         self._press(env, index)
         return True
@@ -65,6 +72,14 @@ class ButtonTask(GoalTask):
     def after_step(self, env: NavigationEnv) -> np.ndarray:
         self.buttons.tick()  # after reward and cost, before a pressed goal restarts the timer
         return super().after_step(env)
+
+    def after_step_one(self, env: NavigationEnv) -> bool:
+        """:meth:`after_step` of one simulator: the timer's tick on a Python int, then the goal events
+        (:meth:`GoalTask.after_step_one`); a subclass with its own :meth:`after_step` takes that one."""
+        if type(self).after_step is not ButtonTask.after_step:
+            return bool(self.after_step(env)[0])
+        self.buttons.tick_one()
+        return self._goal_events_one(env)
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
         timer = self.buttons.timer

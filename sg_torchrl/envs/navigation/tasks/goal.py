@@ -65,7 +65,7 @@ class GoalTask(Task):
         if type(self).reward is not GoalTask.reward or type(self).distance is not GoalTask.distance:
             return super().reward_one(env)
         distance = env.scene.planar_distances_one(self.goal.positions(env.scene))[0]
-        met = bool(self.reached(env, distance))
+        met = self.reached_one(env, distance)
         self.goal_met[0] = met
         reward = self._shaped(self._last_distance.item(0), distance, met)
         self._last_distance[0] = distance
@@ -88,10 +88,27 @@ class GoalTask(Task):
                 terminated[index] = True
         return terminated
 
+    def after_step_one(self, env: NavigationEnv) -> bool:
+        """:meth:`after_step` of one simulator (:meth:`Task.after_step_one`): on most steps no goal was met
+        and nothing happens, read from one flag; a met goal goes through :meth:`after_step` itself. A
+        subclass with its own :meth:`after_step` takes :meth:`Task.after_step_one`'s."""
+        if type(self).after_step is not GoalTask.after_step:
+            return super().after_step_one(env)
+        return self._goal_events_one(env)
+
+    def _goal_events_one(self, env: NavigationEnv) -> bool:
+        """:meth:`GoalTask.after_step` of one simulator, as a bool; no arrays unless its goal was met."""
+        return bool(GoalTask.after_step(self, env)[0]) if self.goal_met.item(0) else False
+
     def reached(self, env: NavigationEnv, distance: np.ndarray) -> np.ndarray:
         """Which simulators reached the goal this step, ``(N,)`` bool (given one simulator's distance as a
         Python float, :meth:`reward_one`: a bool or a one-element array). Here: within the goal's radius."""
         return distance <= self.goal.size
+
+    def reached_one(self, env: NavigationEnv, distance: float) -> bool:
+        """:meth:`reached` of one simulator given its distance as a Python float (:meth:`reward_one`), as a
+        bool. Default: :meth:`reached`'s answer; a task may read it from its own state (Button)."""
+        return bool(self.reached(env, distance))
 
     def next_goal(self, env: NavigationEnv, index: int) -> bool:
         """Set up simulator ``index``'s next goal after reaching one; False ends its episode. Here: re-sample

@@ -1,0 +1,102 @@
+"""The one-simulator forms of the Button levels' step (issue 19) equal their array forms bit for bit.
+
+The gymnasium façade's navigation step (:mod:`sg_torchrl.envs.navigation.single`) reads contacts, the
+goal button, the buttons' and gremlins' costs and the resampling timer on Python values; the batched
+step reads them from ``(N, ...)`` arrays. These tests drive the robot into buttons and gremlins and
+compare both forms on every step, with the timer running and stopped.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import sg_torchrl
+from sg_torchrl.envs import physics as physics_module
+from sg_torchrl.envs.navigation.objects import Buttons, Gremlins
+
+
+def _contact_states(env_id: str, seed: int, steps: int = 150):
+    """An env of one simulator, then yields after each of ``steps`` steps; the robot starts next to a button
+    or a gremlin (alternating episodes of 30 steps) and drives forward with some turning, so it touches them."""
+    env = sg_torchrl.make(env_id, num_envs=1, seed=seed)
+    env.reset()
+    rng = np.random.default_rng(seed)
+    buttons, gremlins = env.task.find(Buttons), env.task.find(Gremlins)
+    action = np.zeros((1, env.action_dim), dtype=np.float32)
+    for step in range(steps):
+        if step % 30 == 0:
+            xy = env.layout[0].copy()
+            target = buttons if (step // 30) % 2 == 0 else gremlins
+            part = env.layout_sampler.slice_of(target)
+            start = xy[part.start + int(rng.integers(target.num))]
+            if target is gremlins:  # a gremlin starts its circle at its centre + (0, travel)
+                start = start + (0.0, gremlins.travel)
+            xy[0] = start - (0.25, 0.0)  # just behind it, facing +x
+            env.set_layout([0], xy[None])
+        action[0] = rng.uniform(-1.0, 1.0, env.action_dim)
+        action[0, 0] = 1.0  # forward
+        env.physics.step(action, env.frame_skip)  # the physics only: the layout stays where it was put
+        yield env
+
+
+def _expected_counts(scene) -> dict[int, float]:
+    row = scene.robot_contacts()[0]
+    return {int(geom): float(row[geom]) for geom in np.flatnonzero(row)}
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointButton1-v0", "SafetyCarButton2-v0"])
+def test_contact_counts_one_equal_the_array_form(env_id, monkeypatch):
+    """Scene.robot_contacts_one gives robot_contacts' row (few-contacts loop and, forced, the array path)."""
+    touched = 0
+    for env in _contact_states(env_id, seed=1):
+        scene = env.scene
+        floor = scene.model.geom("floor").id
+        counts = scene.robot_contacts_one()
+        assert counts == _expected_counts(scene)
+        assert all(type(value) is float for value in counts.values())
+        touched += any(geom != floor for geom in counts)  # a contact besides the floor
+        with monkeypatch.context() as patch:  # the (N, ngeom) bincount path, whatever the number of contacts
+            patch.setattr(physics_module, "_FEW_CONTACTS", 0)
+            assert env.physics.contact_counts(scene.robot_geoms)[0].tobytes() == scene.robot_contacts()[0].tobytes()
+    assert touched > 20
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointButton1-v0", "SafetyPointButton2-v0", "SafetyCarButton1-v0"])
+def test_button_and_gremlin_float_forms_equal_the_array_forms(env_id):
+    """Buttons.touches_one / goal_pressed_one / agent_costs_one, Gremlins.agent_costs_one and Buttons.tick_one
+    give the array forms' values, with the resampling timer running and stopped."""
+    pressed = wrong = gremlin_hits = 0
+    for step, env in enumerate(_contact_states(env_id, seed=2, steps=240)):
+        scene, buttons, gremlins = env.scene, env.task.find(Buttons), env.task.find(Gremlins)
+        buttons.timer[0] = (0, 0, 3)[step % 3]
+        buttons.goal_button[0] = step % buttons.num
+        assert buttons.touches_one(scene) == buttons.touches(scene)[0].tolist()
+        assert buttons.goal_pressed_one(scene) is bool(buttons.goal_pressed(scene)[0])
+        for obj in (buttons, gremlins):
+            out = {name: np.full((1, 1), 7.0) for name in obj.cost_names}
+            obj.agent_costs_one(scene, out)
+            expected = obj.costs(scene)
+            for name in obj.cost_names:
+                assert out[name].tobytes() == expected[name].reshape(1, 1).tobytes()
+        pressed += buttons.goal_pressed_one(scene)
+        wrong += float(buttons.costs(scene)["buttons"][0]) > 0
+        gremlin_hits += float(gremlins.costs(scene)["gremlins"][0]) > 0
+        timer = buttons.timer.copy()
+        buttons.tick_one()
+        np.maximum(timer - 1, 0, out=timer)
+        assert buttons.timer.tobytes() == timer.tobytes()
+    assert pressed and wrong and gremlin_hits
+
+
+def test_tick_one_equals_tick_for_any_timer():
+    env = sg_torchrl.make("SafetyPointButton1-v0", num_envs=1, seed=0)
+    buttons = env.task.find(Buttons)
+    for value in (-3, -1, 0, 1, 2, 10):
+        buttons.timer[0] = value
+        buttons.tick_one()
+        one = buttons.timer.copy()
+        buttons.timer[0] = value
+        buttons.tick()
+        assert one.tobytes() == buttons.timer.tobytes()
+
