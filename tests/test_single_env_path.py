@@ -248,3 +248,31 @@ def test_pseudo_lidars_equal_the_textbook_form():
         pseudo_lidars(pos, mat, groups, outs, num_bins=num_bins, max_dist=max_dist, alias=alias)
         assert block.tobytes() == expected.tobytes(), trial
         assert np.stack(outs, axis=1).tobytes() == expected.tobytes(), trial
+
+
+def test_pseudo_lidars_one_equals_the_array_form():
+    """pseudo_lidars_one (Python floats) writes pseudo_lidars' readings bit for bit: random poses (tilted
+    too), groups of 0-5 targets near and beyond max_dist, targets straight ahead (angles at 0 and a hair
+    below 2 pi), 3-16 bins; it declines (False, output untouched) where it does not apply."""
+    from sg_torchrl.envs.navigation.lidar import pseudo_lidars, pseudo_lidars_one
+
+    rng = np.random.default_rng(5)
+    for trial in range(2000):
+        num_bins = int(rng.choice([16, 16, 8, 5, 3]))
+        max_dist = float(rng.choice([3.0, 3.0, 1.0, 0.7]))
+        pos = np.concatenate([rng.uniform(-2, 2, (1, 2)), rng.uniform(0, 0.3, (1, 1))], axis=1)
+        mat = np.eye(3)[None] if trial % 7 == 0 else np.linalg.qr(rng.normal(size=(1, 3, 3)))[0]
+        groups = [rng.uniform(-4, 4, size=(1, int(size), 2)) for size in rng.integers(0, 6, size=int(rng.integers(1, 5)))]
+        if trial % 7 == 0 and groups[0].shape[1]:  # straight ahead of an upright robot: angle 0 or -0 ... 2 pi
+            groups[0][0, 0] = pos[0, :2] + (rng.uniform(0.1, 1.0), float(rng.choice([0.0, -0.0, -1e-17, 1e-17])))
+        expected = np.full((1, len(groups), num_bins), 7.0)
+        pseudo_lidars(pos, mat, groups, expected, num_bins=num_bins, max_dist=max_dist)
+        row = np.full(len(groups) * num_bins, 7.0)
+        assert pseudo_lidars_one(pos, mat, groups, row, num_bins=num_bins, max_dist=max_dist)
+        assert row.tobytes() == expected.reshape(-1).tobytes(), trial
+    pos, mat = np.zeros((1, 3)), np.eye(3)[None]
+    row = np.full(16, 7.0)
+    for groups, options in (([np.full((1, 1, 2), np.nan)], {}), ([np.full((1, 2, 2), np.inf)], {}),
+                            ([np.ones((1, 1, 2))], {"max_dist": None}), ([np.ones((1, 1, 2))], {"num_bins": 2})):
+        assert not pseudo_lidars_one(pos, mat, groups, row, **options)
+        assert (row == 7.0).all()

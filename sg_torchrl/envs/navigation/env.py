@@ -36,7 +36,8 @@ from torchrl.data import Composite
 from sg_torchrl.envs.base import CostMode
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
-from sg_torchrl.envs.navigation.lidar import LidarMode, NaturalLidar, compass_vector, lidar_block, pseudo_lidars
+from sg_torchrl.envs.navigation.lidar import (LidarMode, NaturalLidar, compass_vector, lidar_block, pseudo_lidars,
+                                              pseudo_lidars_one)
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.single import SingleNavigationStep
@@ -178,11 +179,14 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self._terminated = np.zeros(num_envs, dtype=bool)
         # Per robot, where its pseudo-lidar readings go: one block view of the observation when its groups
         # follow each other (pseudo_lidars then takes every group's maximum in one call), else one view each.
-        self._lidar_outs = []
+        # One simulator: the block's row as a flat view too, for pseudo_lidars_one (Python floats, issue 19).
+        self._lidar_outs, self._lidar_rows = [], []
         for groups in self._lidar_groups:
             parts = [part for _, part in groups]
             block = lidar_block(self._observation, parts, self.task.lidar_bins)
             self._lidar_outs.append([self._observation[:, part] for part in parts] if block is None else block)
+            self._lidar_rows.append(None if block is None or num_envs != 1
+                                    else self._observation[0, parts[0].start : parts[-1].stop])
         # The robots whose death ends an episode (Robot.can_die), with their scenes; the others are not asked.
         self._mortal = [(each, view) for each, view in zip(self.robots, self.scene.views) if each.can_die]
         low, high = self.physics.ctrl_range
@@ -365,16 +369,18 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             robot.observe(sensordata, obs[:, columns])
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
         natural = self._natural_lidar
-        for view, lidar_groups, lidar_outs, compass_groups in zip(scene.views, self._lidar_groups, self._lidar_outs,
-                                                                  self._compass_groups):
+        for view, lidar_groups, lidar_outs, lidar_row, compass_groups in zip(
+                scene.views, self._lidar_groups, self._lidar_outs, self._lidar_rows, self._compass_groups):
             position, rotation = view.agent_pos(), view.agent_mat()
             if natural is not None:
                 natural.prepare(view)
                 for obj, part in lidar_groups:
                     natural.observe(view, obj, out=obs[:, part])
-            elif lidar_groups:  # every group in one pass (pseudo_lidars)
-                pseudo_lidars(position, rotation, [obj.positions(scene) for obj, _ in lidar_groups], lidar_outs,
-                              num_bins=bins, max_dist=max_dist)
+            elif lidar_groups:  # every group in one pass (pseudo_lidars; one simulator: on floats where it applies)
+                targets = [obj.positions(scene) for obj, _ in lidar_groups]
+                if lidar_row is None or not pseudo_lidars_one(position, rotation, targets, lidar_row, num_bins=bins,
+                                                              max_dist=max_dist):
+                    pseudo_lidars(position, rotation, targets, lidar_outs, num_bins=bins, max_dist=max_dist)
             for obj, part in compass_groups:
                 compass_vector(position, rotation, obj.positions(scene)[:, 0], out=obs[:, part])
         self.task.after_observe(self, obs)

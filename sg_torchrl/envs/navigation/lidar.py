@@ -27,6 +27,7 @@ compass=...)``):
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Literal
 
@@ -37,7 +38,8 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
     from sg_torchrl.envs.navigation.world import Scene
 
-__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "lidar_block", "pseudo_lidar", "pseudo_lidars", "egocentric_xy"]
+__all__ = ["LidarMode", "NaturalLidar", "compass_vector", "lidar_block", "pseudo_lidar", "pseudo_lidars",
+           "pseudo_lidars_one", "egocentric_xy"]
 
 LidarMode = Literal["pseudo", "natural"]
 
@@ -144,6 +146,84 @@ def pseudo_lidars(
         else:
             out[:] = 0.0
         start += size
+
+
+def pseudo_lidars_one(
+    agent_pos: np.ndarray,
+    agent_mat: np.ndarray,
+    groups: Sequence[np.ndarray],
+    out: np.ndarray,
+    *,
+    num_bins: int = 16,
+    max_dist: float | None = 3.0,
+) -> bool:
+    """:func:`pseudo_lidars` of one simulator (``agent_pos`` ``(1, 3)``, ``agent_mat`` ``(1, 3, 3)``, groups
+    ``(1, K_g, 2)``), aliased, into ``out``: the ``(G * num_bins,)`` row of every group's readings one after
+    the other (a view of the observation). Returns whether it applied; when it did not (exponential
+    readings, fewer than 3 bins, or a frame change that is not finite), ``out`` is untouched and the caller
+    runs :func:`pseudo_lidars`.
+
+    Why a second form: at one simulator the array form's thirty-odd numpy calls on a dozen targets cost
+    more than the arithmetic. Here the frame change is the same float64 products, sums and differences
+    in :func:`egocentric_xy`'s order on Python floats; the distance, the angle and its remainder stay
+    numpy's (``np.hypot``, ``np.arctan2``, ``%``: their rounding may differ from :mod:`math`'s), one call
+    each over all targets; bins, fractions and readings are the same IEEE operations on floats
+    (``int`` truncates a non-negative position as ``astype`` does; ``min``/``max`` of non-NaN values are
+    ``np.minimum``/``np.maximum``'s). Every contribution is ``+0.0`` or positive, so keeping each bin's
+    largest as it comes is the array form's maximum over targets, and a target beyond ``max_dist`` reads
+    0 and adds nothing. The three bins of a target are distinct from 3 bins on (with fewer, the array
+    form's later writes overwrite earlier ones, which a maximum does not reproduce: not covered).
+    """
+    if max_dist is None or num_bins < 3:
+        return False
+    px, py, pz = agent_pos[0].tolist()
+    (m00, m01, _), (m10, m11, _), (m20, m21, _) = agent_mat[0].tolist()
+    lift0, lift1 = pz * m20, pz * m21
+    xs: list[float] = []
+    ys: list[float] = []
+    sizes = []
+    for targets in groups:
+        points = targets[0].tolist()
+        sizes.append(len(points))
+        for tx, ty in points:
+            dx, dy = tx - px, ty - py
+            xs.append(dx * m00 + dy * m10 - lift0)
+            ys.append(dx * m01 + dy * m11 - lift1)
+    if not math.isfinite(sum(xs) + sum(ys)):  # NaN or inf somewhere (or an overflowing sum): the array form
+        return False
+    row = [0.0] * (len(sizes) * num_bins)
+    if xs:
+        ego = np.array((xs, ys))
+        distances = np.hypot(ego[0], ego[1]).tolist()
+        angles = np.arctan2(ego[1], ego[0])
+        angles = np.remainder(angles, TWO_PI, out=angles).tolist()
+        scale, last = num_bins / TWO_PI, num_bins - 1
+        target, base = 0, 0
+        for size in sizes:
+            for _ in range(size):
+                margin = max_dist - distances[target]
+                if margin > 0.0:  # else the reading is 0.0 in every bin: nothing to keep
+                    reading = margin / max_dist
+                    position = angles[target] * scale
+                    bin_ = int(position)
+                    if bin_ > last:  # an angle a hair below 2 pi rounds up to 2 pi
+                        bin_ = last
+                    fraction = position - bin_
+                    if fraction > 1.0:
+                        fraction = 1.0
+                    index = base + bin_
+                    if reading > row[index]:
+                        row[index] = reading
+                    index, value = base + (bin_ + 1) % num_bins, fraction * reading
+                    if value > row[index]:
+                        row[index] = value
+                    index, value = base + (bin_ - 1) % num_bins, (1.0 - fraction) * reading
+                    if value > row[index]:
+                        row[index] = value
+                target += 1
+            base += num_bins
+    out[:] = row
+    return True
 
 
 @functools.lru_cache(maxsize=64)
