@@ -100,3 +100,25 @@ def test_tick_one_equals_tick_for_any_timer():
         buttons.tick()
         assert one.tobytes() == buttons.timer.tobytes()
 
+
+
+@pytest.mark.parametrize("num_envs", [1, 3])
+def test_gremlin_trajectory_equals_the_stacked_form(num_envs):
+    """Gremlins.trajectory (a reused buffer, the circle's displacements remembered per times) gives the
+    centres plus Gremlins.offset's displacements bit for bit, when times repeat (a new episode), when the
+    centres move in between (a reset), and once its memory of times has started over."""
+    env = sg_torchrl.make("SafetyPointButton2-v0", num_envs=num_envs, seed=0)
+    gremlins = env.task.find(Gremlins)
+    gremlins.circle_memory = 5  # an instance override: the memory starts over within the test
+    rng = np.random.default_rng(0)
+    offsets = np.arange(env.frame_skip) * env.physics.timestep
+    clocks = [rng.uniform(0, 20, num_envs) for _ in range(8)]
+    for trial in range(40):
+        if trial % 9 == 0:
+            gremlins.centres[:] = rng.uniform(-1.5, 1.5, gremlins.centres.shape)
+        times = clocks[int(rng.integers(len(clocks)))][:, None] + offsets
+        expected = np.empty((*times.shape, gremlins.num, 3))
+        expected[..., :2] = gremlins.centres[:, None] + gremlins.offset(times)[:, :, None]
+        expected[..., 2] = gremlins.height
+        assert gremlins.trajectory(times).tobytes() == expected.tobytes(), trial
+    assert len(gremlins._circles) <= 5

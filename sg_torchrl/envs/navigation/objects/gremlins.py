@@ -42,6 +42,8 @@ class Gremlins(ContactCost, FreeObject):
     kind: ClassVar[Kind] = "mover"
     in_goal_layout: ClassVar[bool] = False
     weld_solref: ClassVar[tuple[float, float]] = (0.02, 1.5)
+    #: how many arrays of sub-step times :meth:`_circle` remembers (a 1000-step episode uses 1000)
+    circle_memory: ClassVar[int] = 4096
     rgba: ClassVar[tuple[float, float, float, float]] = (0.5, 0.0, 1.0, 1.0)
 
     def __init__(self, num: int = 1, *, size: float = 0.1, keepout: float = 0.4, travel: float = 0.35,
@@ -77,6 +79,8 @@ class Gremlins(ContactCost, FreeObject):
         self.mocap_ids = model.body_mocapid[mocap_bodies].astype(np.int64)
         #: ``(N, num, 2)`` the circle centres (layout positions) of every simulator
         self.centres = np.zeros((scene.num_envs, self.num, 2))
+        self._plans: dict[tuple[int, ...], tuple[np.ndarray, ...]] = {}  # times shape -> the buffer and its x, y views
+        self._circles: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # times -> displacements (_circle)
         scene.physics.drive_mocap(self.mocap_ids, self.trajectory)
 
     # ------------------------------------------------------------------ motion
@@ -85,14 +89,43 @@ class Gremlins(ContactCost, FreeObject):
         return self.travel * np.stack([np.sin(times), np.cos(times)], axis=-1)
 
     def trajectory(self, times: np.ndarray) -> np.ndarray:
-        """Mocap targets before the sub-steps starting at ``times`` ``(N, S)``, ``(N, S, num, 3)``."""
-        # offset() written per axis (no stacked array): the same products and sums, element by element.
-        targets = np.empty((*times.shape, self.num, 3))
-        centres, travel = self.centres, self.travel
-        np.add(centres[:, None, :, 0], (travel * np.sin(times))[:, :, None], out=targets[..., 0])
-        np.add(centres[:, None, :, 1], (travel * np.cos(times))[:, :, None], out=targets[..., 1])
-        targets[..., 2] = self.height
+        """Mocap targets before the sub-steps starting at ``times`` ``(N, S)``, ``(N, S, num, 3)``.
+
+        The array returned is this object's buffer for that shape, overwritten by the next call: read it
+        (or copy it) before calling again. Why: the physics drives the mocaps with it within the step, and
+        a one-simulator step is mostly the cost of numpy calls (issue 19): the buffer's heights are
+        written once, and the circle's displacements ``travel * sin(t)``, ``travel * cos(t)`` are kept
+        per ``times`` (:meth:`_circle`). :meth:`offset` written per axis (no stacked array): the same
+        products and sums, element by element.
+        """
+        plan = self._plans.get(times.shape)
+        if plan is None:
+            targets = np.empty((*times.shape, self.num, 3))
+            targets[..., 2] = self.height
+            plan = self._plans[times.shape] = (targets, targets[..., 0], targets[..., 1])
+        targets, target_x, target_y = plan
+        along_x, along_y = self._circle(times)
+        centres = self.centres[:, None]
+        np.add(centres[..., 0], along_x, out=target_x)
+        np.add(centres[..., 1], along_y, out=target_y)
         return targets
+
+    def _circle(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``travel * sin(times)`` and ``travel * cos(times)``, each ``(N, S, 1)``, remembered per ``times``.
+
+        Why: a simulator's clock restarts at 0 with each episode and advances by the same sums, so the
+        sub-steps of its ``k``-th step start at the same times in every episode; the values are numpy's
+        for that very array (computed on its first occurrence). At most :attr:`circle_memory` arrays of
+        times are kept (then the memory starts over).
+        """
+        key = (times.shape, times.tobytes())
+        circle = self._circles.get(key)
+        if circle is None:
+            if len(self._circles) >= self.circle_memory:
+                self._circles.clear()
+            travel = self.travel
+            circle = self._circles[key] = ((travel * np.sin(times))[:, :, None], (travel * np.cos(times))[:, :, None])
+        return circle
 
     # ------------------------------------------------------------------ layout
     def place(self, scene: Scene, indices: np.ndarray, rows: ResetBuffers, xy: np.ndarray, yaw: np.ndarray) -> None:
