@@ -162,11 +162,8 @@ class MujocoBatch:
             the model's initial state, see the module docstring).
         """
         if self._aliased:  # one simulator: nothing to gather, three counters to read
-            if not self._mocap_drivers:
-                return self._step_one(ctrl, nstep)
-            self._step_driven(self._slices[0], ctrl, nstep, self._mocap_plans(nstep))
-            self.version += 1
-            self._check_one()
+            self._ctrl_views[0][:] = ctrl[0]
+            self.advance_one(nstep)
             return self.unstable
         if self._mocap_drivers:
             self._for_each_slice(self._step_driven, ctrl, nstep, self._mocap_plans(nstep))
@@ -180,26 +177,24 @@ class MujocoBatch:
         self._unstable_counts[:] = counts
         return self.unstable
 
-    def _step_one(self, ctrl: np.ndarray, nstep: int) -> np.ndarray:
-        """:meth:`step` of a single simulator without driven mocap bodies: the state cache is a view of
-        its ``MjData`` (nothing to gather) and its instability warnings are three counters read as scalars."""
-        self._ctrl_views[0][:] = ctrl[0]
-        self.advance_one(nstep)
-        return self.unstable
-
     def advance_one(self, nstep: int) -> bool:
         """:meth:`step` of a single simulator whose control is already written into ``datas[0].ctrl``.
 
         Returns whether MuJoCo found it unstable (also in :attr:`unstable`). Only for one simulator
-        without driven mocap bodies (:meth:`step` dispatches there itself); a one-simulator env's
-        single step writes the clipped action straight into ``ctrl`` and calls this (issue 19).
+        (:meth:`step` comes here itself after writing the control); a one-simulator env's single step
+        writes the clipped action straight into ``ctrl`` and calls this (issue 19). The state cache is a
+        view of its ``MjData`` (nothing to gather) and its instability warnings are three counters read
+        as scalars; driven mocap bodies go sub-step by sub-step as :meth:`step` drives them.
         """
-        data = self.datas[0]
-        mujoco.mj_step(self.model, data, nstep)
-        if self.forward_after_step:
-            mujoco.mj_forward(self.model, data)
-        if self.post_constraint:
-            mujoco.mj_rnePostConstraint(self.model, data)
+        if self._mocap_drivers:
+            self._step_driven(self._slices[0], None, nstep, self._mocap_plans(nstep))
+        else:
+            data = self.datas[0]
+            mujoco.mj_step(self.model, data, nstep)
+            if self.forward_after_step:
+                mujoco.mj_forward(self.model, data)
+            if self.post_constraint:
+                mujoco.mj_rnePostConstraint(self.model, data)
         self.version += 1
         return self._check_one()
 
@@ -208,7 +203,7 @@ class MujocoBatch:
         its three instability counters as Python ints (no ``(N,)`` arrays for one simulator)."""
         first, second, third = self._unstable_one.tolist()
         count = first + second + third
-        unstable = count != int(self._unstable_counts[0])
+        unstable = count != self._unstable_counts.item(0)
         self.unstable[0] = unstable
         self._unstable_counts[0] = count
         return unstable
@@ -280,13 +275,15 @@ class MujocoBatch:
             times = start[:, None] + offsets
         return [(rows, trajectory(times)) for rows, trajectory in self._mocap_drivers]
 
-    def _step_driven(self, sims: range, ctrl: np.ndarray, nstep: int,
+    def _step_driven(self, sims: range, ctrl: np.ndarray | None, nstep: int,
                      plans: list[tuple[slice | np.ndarray, np.ndarray]]) -> None:
-        """:meth:`step` with mocap trajectories (targets from :meth:`_mocap_plans`), sub-step by sub-step."""
+        """:meth:`step` with mocap trajectories (targets from :meth:`_mocap_plans`), sub-step by sub-step
+        (``ctrl`` ``None``: the control is already in ``MjData``, :meth:`advance_one`)."""
         model = self.model
         for i in sims:
             data, mocap_pos = self.datas[i], self._mocap_views[i]
-            self._ctrl_views[i][:] = ctrl[i]
+            if ctrl is not None:
+                self._ctrl_views[i][:] = ctrl[i]
             if len(plans) == 1:  # one trajectory (the gremlins'): its rows of mocap_pos take each sub-step's targets
                 rows, targets = plans[0]
                 driven = mocap_pos[rows]  # a view when rows is a slice; an index array assigns through mocap_pos

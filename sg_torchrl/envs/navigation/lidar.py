@@ -181,47 +181,44 @@ def pseudo_lidars_one(
     lift0, lift1 = pz * m20, pz * m21
     xs: list[float] = []
     ys: list[float] = []
-    sizes = []
-    for targets in groups:
-        points = targets[0].tolist()
-        sizes.append(len(points))
-        for tx, ty in points:
-            dx, dy = tx - px, ty - py
+    bases: list[int] = []  # per target, its group's first bin in the row
+    for group, targets in enumerate(groups):
+        for tx, ty in targets[0].tolist():
+            dx = tx - px
+            dy = ty - py
             xs.append(dx * m00 + dy * m10 - lift0)
             ys.append(dx * m01 + dy * m11 - lift1)
+            bases.append(group * num_bins)
     if not math.isfinite(sum(xs) + sum(ys)):  # NaN or inf somewhere (or an overflowing sum): the array form
         return False
-    row = [0.0] * (len(sizes) * num_bins)
+    row = [0.0] * (len(groups) * num_bins)
     if xs:
         ego = np.array((xs, ys))
-        distances = np.hypot(ego[0], ego[1]).tolist()
         angles = np.arctan2(ego[1], ego[0])
-        angles = np.remainder(angles, TWO_PI, out=angles).tolist()
         scale, last = num_bins / TWO_PI, num_bins - 1
-        target, base = 0, 0
-        for size in sizes:
-            for _ in range(size):
-                margin = max_dist - distances[target]
-                if margin > 0.0:  # else the reading is 0.0 in every bin: nothing to keep
-                    reading = margin / max_dist
-                    position = angles[target] * scale
-                    bin_ = int(position)
-                    if bin_ > last:  # an angle a hair below 2 pi rounds up to 2 pi
-                        bin_ = last
-                    fraction = position - bin_
-                    if fraction > 1.0:
-                        fraction = 1.0
-                    index = base + bin_
-                    if reading > row[index]:
-                        row[index] = reading
-                    index, value = base + (bin_ + 1) % num_bins, fraction * reading
-                    if value > row[index]:
-                        row[index] = value
-                    index, value = base + (bin_ - 1) % num_bins, (1.0 - fraction) * reading
-                    if value > row[index]:
-                        row[index] = value
-                target += 1
-            base += num_bins
+        for distance, angle, base in zip(np.hypot(ego[0], ego[1]).tolist(),
+                                         np.remainder(angles, TWO_PI, out=angles).tolist(), bases):
+            margin = max_dist - distance
+            if margin > 0.0:  # else the reading is 0.0 in every bin: nothing to keep
+                reading = margin / max_dist
+                position = angle * scale
+                bin_ = int(position)
+                if bin_ > last:  # an angle a hair below 2 pi rounds up to 2 pi
+                    bin_ = last
+                fraction = position - bin_
+                if fraction > 1.0:
+                    fraction = 1.0
+                index = base + bin_
+                if reading > row[index]:
+                    row[index] = reading
+                index = base + (bin_ + 1) % num_bins
+                value = fraction * reading
+                if value > row[index]:
+                    row[index] = value
+                index = base + (bin_ - 1) % num_bins
+                value = (1.0 - fraction) * reading
+                if value > row[index]:
+                    row[index] = value
     out[:] = row
     return True
 

@@ -81,13 +81,9 @@ class SingleNavigationStep:
         # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
         clipped = self._clipped
         np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row
-        if physics.drives_mocap:
-            np.minimum(clipped, env._clip_high, out=clipped)
-            physics.step(clipped, env.frame_skip)
-            unstable = physics.unstable.item(0)
-        else:  # MujocoBatch.step's own one-simulator path, the control written straight into MjData
-            np.minimum(clipped, env._clip_high, out=self._ctrl)
-            unstable = physics.advance_one(env.frame_skip)
+        # MujocoBatch.step's own one-simulator path, the control written straight into MjData
+        np.minimum(clipped, env._clip_high, out=self._ctrl)
+        unstable = physics.advance_one(env.frame_skip)
         reward = task.reward_one(env)
         clip = task.reward_clip
         if clip is not None:

@@ -345,8 +345,9 @@ class Scene:
         """Rotation matrix (body to world) of the robot's root body, ``(N, 3, 3)`` (a view: do not write)."""
         return self._agent_mat
 
-    def body_xpos(self, bodies: np.ndarray) -> np.ndarray:
-        """Positions of ``bodies`` (ids), ``(N, len(bodies), 3)`` (a new array)."""
+    def body_xpos(self, bodies: np.ndarray | slice) -> np.ndarray:
+        """Positions of ``bodies`` (ids: a new array; a slice of ids: a view of the state cache, do not
+        write), ``(N, len(bodies), 3)``."""
         return self._xpos[:, bodies]
 
     def sensordata(self) -> np.ndarray:

@@ -247,6 +247,11 @@ class FreeObject(NavObject):
         joints = [model.body_jntadr[body] for body in self.body_ids]
         self.qpos_adr = np.array([model.jnt_qposadr[j] for j in joints], dtype=np.int64)
         self.dof_adr = np.array([model.jnt_dofadr[j] for j in joints], dtype=np.int64)
+        # The rows of the bodies in the state cache: a slice when they follow each other (positions() is
+        # then a view of the cache, as a static object's are of its own array, instead of an indexed copy).
+        ids = self.body_ids
+        contiguous = len(ids) and (np.diff(ids) == 1).all()
+        self._body_rows = slice(int(ids[0]), int(ids[-1]) + 1) if contiguous else ids
         # qpos columns of (x, y, z, qw, qx, qy, qz) and qvel columns of the linear velocity, per instance
         self._qpos_cols = self.qpos_adr[:, None] + np.arange(7)
         self._linvel_cols = self.dof_adr[:, None] + np.arange(3)
@@ -259,7 +264,9 @@ class FreeObject(NavObject):
         rows.qpos[:, self._qpos_cols] = pose
 
     def positions(self, scene: Scene) -> np.ndarray:
-        return scene.body_xpos(self.body_ids)[..., :2]
+        """Current planar positions, ``(N, num, 2)``: a view of the state cache when the bodies follow each
+        other (it follows the next step: copy it to keep it), else a new array."""
+        return scene.body_xpos(self._body_rows)[..., :2]
 
     def speeds(self, scene: Scene) -> np.ndarray:
         """Linear speed of each instance, ``(N, num)`` (free-joint linear velocity at the body origin)."""
