@@ -276,3 +276,17 @@ def test_pseudo_lidars_one_equals_the_array_form():
                             ([np.ones((1, 1, 2))], {"max_dist": None}), ([np.ones((1, 1, 2))], {"num_bins": 2})):
         assert not pseudo_lidars_one(pos, mat, groups, row, **options)
         assert (row == 7.0).all()
+
+
+def test_float_remainder_equals_numpys():
+    """pseudo_lidars_one reduces angles with Python's float ``%`` where the array form calls ``np.remainder``:
+    the same values on arctan2's outputs, signed zeros, +-pi and the tiniest negatives included."""
+    from sg_torchrl.envs.navigation.lidar import TWO_PI
+
+    rng = np.random.default_rng(6)
+    edges = [0.0, -0.0, np.pi, -np.pi, 5e-324, -5e-324, 1e-300, -1e-300, -1e-17, np.nextafter(-np.pi, 0.0),
+             np.nextafter(np.pi, 0.0), np.nextafter(0.0, -1.0)]
+    angles = np.concatenate([np.arctan2(rng.normal(size=200_000), rng.normal(size=200_000)),
+                             np.arctan2(rng.normal(size=1000) * 1e-12, -1.0), edges])
+    expected = np.remainder(angles, TWO_PI)
+    assert np.array([angle % TWO_PI for angle in angles.tolist()]).tobytes() == expected.tobytes()

@@ -165,9 +165,12 @@ def pseudo_lidars_one(
 
     Why a second form: at one simulator the array form's thirty-odd numpy calls on a dozen targets cost
     more than the arithmetic. Here the frame change is the same float64 products, sums and differences
-    in :func:`egocentric_xy`'s order on Python floats; the distance, the angle and its remainder stay
-    numpy's (``np.hypot``, ``np.arctan2``, ``%``: their rounding may differ from :mod:`math`'s), one call
-    each over all targets; bins, fractions and readings are the same IEEE operations on floats
+    in :func:`egocentric_xy`'s order on Python floats; the distance and the angle stay numpy's
+    (``np.hypot``, ``np.arctan2``: their rounding may differ from :mod:`math`'s), one call each over all
+    targets. The angle's remainder by 2 pi is Python's float ``%``: CPython's ``float_rem`` and numpy's
+    ``npy_divmod`` (its float ``remainder`` loop) are the same steps, C's ``fmod``, then ``+ 2 pi`` for a
+    negative non-zero result and ``+0.0`` for a zero one (``-0.0`` included). Bins, fractions and
+    readings are the same IEEE operations on floats
     (``int`` truncates a non-negative position as ``astype`` does; ``min``/``max`` of non-NaN values are
     ``np.minimum``/``np.maximum``'s). Every contribution is ``+0.0`` or positive, so keeping each bin's
     largest as it comes is the array form's maximum over targets, and a target beyond ``max_dist`` reads
@@ -189,19 +192,20 @@ def pseudo_lidars_one(
             xs.append(dx * m00 + dy * m10 - lift0)
             ys.append(dx * m01 + dy * m11 - lift1)
             bases.append(group * num_bins)
-    if not math.isfinite(sum(xs) + sum(ys)):  # NaN or inf somewhere (or an overflowing sum): the array form
-        return False
     row = [0.0] * (len(groups) * num_bins)
     if xs:
         ego = np.array((xs, ys))
-        angles = np.arctan2(ego[1], ego[0])
+        distances = np.hypot(ego[0], ego[1]).tolist()
+        # A non-finite x or y makes its distance inf or NaN (hypot(inf, NaN) is inf); an overflowing sum of
+        # finite distances declines too, harmlessly.
+        if not math.isfinite(sum(distances)):
+            return False
         scale, last = num_bins / TWO_PI, num_bins - 1
-        for distance, angle, base in zip(np.hypot(ego[0], ego[1]).tolist(),
-                                         np.remainder(angles, TWO_PI, out=angles).tolist(), bases):
+        for distance, angle, base in zip(distances, np.arctan2(ego[1], ego[0]).tolist(), bases):
             margin = max_dist - distance
             if margin > 0.0:  # else the reading is 0.0 in every bin: nothing to keep
                 reading = margin / max_dist
-                position = angle * scale
+                position = (angle % TWO_PI) * scale
                 bin_ = int(position)
                 if bin_ > last:  # an angle a hair below 2 pi rounds up to 2 pi
                     bin_ = last
