@@ -122,3 +122,25 @@ def test_gremlin_trajectory_equals_the_stacked_form(num_envs):
         expected[..., 2] = gremlins.height
         assert gremlins.trajectory(times).tobytes() == expected.tobytes(), trial
     assert len(gremlins._circles) <= 5
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointButton1-v0", "SafetyCarGoal1-v0", "SafetyDoggoGoal1-v0"])
+def test_float_clip_equals_the_array_clip(env_id):
+    """SingleNavigationStep._clip writes np.minimum(np.maximum(action, low), high) into the control bit for bit:
+    random float32 and float64 actions within, beyond and exactly at the bounds, signed zeros and NaN."""
+    env = sg_torchrl.make(env_id, num_envs=1, seed=0)
+    single = env._single
+    assert single is not None and single._bounds is not None
+    low, high = env._clip_low, env._clip_high
+    rng = np.random.default_rng(7)
+    specials = np.array([0.0, -0.0, np.nan, np.inf, -np.inf])
+    for trial in range(500):
+        action = rng.uniform(1.5 * low, 1.5 * high).astype(np.float32 if trial % 2 else np.float64)
+        picks = rng.random(action.shape) < 0.3
+        action[picks] = rng.choice(np.concatenate([specials, low.reshape(-1), high.reshape(-1)]), size=picks.sum())
+        if trial % 3 == 0:
+            action = action.reshape(-1)  # (act_dim,) as well as (1, act_dim)
+        assert single._clip(action)
+        expected = np.minimum(np.maximum(action, low), high)
+        assert single._ctrl.tobytes() == expected.astype(np.float64).reshape(1, -1).tobytes(), trial
+    assert not single._clip(np.zeros(env.action_dim + 1, dtype=np.float32))  # the array form raises on that

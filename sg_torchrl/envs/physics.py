@@ -145,7 +145,7 @@ class MujocoBatch:
         # Mocap trajectories (see drive_mocap): (rows of mocap_pos as a slice or index array, trajectory).
         self._mocap_drivers: list[tuple[slice | np.ndarray, MocapTrajectory]] = []
         self._mocap_views = [data.mocap_pos for data in self.datas]
-        self._substep_offsets: dict[int, np.ndarray] = {}  # nstep -> sub-step start times after the step's (s)
+        self._substep_offsets: dict[int, np.ndarray] = {}  # nstep -> (1, nstep) sub-step start times after the step's (s)
         # Threads (module docstring): each worker steps one contiguous slice of the simulators.
         self.threads = min(threads, num_sims)
         bounds = np.linspace(0, num_sims, self.threads + 1).round().astype(int)
@@ -267,9 +267,9 @@ class MujocoBatch:
         """Every driven mocap target of this step, vectorised: ``(rows, (N, nstep, K, 3) targets)`` per trajectory."""
         offsets = self._substep_offsets.get(nstep)
         if offsets is None:  # computed once per nstep: the same products every step
-            offsets = self._substep_offsets[nstep] = np.arange(nstep) * self.model.opt.timestep
+            offsets = self._substep_offsets[nstep] = (np.arange(nstep) * self.model.opt.timestep)[None]
         if self._aliased:  # one simulator: its clock as a Python float, the same sums
-            times = self.datas[0].time + offsets[None]
+            times = self.datas[0].time + offsets
         else:
             start = np.fromiter((data.time for data in self.datas), dtype=np.float64, count=self.num_sims)
             times = start[:, None] + offsets

@@ -174,6 +174,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
 
         # Hot-path buffers, filled in place (SafeEnv copies what it emits): reward and raw costs per agent.
         self._observation = np.zeros((num_envs, column))
+        self._robot_outs = [self._observation[:, columns] for columns in self._robot_columns]  # each robot's sensors
         self._agent_reward = np.zeros((num_envs, count))
         self._agent_costs: dict[str, np.ndarray] = {name: np.zeros((num_envs, count)) for name in constraint_names}
         self._terminated = np.zeros(num_envs, dtype=bool)
@@ -365,8 +366,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     def _observe(self) -> np.ndarray:
         scene, obs = self.scene, self._observation
         sensordata = scene.sensordata()
-        for robot, columns in zip(self.robots, self._robot_columns):
-            robot.observe(sensordata, obs[:, columns])
+        for robot, out in zip(self.robots, self._robot_outs):
+            robot.observe(sensordata, out)
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
         natural = self._natural_lidar
         for view, lidar_groups, lidar_outs, lidar_row, compass_groups in zip(

@@ -63,6 +63,10 @@ class SingleNavigationStep:
         self.env = env
         self._clipped = np.zeros((1, env.action_dim))
         self._ctrl = env.physics.datas[0].ctrl[None]  # (1, nu) view of the one simulator's control
+        # The clip on Python floats (see _clip), unless a bound is zero: there np.maximum / np.minimum may pick
+        # either of -0.0 and +0.0 (a SIMD max returns one operand on ties), which a comparison cannot promise.
+        low, high = env._clip_low.reshape(-1).tolist(), env._clip_high.reshape(-1).tolist()
+        self._bounds = None if 0.0 in low or 0.0 in high else list(zip(low, high))
         self._agent_costs = list(env._agent_costs.items())  # {name: (1, 1)} buffers, in constraint order
 
     @classmethod
@@ -79,10 +83,12 @@ class SingleNavigationStep:
         env = self.env
         task, scene, physics = env.task, env.scene, env.physics
         # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
-        clipped = self._clipped
-        np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row
-        # MujocoBatch.step's own one-simulator path, the control written straight into MjData
-        np.minimum(clipped, env._clip_high, out=self._ctrl)
+        # The clip (np.clip's values), the control written straight into MjData; MujocoBatch.step's own
+        # one-simulator path.
+        if not self._clip(action):
+            clipped = self._clipped
+            np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row
+            np.minimum(clipped, env._clip_high, out=self._ctrl)
         unstable = physics.advance_one(env.frame_skip)
         reward = task.reward_one(env)
         clip = task.reward_clip
@@ -121,3 +127,26 @@ class SingleNavigationStep:
         if diverged.any():
             return env._single_outputs(*env._isolate(diverged, observation, rewards, costs, *flags))
         return env._single_outputs(observation, rewards, costs, *flags)
+
+    def _clip(self, action: np.ndarray) -> bool:
+        """Write ``action`` clipped to the control bounds into ``MjData``'s control on Python floats; False
+        (nothing written) where the array form must do it: a bound at zero, or an action of another size
+        (the array form then raises as before).
+
+        The same values as ``np.minimum(np.maximum(action, low), high)``: float32 actions widen to float64
+        exactly either way, and raising a value below ``low`` to ``low`` then lowering one above ``high`` to
+        ``high`` picks the same number whenever the operands differ or are equal non-zeros; NaN stays NaN
+        (both comparisons fail, as ``np.maximum`` / ``np.minimum`` propagate it)."""
+        bounds = self._bounds
+        values = action.reshape(-1).tolist()
+        if bounds is None or len(values) != len(bounds):
+            return False
+        clipped = []
+        for value, (low, high) in zip(values, bounds):
+            if value < low:
+                value = low
+            if value > high:
+                value = high
+            clipped.append(value)
+        self._ctrl[0] = clipped
+        return True

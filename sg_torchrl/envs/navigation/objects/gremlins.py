@@ -79,8 +79,8 @@ class Gremlins(ContactCost, FreeObject):
         self.mocap_ids = model.body_mocapid[mocap_bodies].astype(np.int64)
         #: ``(N, num, 2)`` the circle centres (layout positions) of every simulator
         self.centres = np.zeros((scene.num_envs, self.num, 2))
-        self._plans: dict[tuple[int, ...], tuple[np.ndarray, ...]] = {}  # times shape -> the buffer and its x, y views
-        self._circles: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # times -> displacements (_circle)
+        self._plans: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}  # times shape -> buffer, its xy view
+        self._circles: dict[tuple, np.ndarray] = {}  # times -> displacements (_circle)
         scene.physics.drive_mocap(self.mocap_ids, self.trajectory)
 
     # ------------------------------------------------------------------ motion
@@ -94,24 +94,21 @@ class Gremlins(ContactCost, FreeObject):
         The array returned is this object's buffer for that shape, overwritten by the next call: read it
         (or copy it) before calling again. Why: the physics drives the mocaps with it within the step, and
         a one-simulator step is mostly the cost of numpy calls (issue 19): the buffer's heights are
-        written once, and the circle's displacements ``travel * sin(t)``, ``travel * cos(t)`` are kept
-        per ``times`` (:meth:`_circle`). :meth:`offset` written per axis (no stacked array): the same
-        products and sums, element by element.
+        written once, and the circle's displacements (:meth:`offset`) are kept per ``times``
+        (:meth:`_circle`): each target is its centre plus ``travel * sin(t)`` / ``travel * cos(t)``, as
+        ``place`` starts it.
         """
         plan = self._plans.get(times.shape)
         if plan is None:
             targets = np.empty((*times.shape, self.num, 3))
             targets[..., 2] = self.height
-            plan = self._plans[times.shape] = (targets, targets[..., 0], targets[..., 1])
-        targets, target_x, target_y = plan
-        along_x, along_y = self._circle(times)
-        centres = self.centres[:, None]
-        np.add(centres[..., 0], along_x, out=target_x)
-        np.add(centres[..., 1], along_y, out=target_y)
+            plan = self._plans[times.shape] = (targets, targets[..., :2])
+        targets, planar = plan
+        np.add(self.centres[:, None], self._circle(times), out=planar)  # both axes in one broadcast sum
         return targets
 
-    def _circle(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``travel * sin(times)`` and ``travel * cos(times)``, each ``(N, S, 1)``, remembered per ``times``.
+    def _circle(self, times: np.ndarray) -> np.ndarray:
+        """:meth:`offset` of ``times`` as ``(N, S, 1, 2)`` (``travel * sin``, ``travel * cos``), remembered per ``times``.
 
         Why: a simulator's clock restarts at 0 with each episode and advances by the same sums, so the
         sub-steps of its ``k``-th step start at the same times in every episode; the values are numpy's
@@ -123,8 +120,7 @@ class Gremlins(ContactCost, FreeObject):
         if circle is None:
             if len(self._circles) >= self.circle_memory:
                 self._circles.clear()
-            travel = self.travel
-            circle = self._circles[key] = ((travel * np.sin(times))[:, :, None], (travel * np.cos(times))[:, :, None])
+            circle = self._circles[key] = self.offset(times)[:, :, None]
         return circle
 
     # ------------------------------------------------------------------ layout
