@@ -194,14 +194,14 @@ def pseudo_lidars_one(
             bases.append(group * num_bins)
     row = [0.0] * (len(groups) * num_bins)
     if xs:
-        ego = np.array((xs, ys))
-        distances = np.hypot(ego[0], ego[1]).tolist()
+        x, y = np.array(xs), np.array(ys)  # two flat arrays: cheaper than one (2, K) array and its rows
+        distances = np.hypot(x, y).tolist()
         # A non-finite x or y makes its distance inf or NaN (hypot(inf, NaN) is inf); an overflowing sum of
         # finite distances declines too, harmlessly.
         if not math.isfinite(sum(distances)):
             return False
         scale, last = num_bins / TWO_PI, num_bins - 1
-        for distance, angle, base in zip(distances, np.arctan2(ego[1], ego[0]).tolist(), bases):
+        for distance, angle, base in zip(distances, np.arctan2(y, x).tolist(), bases):
             margin = max_dist - distance
             if margin > 0.0:  # else the reading is 0.0 in every bin: nothing to keep
                 reading = margin / max_dist
