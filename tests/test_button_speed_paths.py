@@ -144,3 +144,31 @@ def test_float_clip_equals_the_array_clip(env_id):
         expected = np.minimum(np.maximum(action, low), high)
         assert single._ctrl.tobytes() == expected.astype(np.float64).reshape(1, -1).tobytes(), trial
     assert not single._clip(np.zeros(env.action_dim + 1, dtype=np.float32))  # the array form raises on that
+
+
+def test_one_simulator_instability_flags_follow_the_counters():
+    """MujocoBatch._check_one (Python copies of the count and flag) sets `unstable` and the stored count as the
+    array form does (unstable when MuJoCo's instability counters changed since the stored count): on the step
+    MuJoCo resets the simulator, on the next, around env resets, for plain and driven (gremlins) physics."""
+    from sg_torchrl.envs.physics import _UNSTABLE
+
+    for env_id in ("SafetyPointGoal1-v0", "SafetyPointButton1-v0"):
+        env = sg_torchrl.make(env_id, num_envs=1, seed=0)
+        env.reset()
+        physics = env.physics
+        action = np.zeros((1, env.action_dim))
+        seen = 0
+        for step in range(14):
+            if step in (2, 3, 9):
+                physics.datas[0].qvel[:] = np.nan  # MuJoCo resets it within the next step (BADQVEL)
+            stored = int(physics._unstable_counts[0])
+            flags = physics.step(action, env.frame_skip)
+            count = int(physics._warnings[0, _UNSTABLE].sum())
+            assert flags is physics.unstable and bool(flags[0]) == (count != stored), step
+            assert int(physics._unstable_counts[0]) == count
+            seen += bool(flags[0])
+            if step in (5, 11):
+                env.reset()
+                assert not physics.unstable[0] and int(physics._unstable_counts[0]) == int(
+                    physics._warnings[0, _UNSTABLE].sum())
+        assert seen >= 2

@@ -145,6 +145,7 @@ class MujocoBatch:
         # Mocap trajectories (see drive_mocap): (rows of mocap_pos as a slice or index array, trajectory).
         self._mocap_drivers: list[tuple[slice | np.ndarray, MocapTrajectory]] = []
         self._mocap_views = [data.mocap_pos for data in self.datas]
+        self._substep_views: tuple[np.ndarray, list[np.ndarray]] | None = None  # see _substeps
         self._substep_offsets: dict[int, np.ndarray] = {}  # nstep -> (1, nstep) sub-step start times after the step's (s)
         # Threads (module docstring): each worker steps one contiguous slice of the simulators.
         self.threads = min(threads, num_sims)
@@ -200,13 +201,18 @@ class MujocoBatch:
 
     def _check_one(self) -> bool:
         """Whether the one simulator turned unstable since the last check (sets :attr:`unstable`), read from
-        its three instability counters as Python ints (no ``(N,)`` arrays for one simulator)."""
+        its three instability counters as Python ints (no ``(N,)`` arrays for one simulator). Python copies of
+        its count and flag (kept by this and :meth:`refresh`, their only writers at one simulator) spare the
+        arrays' reads and writes on the usual step."""
         first, second, third = self._unstable_one.tolist()
         count = first + second + third
-        unstable = count != self._unstable_counts.item(0)
-        self.unstable[0] = unstable
-        self._unstable_counts[0] = count
-        return unstable
+        if count == self._unstable_total_one:  # the usual step: the arrays already say so unless the last was unstable
+            if self._unstable_flag_one:
+                self.unstable[0] = self._unstable_flag_one = False
+            return False
+        self.unstable[0] = self._unstable_flag_one = True
+        self._unstable_counts[0] = self._unstable_total_one = count
+        return True
 
     def _for_each_slice(self, step_slice: Callable[..., None], *args) -> None:
         """``step_slice(rows, *args)`` for every slice of the simulators: inline, or one per thread."""
@@ -288,11 +294,11 @@ class MujocoBatch:
                 rows, targets = plans[0]
                 driven = mocap_pos[rows]  # a view when rows is a slice; an index array assigns through mocap_pos
                 if isinstance(rows, slice):
-                    for target in targets[i]:
+                    for target in self._substeps(targets, i):
                         driven[...] = target
                         mujoco.mj_step(model, data)
                 else:
-                    for target in targets[i]:
+                    for target in self._substeps(targets, i):
                         mocap_pos[rows] = target
                         mujoco.mj_step(model, data)
             else:
@@ -305,6 +311,20 @@ class MujocoBatch:
                 mujoco.mj_forward(model, data)
             if self.post_constraint:
                 mujoco.mj_rnePostConstraint(model, data)
+
+    def _substeps(self, targets: np.ndarray, i: int) -> np.ndarray | list[np.ndarray]:
+        """Simulator ``i``'s targets ``(nstep, K, 3)`` of a trajectory's ``(N, nstep, K, 3)``, one per sub-step.
+
+        One simulator: a list of views kept while the trajectory returns the very same array (the gremlins'
+        rewrites its buffer in place), since making ten views per step costs as much as the ten writes
+        they feed; the list holds that array, so no other array can pass the identity test.
+        """
+        if not self._aliased:
+            return targets[i]
+        kept = self._substep_views
+        if kept is None or kept[0] is not targets:
+            kept = self._substep_views = (targets, list(targets[0]))
+        return kept[1]
 
     def reset(
         self,
@@ -350,6 +370,8 @@ class MujocoBatch:
         rows = list(rows)
         self._unstable_counts[rows] = self._warnings[rows, _UNSTABLE].sum(axis=1)
         self.unstable[rows] = False
+        if self._aliased:  # _check_one's copies
+            self._unstable_total_one, self._unstable_flag_one = self._unstable_counts.item(0), False
         self.version += 1
 
     def set_mocap_pos(self, index: int, mocap_id: int, pos: np.ndarray) -> None:
@@ -416,8 +438,7 @@ class MujocoBatch:
         (:func:`_partner_counts`, the same whole-number counts) without the ``(1, ngeom)`` array or the
         indexing of it, whatever the number of contacts.
         """
-        data = self.datas[0]
-        return _partner_counts(data.contact.geom.tolist(), geoms) if data.ncon else {}
+        return _partner_counts(self.datas[0].contact.geom.tolist(), geoms)  # no contacts: no pairs, {}
 
     def close(self) -> None:
         """Stop the stepping threads (if any); a later :meth:`step` starts them again."""
@@ -429,6 +450,7 @@ class MujocoBatch:
         # Copies and pickles get no thread pool (it belongs to this object); they start their own.
         state = dict(self.__dict__)
         state["_pool"] = None
+        state["_substep_views"] = None  # views come back as copies: the copy makes its own
         return state
 
     # ------------------------------------------------------------------ snapshots
