@@ -10,14 +10,20 @@ simulator of a single-robot :class:`~sg_torchrl.envs.navigation.env.NavigationEn
 on Python floats and bools:
 
 * the physics, the task's and objects' reward, cost and event hooks and the observation are the env's
-  own (:meth:`Task.reward_one <sg_torchrl.envs.navigation.tasks.base.Task.reward_one>` and
+  own (:meth:`Task.reward_one <sg_torchrl.envs.navigation.tasks.base.Task.reward_one>`,
+  :meth:`Task.after_step_one <sg_torchrl.envs.navigation.tasks.base.Task.after_step_one>` and
   :meth:`NavObject.agent_costs_one <sg_torchrl.envs.navigation.objects.base.NavObject.agent_costs_one>`
-  are the one-simulator faces of ``reward`` and ``agent_costs``: by default the batched hooks themselves;
-  the Goal tasks' shaping and the hazards' depths are computed on floats, each with one formula or with
-  its two forms documented and tested equal);
+  are the one-simulator faces of ``reward``, ``after_step`` and ``agent_costs``: by default the batched
+  hooks themselves; the Goal tasks' shaping and goal events, the Button task's goal press and timer, the
+  hazards' depths and the buttons' and contact costs (from the robot's contacts counted once per step,
+  :meth:`Scene.robot_contacts_one <sg_torchrl.envs.navigation.world.Scene.robot_contacts_one>`) are
+  computed on Python values, as is the pseudo-lidar of the observation
+  (:func:`~sg_torchrl.envs.navigation.lidar.pseudo_lidars_one`), each with one formula or with its two
+  forms documented and tested equal);
 * what :class:`~sg_torchrl.envs.navigation.env.NavigationEnv` and
   :class:`~sg_torchrl.envs.base.SafeEnv` do around them is done here on floats with the same float64
-  operations in the same order: the reward's clip (``min``/``max`` keep NaN as ``np.minimum``/``np.maximum``
+  operations in the same order: the action's clip (:meth:`SingleNavigationStep._clip`, written straight
+  into ``MjData``), the reward's clip (``min``/``max`` keep NaN as ``np.minimum``/``np.maximum``
   do), the sum over one agent (the value itself), the step counter and truncation, the fault screen's
   magnitude (:func:`~sg_torchrl.envs.base._magnitude`'s sum) and the cost aggregation
   (:meth:`SafeEnv._single_cost <sg_torchrl.envs.base.SafeEnv._single_cost>`, shared with the batched
@@ -28,7 +34,8 @@ on Python floats and bools:
   exact test and isolation on the arrays the batched step would have had.
 
 ``tests/test_single_env_path.py`` checks that the façade (this path), the TorchRL env at ``N = 1`` and
-simulator 0 of a batched env emit the same values bit for bit.
+simulator 0 of a batched env emit the same values bit for bit; ``tests/test_button_speed_paths.py``
+checks the Button level's float forms against their array forms.
 """
 
 from __future__ import annotations
