@@ -52,9 +52,11 @@ class Hazards(StaticObject):
         them from 0. A robot inside three or more hazards at once takes :meth:`costs` itself."""
         if not self.constrained:
             return
-        size = self.size
-        inside = [depth for depth in [size - d for d in scene.planar_distances_one(self.positions(scene))]
-                  if depth >= 0.0]
+        size, inside = self.size, []
+        for distance in scene.planar_distances_one(self.positions(scene)):
+            depth = size - distance
+            if depth >= 0.0:
+                inside.append(depth)
         if len(inside) > 2:
             super().agent_costs_one(scene, out)
             return
