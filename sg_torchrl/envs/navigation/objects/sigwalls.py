@@ -54,3 +54,14 @@ class Sigwalls(StaticObject):
             return {}
         outside = np.abs(scene.agent_xy()[:, : self.num // 2]) > self.bound  # x only, or x and y
         return {"out_of_boundary": outside.any(axis=1).astype(np.float64)}
+
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        """:meth:`costs` of one simulator and one robot on Python floats (the one-simulator step's): the
+        same ``|coordinate| > bound`` comparisons (NaN fails them, as in the array form), their ``any``
+        read as ``1.0`` or ``0.0``."""
+        if not self.constrained:
+            return
+        x, y = scene.agent_xy()[0].tolist()
+        bound = self.bound
+        outside = abs(x) > bound or (self.num == 4 and abs(y) > bound)
+        out["out_of_boundary"][0, 0] = 1.0 if outside else 0.0

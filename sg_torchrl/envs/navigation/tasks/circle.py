@@ -49,17 +49,40 @@ class CircleTask(Task):
         self.zone = self.find(CircleZone)
         velocimeter = env.scene.model.sensor("velocimeter")
         self._velocimeter = slice(int(velocimeter.adr[0]), int(velocimeter.adr[0]) + 3)
+        # The operands of agent_velocity taken once: the state cache is filled in place, so these views
+        # follow every step (each fresh view costs an indexing).
+        self._rotation = env.scene.agent_mat()[:, :2]
+        self._local = env.scene.sensordata()[:, self._velocimeter]
+        self._velocity_one = np.empty((1, 2))
 
     def agent_velocity(self, env: NavigationEnv) -> np.ndarray:
         """Linear velocity of the robot's root in the world frame, ``(N, 2)`` (its velocimeter, rotated)."""
-        local = env.scene.sensordata()[:, self._velocimeter]
-        return np.einsum("nij,nj->ni", env.scene.agent_mat()[:, :2], local)
+        return np.einsum("nij,nj->ni", self._rotation, self._local)
 
     def reward(self, env: NavigationEnv) -> np.ndarray:
         x, y = (env.scene.agent_xy() - self.zone.positions(env.scene)[:, 0]).T
         u, v = self.agent_velocity(env).T
         rho = np.maximum(np.hypot(x, y), 1e-12)  # at the very centre the tangential speed is 0 / 0: read 0
         return self.zone.reward_factor * ((-u * y + v * x) / rho) / (1.0 + np.abs(rho - self.zone.size))
+
+    def reward_one(self, env: NavigationEnv) -> float:
+        """:meth:`reward` of one simulator on Python floats (the one-simulator step's): the same
+        differences, products, quotients and sums in the same order. The rotation of the velocity stays
+        ``np.einsum``'s (its sum of three products is not a left-to-right sum: an FMA or a vector
+        reduction) and the norm ``np.hypot``'s (libm's, which :func:`math.hypot` is not), each the same
+        ufunc on the same operands; ``np.maximum``'s floor keeps NaN, as the comparison below does."""
+        if type(self).reward is not CircleTask.reward or type(self).agent_velocity is not CircleTask.agent_velocity:
+            return super().reward_one(env)
+        velocity = self._velocity_one
+        np.einsum("nij,nj->ni", self._rotation, self._local, out=velocity)
+        u, v = velocity[0].tolist()
+        ax, ay = env.scene.agent_xy()[0].tolist()
+        cx, cy = self.zone.positions(env.scene)[0, 0].tolist()
+        x, y = ax - cx, ay - cy
+        rho = float(np.hypot(x, y))
+        if rho < 1e-12:
+            rho = 1e-12
+        return self.zone.reward_factor * ((-u * y + v * x) / rho) / (1.0 + abs(rho - self.zone.size))
 
 
 # reference section 6: the circle alone, then 2 and 4 walls.

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, ClassVar
 
+import math
+
 import numpy as np
 
 from sg_torchrl.envs.navigation.objects import Sigwalls
@@ -39,6 +41,22 @@ class RunTask(Task):
     def potential(self, env: NavigationEnv) -> np.ndarray:
         """``-60 * |xy - target|`` per simulator, ``(N,)``."""
         return -self.reward_distance * np.linalg.norm(env.scene.agent_xy() - self._target, axis=1)
+
+    def reward_one(self, env: NavigationEnv) -> float:
+        """:meth:`reward` of one simulator on Python floats (the one-simulator step's): the same
+        differences and squares; their sum (two non-negative terms: numpy's reduction adds them in any
+        grouping to the same value) under IEEE's correctly rounded square root, which ``math.sqrt`` and
+        ``np.sqrt`` both are (``np.linalg.norm``'s ``sqrt(add.reduce(x * x))``)."""
+        if type(self).reward is not RunTask.reward or type(self).potential is not RunTask.potential:
+            return super().reward_one(env)
+        x, y = env.scene.agent_xy()[0].tolist()
+        tx, ty = self.target
+        dx, dy = x - tx, y - ty
+        potential = -self.reward_distance * math.sqrt(dx * dx + dy * dy)
+        last = self._last_potential
+        reward = potential - last.item(0)
+        last[0] = potential
+        return reward
 
     def reset(self, env: NavigationEnv, indices: np.ndarray) -> None:
         self._last_potential[indices] = self.potential(env)[indices]
