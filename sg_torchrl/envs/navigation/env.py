@@ -188,6 +188,10 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             self._lidar_outs.append([self._observation[:, part] for part in parts] if block is None else block)
             self._lidar_rows.append(None if block is None or num_envs != 1
                                     else self._observation[0, parts[0].start : parts[-1].stop])
+        # What _observe walks every step, zipped once (a one-simulator step pays for each zip it builds).
+        self._robot_observers = list(zip(self.robots, self._robot_outs))
+        self._observe_views = list(zip(self.scene.views, self._lidar_groups, self._lidar_outs, self._lidar_rows,
+                                       self._compass_groups))
         # The robots whose death ends an episode (Robot.can_die), with their scenes; the others are not asked.
         self._mortal = [(each, view) for each, view in zip(self.robots, self.scene.views) if each.can_die]
         low, high = self.physics.ctrl_range
@@ -366,12 +370,11 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     def _observe(self) -> np.ndarray:
         scene, obs = self.scene, self._observation
         sensordata = scene.sensordata()
-        for robot, out in zip(self.robots, self._robot_outs):
+        for robot, out in self._robot_observers:
             robot.observe(sensordata, out)
         max_dist, bins = self.task.lidar_max_dist, self.task.lidar_bins
         natural = self._natural_lidar
-        for view, lidar_groups, lidar_outs, lidar_row, compass_groups in zip(
-                scene.views, self._lidar_groups, self._lidar_outs, self._lidar_rows, self._compass_groups):
+        for view, lidar_groups, lidar_outs, lidar_row, compass_groups in self._observe_views:
             position, rotation = view.agent_pos(), view.agent_mat()
             if natural is not None:
                 natural.prepare(view)

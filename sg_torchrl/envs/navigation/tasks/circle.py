@@ -25,6 +25,11 @@ if TYPE_CHECKING:
 
 __all__ = ["CircleTask", "CIRCLE_LEVELS"]
 
+try:  # what np.einsum(..., optimize=False) returns, called without its Python wrapper (a microsecond a step)
+    from numpy._core.multiarray import c_einsum as _einsum
+except ImportError:  # another numpy layout: the public function, the same kernel
+    _einsum = np.einsum
+
 
 class CircleTask(Task):
     """Circle around the :class:`CircleZone` (see the module docstring)."""
@@ -57,7 +62,7 @@ class CircleTask(Task):
 
     def agent_velocity(self, env: NavigationEnv) -> np.ndarray:
         """Linear velocity of the robot's root in the world frame, ``(N, 2)`` (its velocimeter, rotated)."""
-        return np.einsum("nij,nj->ni", self._rotation, self._local)
+        return _einsum("nij,nj->ni", self._rotation, self._local)
 
     def reward(self, env: NavigationEnv) -> np.ndarray:
         x, y = (env.scene.agent_xy() - self.zone.positions(env.scene)[:, 0]).T
@@ -68,13 +73,14 @@ class CircleTask(Task):
     def reward_one(self, env: NavigationEnv) -> float:
         """:meth:`reward` of one simulator on Python floats (the one-simulator step's): the same
         differences, products, quotients and sums in the same order. The rotation of the velocity stays
-        ``np.einsum``'s (its sum of three products is not a left-to-right sum: an FMA or a vector
-        reduction) and the norm ``np.hypot``'s (libm's, which :func:`math.hypot` is not), each the same
-        ufunc on the same operands; ``np.maximum``'s floor keeps NaN, as the comparison below does."""
+        ``np.einsum``'s kernel (its sum of three products is a vector reduction, not a left-to-right sum,
+        and its order may depend on the CPU numpy dispatches to) and the norm ``np.hypot``'s (libm's, which
+        :func:`math.hypot` is not), each on the same operands; ``np.maximum``'s floor keeps NaN, as the
+        comparison below does."""
         if type(self).reward is not CircleTask.reward or type(self).agent_velocity is not CircleTask.agent_velocity:
             return super().reward_one(env)
         velocity = self._velocity_one
-        np.einsum("nij,nj->ni", self._rotation, self._local, out=velocity)
+        _einsum("nij,nj->ni", self._rotation, self._local, out=velocity)
         u, v = velocity[0].tolist()
         ax, ay = env.scene.agent_xy()[0].tolist()
         cx, cy = self.zone.positions(env.scene)[0, 0].tolist()
