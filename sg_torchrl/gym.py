@@ -354,7 +354,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
                 f"(action_space={self.action_space})"
             )
         # One float64 sum decides it: float32 values cannot overflow it, and NaN or inf propagates.
-        if not math.isfinite(sum(array.reshape(-1).tolist())):
+        if not math.isfinite(sum(array.tolist() if array.ndim == 1 else array.reshape(-1).tolist())):
             raise ValueError(f"{self.env_id}: action is not finite: {array}")
         return array.reshape(1, -1)
 

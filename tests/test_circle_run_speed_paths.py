@@ -109,3 +109,13 @@ def test_facade_takes_the_one_simulator_step():
         env.reset(seed=0)
         assert env.unwrapped.torchrl_env._single is not None
         env.close()
+
+
+@pytest.mark.parametrize("env_id", ["SafetyPointCircle1-v0", "SafetyPointRun0-v0", "SafetyPointGoal1-v0"])
+def test_after_step_one_equals_the_array_form(env_id):
+    """Task.after_step_one answers False without arrays for tasks without events, as after_step's zeros say."""
+    env = _env(env_id)
+    for _ in range(20):
+        env.physics.step(np.zeros((1, env.action_dim)), env.frame_skip)
+        assert env.task.after_step_one(env) is bool(env.task.after_step(env)[0])
+    env.close()

@@ -120,7 +120,10 @@ class Task(abc.ABC):
     def after_step_one(self, env: NavigationEnv) -> bool:
         """:meth:`after_step` of a one-simulator, one-robot env: whether it terminates, as a bool (the
         one-simulator step's, :mod:`~sg_torchrl.envs.navigation.single`). Default: :meth:`after_step`'s one
-        value; a task may answer its usual steps without arrays (:class:`~sg_torchrl.envs.navigation.tasks.goal.GoalTask`)."""
+        value; a task may answer its usual steps without arrays (:class:`~sg_torchrl.envs.navigation.tasks.goal.GoalTask`).
+        A task that keeps :meth:`after_step`'s default (no events: Circle, Run) never terminates: False."""
+        if type(self).after_step is Task.after_step:
+            return False
         return bool(self.after_step(env)[0])
 
     def after_observe(self, env: NavigationEnv, observation: np.ndarray) -> None:
