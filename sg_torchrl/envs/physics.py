@@ -26,7 +26,8 @@ between a write into ``MjData`` and the :meth:`refresh` that would follow it.
 Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises one of its
 ``BADQPOS``/``BADQVEL``/``BADQACC`` warnings and silently resets that ``MjData`` to the model's
 initial state. :meth:`step` reports which simulators this happened to, so the env can end their
-episode instead of presenting the jump as a transition.
+episode instead of presenting the jump as a transition, and clears those counters so that a further
+divergence (before the env resets the simulator) is reported too.
 
 Driven mocap bodies: objects that move along a prescribed path (Safety-Gymnasium's gremlins,
 placed before every physics sub-step) register a vectorised trajectory with :meth:`drive_mocap`.
@@ -176,7 +177,20 @@ class MujocoBatch:
         counts = self._warnings[:, _UNSTABLE].sum(axis=1)
         np.not_equal(counts, self._unstable_counts, out=self.unstable)
         self._unstable_counts[:] = counts
+        if np.count_nonzero(self.unstable):
+            self._rearm(np.flatnonzero(self.unstable).tolist())
         return self.unstable
+
+    def _rearm(self, rows: Sequence[int]) -> None:
+        """Clear the instability counters of simulators just reported unstable (in ``MjData``, the cache and
+        the stored counts). MuJoCo's automatic reset zeroes its counters and then counts the one warning, so
+        a second divergence before the env resets the simulator would leave the count at 1, unseen;
+        from zero, each divergence shows as a change."""
+        views = self._cache["warnings"][1]
+        for row in rows:
+            views[row][_UNSTABLE] = 0
+            self._warnings[row, _UNSTABLE] = 0
+            self._unstable_counts[row] = 0
 
     def advance_one(self, nstep: int) -> bool:
         """:meth:`step` of a single simulator whose control is already written into ``datas[0].ctrl``.
@@ -211,7 +225,8 @@ class MujocoBatch:
                 self.unstable[0] = self._unstable_flag_one = False
             return False
         self.unstable[0] = self._unstable_flag_one = True
-        self._unstable_counts[0] = self._unstable_total_one = count
+        self._unstable_one[:] = 0  # _rearm's work: these are MjData's own counters (a view)
+        self._unstable_counts[0] = self._unstable_total_one = 0
         return True
 
     def _for_each_slice(self, step_slice: Callable[..., None], *args) -> None:
@@ -507,5 +522,6 @@ class MujocoBatch:
         return np.stack([getattr(data, field) for data in self.datas])
 
     def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
-        """How often each simulator raised ``warning`` (MuJoCo resets a diverged simulator itself)."""
+        """How often each simulator raised ``warning`` (MuJoCo resets a diverged simulator itself); for the
+        instability warnings, since :meth:`step` last reported that simulator unstable (it clears them)."""
         return np.array([data.warning[warning].number for data in self.datas])
