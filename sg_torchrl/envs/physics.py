@@ -225,8 +225,8 @@ class MujocoBatch:
                 self.unstable[0] = self._unstable_flag_one = False
             return False
         self.unstable[0] = self._unstable_flag_one = True
-        self._unstable_one[:] = 0  # _rearm's work: these are MjData's own counters (a view)
-        self._unstable_counts[0] = self._unstable_total_one = 0
+        self._rearm((0,))
+        self._unstable_total_one = 0
         return True
 
     def _for_each_slice(self, step_slice: Callable[..., None], *args) -> None:
