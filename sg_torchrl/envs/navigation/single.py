@@ -90,9 +90,8 @@ class SingleNavigationStep:
     def __call__(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         env = self.env
         task, scene, physics = env.task, env.scene, env.physics
-        # SafeEnv._transition_arrays: clip (np.clip's values), then NavigationEnv._advance.
-        # The clip (np.clip's values), the control written straight into MjData; MujocoBatch.step's own
-        # one-simulator path.
+        # SafeEnv._transition_arrays: the clip (np.clip's values) written straight into MjData's control, then
+        # NavigationEnv._advance through MujocoBatch's one-simulator path.
         if not self._clip(action):
             clipped = self._clipped
             np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row
