@@ -337,3 +337,47 @@ def test_one_driver_per_output_directory(tmp_path):
                 pass
     with _driver_lock(tmp_path):  # released with the first driver
         pass
+
+
+# --- the driver's status line -----------------------------------------------------------------------------------
+
+
+def test_the_status_line_rates_a_cell_from_when_it_was_first_seen_running(tmp_path, monkeypatch):
+    """The first status line after a cell starts (or restarts from a checkpoint with steps already logged)
+    gives its rate since it was first seen running, not 0; a line with nothing measured yet says so."""
+    from sg_torchrl.sweep import runner
+
+    grid = make_grid(tmp_path, algos=("ppo",))
+    (cell,) = grid.cells
+    directory = grid.cell_dir(cell)
+    (directory / "seed-000").mkdir(parents=True)
+
+    def log_steps(*steps: int) -> None:
+        rows = "".join(f"{index},{value}\n" for index, value in enumerate(steps))
+        (directory / "seed-000" / "progress.csv").write_text("Train/Epoch,Train/TotalSteps\n" + rows)
+
+    clock = [100.0]
+    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    lines: list[str] = []
+    progress = runner._Progress(grid, [cell], every=60.0, out=lines.append)
+    log_steps(40_000)  # a resumed cell: two epochs logged by an earlier attempt
+    AttemptLog(directory).path.write_text(json.dumps({"attempt": 2, "status": "running", "resumed": True,
+                                                     "node": "127.0.0.1", "epochs_before": 2}) + "\n")
+    clock[0] = 110.0
+    progress.poll([cell], 0, 0)  # seen running: measured at 40k steps per seed
+    assert lines == [f"[restart] {cell.label} on 127.0.0.1 from its checkpoint (attempt 2, 2 epochs logged "
+                     f"before); log {directory}/sweep.log"]
+    log_steps(40_000, 60_000)
+    clock[0] = 170.0
+    progress.poll([cell], 0, 0)  # the first status line: 20k steps x 3 seeds in 60 s
+    assert lines[-1].endswith("0 done, 1 running, 0 failed, 0 waiting; 1,000 env steps/s")
+    log_steps(40_000, 60_000, 80_000, 100_000)
+    clock[0] = 230.0
+    progress.poll([cell], 0, 0)
+    assert lines[-1].endswith("; 2,000 env steps/s")
+
+    fresh = runner._Progress(grid, [cell], every=60.0, out=lines.append)
+    fresh.poll([cell], 0, 0, force=True)  # first seen at this very line: no interval to rate yet
+    assert lines[-1].endswith("0 done, 1 running, 0 failed, 0 waiting; env steps/s from the next line")
+    fresh.poll([], 1, 0, force=True)  # nothing running: a plain 0
+    assert lines[-1].endswith("1 done, 0 running, 0 failed, 0 waiting; 0 env steps/s")

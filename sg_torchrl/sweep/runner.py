@@ -108,7 +108,9 @@ class _Progress:
         self.grid, self.every, self.out = grid, every, out
         self.seen_attempts = {cell: len(AttemptLog(grid.cell_dir(cell)).read()) for cell in cells}
         self.last_line = time.monotonic()
-        self.line_steps: dict[Cell, int] = {}  # each running cell's env steps (all seeds) at the last status line
+        # each running cell's (time, env steps of all seeds) when last measured: at the status line before, or
+        # when it was first seen running, so the first line after a start or restart already has a rate
+        self.measured: dict[Cell, tuple[float, int]] = {}
 
     def poll(self, open_cells: list[Cell], done: int, failed: int, force: bool = False) -> None:
         running = []
@@ -125,16 +127,24 @@ class _Progress:
             if attempts and attempts[-1].get("status") == "running":
                 running.append(cell)
         now = time.monotonic()
+        for cell in running:
+            if cell not in self.measured:  # progress files are read once at a cell's start, then per status line
+                self.measured[cell] = (now, cell_steps(self.grid, cell) * len(cell.seeds))
         if force or now - self.last_line >= self.every:
-            # Progress files are read only for a status line. Rows come once per epoch (a minute or more at the
-            # paper's sizes): the rate is over the whole interval since the last line, for the cells running at
-            # both ends (a resumed cell's log may step back).
-            steps_now = {cell: cell_steps(self.grid, cell) * len(cell.seeds) for cell in running}
-            rate = sum(max(steps - self.line_steps[cell], 0) for cell, steps in steps_now.items()
-                       if cell in self.line_steps) / max(now - self.last_line, 1e-9)
-            self.last_line, self.line_steps = now, steps_now
+            # Rows come once per epoch (a minute or more at the paper's sizes): each cell's rate is over the time
+            # since it was last measured (a resumed cell's log may step back, hence the floor at 0).
+            rate, timed = 0.0, False
+            for cell in running:
+                since, steps_then = self.measured[cell]
+                steps = cell_steps(self.grid, cell) * len(cell.seeds)
+                if now > since:
+                    rate, timed = rate + max(steps - steps_then, 0) / (now - since), True
+                self.measured[cell] = (now, steps)
+            self.measured = {cell: self.measured[cell] for cell in running}
+            self.last_line = now
+            speed = f"{rate:,.0f} env steps/s" if timed or not running else "env steps/s from the next line"
             self.out(f"[sweep {time.strftime('%H:%M:%S')}] {done} done, {len(running)} running, {failed} failed, "
-                     f"{len(open_cells) - len(running)} waiting; {rate:,.0f} env steps/s")
+                     f"{len(open_cells) - len(running)} waiting; {speed}")
 
 
 def _init_ray(address: str | None, num_cpus: int | None) -> None:
