@@ -147,7 +147,8 @@ def test_collect_reads_both_layouts_finished_or_not(sweep):
     assert (cpo.attempts, cpo.wall_s, cpo.status) == (1, 200.0, "killed")
     mappo = cells[(MULTI, "mappo", "", (1,))]
     assert not mappo.group and mappo.directory == Path(MULTI, "mappo", "seed-001") and mappo.wall_s == 1800.0
-    assert mappo.per_seed == {1: {**_figures(3000.0, 300.0), "Train/TotalSteps": BUDGET, "Time/Total": 1800.0}}
+    assert mappo.per_seed == {1: {**_figures(3000.0, 300.0), "Train/TotalSteps": BUDGET, "Time/Total": 1800.0,
+                                  "Final/EpRetLast50": 3000.0, "Final/EpCostLast50": 300.0}}  # progress.csv's end
 
 
 def test_paper_rows_pool_groups_and_normalise_by_ppo_or_mappo(sweep, monkeypatch):
@@ -161,6 +162,8 @@ def test_paper_rows_pool_groups_and_normalise_by_ppo_or_mappo(sweep, monkeypatch
         "J^R / base": 0.5, "J^C / limit": 1.0, "cost limit": 20.0, "wall h": 1.5, "attempts": 2,
         "meets_limit": True}  # J^R: (50+100+150)/3 over PPO's (100+300)/2; wall: cells of 2 h and 1 h
     assert lag["update s / epoch"] == pytest.approx((2.5 + 4.0) / 2)
+    # the curves' end: the diverged seed's log stops at epoch 2 of 4, at half its final figures
+    assert (lag["J^R (50)"], lag["J^C (50)"]) == ((50.0 + 100.0 + 75.0) / 3, (10.0 + 20.0 + 15.0) / 3)
     assert (lag["paper J^R"], lag["paper J^C"], lag["paper J^R / base"], lag["paper J^C / limit"]) == (
         1500.0, 5.0, 0.5, 0.25)  # the paper's figures over the paper's PPO and this cell's limit
     assert lag["paper_meets_limit"] is True
@@ -195,6 +198,7 @@ def test_seed_rows_one_per_finished_seed(sweep):
         (0, 50.0, 10.0, 51.0, 5.0, False, BUDGET), (1, 100.0, 20.0, 101.0, 10.0, False, BUDGET),
         (2, 150.0, 30.0, 151.0, 15.0, True, 500)]  # the diverged seed's own summary: its steps
     assert lag[2]["directory"] == f"{SINGLE}/ppo_lag/seeds-2"
+    assert [(r["EpRet (last 50)"], r["EpCost (last 50)"]) for r in lag] == [(50.0, 10.0), (100.0, 20.0), (75.0, 15.0)]
 
 
 def test_csv_round_trip(sweep, tmp_path, monkeypatch):

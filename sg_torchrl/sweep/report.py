@@ -194,7 +194,12 @@ def _read_cell(root: Path, path: Path) -> CellResult:
         compiled=bool(config.get("compile", False)), total_steps=int(config.get("total_steps") or 0),
         diverged=tuple(int(seed) for seed in summary.get("diverged", ())), group=group, root=root,
     )
-    rows = [row for rows in cell_histories(cell).values() for row in rows]
+    histories = cell_histories(cell)
+    for seed, figures in per_seed.items():  # the curve's end: its last 50-episode moving averages
+        last = next((row for row in reversed(histories.get(seed, [])) if _finite(row.get("Metrics/EpRet"))), {})
+        figures["Final/EpRetLast50"] = last.get("Metrics/EpRet", NAN)
+        figures["Final/EpCostLast50"] = last.get("Metrics/EpCost", NAN)
+    rows = [row for rows in histories.values() for row in rows]
     steps = [row["Train/TotalSteps"] for row in rows if _finite(row.get("Train/TotalSteps"))]
     steps += [summary["Train/TotalSteps"]] if _finite(summary.get("Train/TotalSteps")) else []
     cell.steps = int(max(steps, default=0))
@@ -249,7 +254,9 @@ def paper_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
     the number of seeds, ``J^R`` / ``J^C`` their mean ``Final/EpRetLast10`` / ``Final/EpCostLast10``.
     ``J^R / base`` divides by the J^R of PPO (MAPPO for the multi-agent algorithms) on the same env,
     options and budget in these results (NaN when that baseline did not run); ``J^C / limit`` by the
-    cell's cost limit. ``update s / epoch`` and ``wall h`` are means over the pooled cells (wall time
+    cell's cost limit; ``J^R (50)`` / ``J^C (50)`` are the seeds' mean of their last 50-episode moving
+    averages (the end of their curves, ``progress.csv``'s last ``Metrics/EpRet`` / ``EpCost``), steadier
+    than 10 episodes. ``update s / epoch`` and ``wall h`` are means over the pooled cells (wall time
     per cell). The ``paper`` columns are the published 10M-step numbers, normalised by the paper's
     PPO / MAPPO on that env and by the same limit; ``meets_limit`` / ``paper_meets_limit`` say whether
     J^C <= limit (``None`` where the paper has no number).
@@ -271,6 +278,7 @@ def paper_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
             "diverged": sum(len(cell.diverged) for cell in cells),
             "J^R": reward, "J^C": cost, "J^R / base": _ratio(reward, _seed_mean(base, "Final/EpRetLast10")),
             "J^C / limit": _ratio(cost, limit), "cost limit": limit,
+            "J^R (50)": _seed_mean(cells, "Final/EpRetLast50"), "J^C (50)": _seed_mean(cells, "Final/EpCostLast50"),
             "update s / epoch": _mean(cell.update_s for cell in cells),
             "wall h": _mean(cell.wall_s / 3600 for cell in cells), "attempts": sum(cell.attempts for cell in cells),
             "paper J^R": paper_reward, "paper J^C": paper_cost, "paper J^R / base": _ratio(paper_reward, paper_base),
@@ -282,7 +290,7 @@ def paper_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
 
 
 def seed_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
-    """One row per finished seed: its last-10-episode and evaluation figures, whether it diverged
+    """One row per finished seed: its last-10- and last-50-episode and evaluation figures, whether it diverged
     (stopped early with non-finite losses, as its group's summary lists) and its env steps."""
     rows = []
     for cell in sorted((cell for cell in results if cell.finished), key=_order):
@@ -291,6 +299,8 @@ def seed_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
                 "env": cell.env_id, "algorithm": cell.name, "options": cell.tag, "seed": seed,
                 "EpRet (last 10)": parse_float(figures.get("Final/EpRetLast10")),
                 "EpCost (last 10)": parse_float(figures.get("Final/EpCostLast10")),
+                "EpRet (last 50)": parse_float(figures.get("Final/EpRetLast50")),
+                "EpCost (last 50)": parse_float(figures.get("Final/EpCostLast50")),
                 "eval EpRet": parse_float(figures.get("Metrics/EvalEpRet")),
                 "eval EpCost": parse_float(figures.get("Metrics/EvalEpCost")),
                 "diverged": seed in cell.diverged,
@@ -397,7 +407,8 @@ def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
         "## Paper table", "",
         "J^R, J^C: mean over seeds of the last 10 training episodes' return and cost. J^R / base: over the J^R of "
         "PPO (MAPPO for the multi-agent algorithms) on the same env, options and budget in this sweep. J^C / limit: "
-        "over the cell's cost limit. wall h: per cell. paper: Ji et al. 2023 at 10M steps, normalised the same way.",
+        "over the cell's cost limit. J^R (50), J^C (50): the same over the last 50 episodes (the curves' end, "
+        "steadier than 10 episodes). wall h: per cell. paper: Ji et al. 2023 at 10M steps, normalised the same way.",
         "", markdown_table(table) or "No finished cell yet.", "",
         "## Per seed", "", markdown_table(seeds) or "No finished seed yet.", "",
         "## Unfinished cells", "",
