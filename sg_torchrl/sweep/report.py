@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from sg_torchrl.sweep.records import AttemptLog, parse_float, read_progress
+from sg_torchrl.sweep.records import AttemptLog, latest, parse_float, read_progress
 
 __all__ = [
     "CellResult", "MULTI_AGENT", "PAPER_NAMES", "PAPER_RESULTS", "baseline", "cell_histories", "collect",
@@ -196,9 +196,8 @@ def _read_cell(root: Path, path: Path) -> CellResult:
     )
     histories = cell_histories(cell)
     for seed, figures in per_seed.items():  # the curve's end: its last 50-episode moving averages
-        last = next((row for row in reversed(histories.get(seed, [])) if _finite(row.get("Metrics/EpRet"))), {})
-        figures["Final/EpRetLast50"] = last.get("Metrics/EpRet", NAN)
-        figures["Final/EpCostLast50"] = last.get("Metrics/EpCost", NAN)
+        figures["Final/EpRetLast50"] = latest(histories.get(seed, []), "Metrics/EpRet")
+        figures["Final/EpCostLast50"] = latest(histories.get(seed, []), "Metrics/EpCost")
     rows = [row for rows in histories.values() for row in rows]
     steps = [row["Train/TotalSteps"] for row in rows if _finite(row.get("Train/TotalSteps"))]
     steps += [summary["Train/TotalSteps"]] if _finite(summary.get("Train/TotalSteps")) else []
