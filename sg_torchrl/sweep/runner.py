@@ -136,10 +136,10 @@ class _Progress:
             rate, timed = 0.0, False
             for cell in running:
                 since, steps_then = self.measured[cell]
-                steps = cell_steps(self.grid, cell) * len(cell.seeds)
-                if now > since:
+                if now > since:  # else first seen at this very poll: just measured, nothing to rate yet
+                    steps = cell_steps(self.grid, cell) * len(cell.seeds)
                     rate, timed = rate + max(steps - steps_then, 0) / (now - since), True
-                self.measured[cell] = (now, steps)
+                    self.measured[cell] = (now, steps)
             self.measured = {cell: self.measured[cell] for cell in running}
             self.last_line = now
             speed = f"{rate:,.0f} env steps/s" if timed or not running else "env steps/s from the next line"
