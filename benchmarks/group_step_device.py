@@ -1,6 +1,6 @@
 """The seed group's fused minibatch step on a GPU beside the CPU: how many seeds one card steps at once.
 
-Issue 18's engine stacks S seeds' networks (SafePO's three [64, 64] tanh MLPs) along a leading
+The seed-group engine stacks S seeds' networks (SafePO's three [64, 64] tanh MLPs) along a leading
 dimension and steps them together (:class:`~sg_torchrl.train.fused.FusedFirstOrderStep`: gather,
 PPO-Lag's losses, backward, per-seed clip, masked Adam). On 2 CPU cores that pays off up to S of
 about 8; a GPU runs each of those ops as one kernel whatever S is, so the time per step should stay

@@ -1,6 +1,6 @@
 """Time of one first-order minibatch gradient step: hand-written PyTorch, today's trainer, the fused seed group.
 
-Issue 18: on SafePO's networks (three [64, 64] tanh MLPs) and minibatches (64 samples) a gradient
+On SafePO's networks (three [64, 64] tanh MLPs) and minibatches (64 samples) a gradient
 step is per-op overhead, so S seeds stacked along a leading dimension and stepped together
 (:mod:`sg_torchrl.train.fused`) should cost little more than one. This script times, in one run and
 interleaved (every configuration runs one repeat in turn, so all see the same machine load):

@@ -1,4 +1,4 @@
-"""One seed group at the paper's budget: PPO-Lag, seeds 0 1 2, 10M env steps each (issue 18's real run).
+"""One seed group at the paper's budget: PPO-Lag, seeds 0 1 2, 10M env steps each (the seed-group engine at full scale).
 
 The Safety-Gymnasium paper reports every cell after 10M steps; our 1M-step tables cannot tell a
 correct Lagrangian method from a wrong one (PPO-Lag on SafetyHalfCheetahVelocity-v1 is at J^C 143

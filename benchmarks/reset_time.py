@@ -11,7 +11,7 @@ For every env id this times, one reset at a time, after a warm-up:
 
 It prints median and 90th percentile in milliseconds. Safety-Gymnasium regenerates and recompiles
 its model on every navigation reset (about 1.1 s on the 2-core machine kind); sg_torchrl writes a
-new layout into the existing ``MjData`` (issue bar: at most 1 ms median for one simulator).
+new layout into the existing ``MjData`` (target: at most 1 ms median for one simulator).
 Timings on a shared machine are noisy: the median is the figure to quote.
 
 Usage::

@@ -12,7 +12,7 @@ resetting finished episodes as a collector does, and counts:
 * **terminations**: episodes that ended by the task's own rule (the Ant's torso falling to 0.08 m),
   which shows the death path ran, and the episodes that ended by time limit.
 
-Issue 4 ("robots behave") asks for these figures for the Racecar, Doggo and Ant robots; Point and Car
+These figures check that the Racecar, Doggo and Ant robots behave; Point and Car
 are included for comparison. A run of 16 simulators x 2,000 steps (32,000 env steps) per robot takes a
 few minutes on one core.
 

@@ -1,4 +1,4 @@
-"""CPU cost of training per seed: the single-seed ``Trainer`` against seed groups of S = 1, 3, 8 (issue 18).
+"""CPU cost of training per seed: the single-seed ``Trainer`` against seed groups of S = 1, 3, 8.
 
 A seed group (``sg-train --seeds``, :mod:`sg_torchrl.train.seed_group`) steps S seeds' simulators in
 one batched env and their networks as one stacked model, so what one seed costs should fall with S.

@@ -1,4 +1,4 @@
-"""Single-env speed (issue 19): one simulator, random actions, episodes reset as they end.
+"""Single-env speed: one simulator, random actions, episodes reset as they end.
 
 Where single-env users live (a gymnasium loop, SafePO's single-env scripts, evaluation), the work
 around the physics decides the speed, not the physics. For every env id this measures, per CPU
@@ -35,7 +35,7 @@ Actions are drawn uniformly within the action bounds from a fixed seed (the same
 column). Each column is timed ``--repeats`` times, interleaved, and the best repeat counts. The
 table gives steps per CPU second and each column as a fraction of bare MuJoCo (and the façade as a
 fraction of bare + driven mocaps where that column exists); the last column is the façade's speed
-over the original's (the issue's bars: façade >= 60% of bare, >= 1.5x the
+over the original's (the targets: façade >= 60% of bare, >= 1.5x the
 original). Timings on a shared machine are noisy: compare ratios measured in the same run.
 
 Usage::

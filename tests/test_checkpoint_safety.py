@@ -1,4 +1,4 @@
-"""Trustworthy runs (issue 17): checkpoints that cannot run code and refuse damage, run directories
+"""Trustworthy runs: checkpoints that cannot run code and refuse damage, run directories
 that are never clobbered, resumes that stay where they are told, and work that survives a SIGKILL."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``copy.deepcopy`` and ``pickle`` of an env built by ``sg_torchrl.make`` continue its simulators exactly.
 
 Numpy views are copied as separate arrays, so a copy made attribute by attribute would hold caches,
-buffers and control views that no longer alias its ``MjData`` (issue 19: the copy's next step
+buffers and control views that no longer alias its ``MjData`` (the copy's next step
 differed). ``SafeEnv.__reduce_ex__`` rebuilds the env and loads its ``sim_state`` instead.
 """
 

@@ -1,4 +1,4 @@
-"""Fidelity to Safety-Gymnasium 1.0.0 where a first comparison found us apart (issue 19).
+"""Fidelity to Safety-Gymnasium 1.0.0 where a first comparison found us apart.
 
 * Button tasks: the original's reset draws the goal button, which starts the 10-step resampling
   timer, and then zeroes the timer (``ButtonLevel0.specific_reset``), so the buttons are observed in

@@ -1,4 +1,4 @@
-"""The one-simulator path (issue 19) gives the batched path's data, bit for bit.
+"""The one-simulator path gives the batched path's data, bit for bit.
 
 At ``num_envs=1`` the env takes shortcuts that the batch does not: the physics' state cache is a view
 of the one ``MjData`` (no copies), the velocity tasks compute reward, cost and ``step_info`` on Python
@@ -231,7 +231,7 @@ def _reference_lidar(pos, mat, groups, num_bins, max_dist, alias):
 
 def test_pseudo_lidars_equal_the_textbook_form():
     """The pseudo-lidar's rewritten arithmetic (frame change without einsum, every group's and bin's writes
-    in one pass: issue 19) gives the textbook form's readings bit for bit, blocks and separate outputs."""
+    in one pass) gives the textbook form's readings bit for bit, blocks and separate outputs."""
     from sg_torchrl.envs.navigation.lidar import pseudo_lidars
 
     rng = np.random.default_rng(4)

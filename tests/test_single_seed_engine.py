@@ -1,4 +1,4 @@
-"""``sg-train --seed s`` on the fused engine (issue 18: a lean hot path for one seed too).
+"""``sg-train --seed s`` on the fused engine (a lean hot path for one seed too).
 
 A single-agent run on flat-vector observations runs by default on the seed-group engine with its one
 seed (:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`); ``--engine loss-module`` runs the

@@ -77,7 +77,7 @@ class TestConfig:
         assert cfg.total_steps == 4_000  # from the preset
 
     def test_make_run_preset_is_a_seed_group(self):
-        # `make run` (issue 18 item 5): a group of several seeds of a first-order algorithm in one process,
+        # `make run`: a group of several seeds of a first-order algorithm in one process,
         # whole epochs, a few hundred thousand steps per seed, every seed's run in runs/make-run/seed-XXX.
         cfg = parse_args(["--preset", "make-run"])  # a TrainConfig: validated when built
         assert cfg.group and len(cfg.seeds) >= 3 and cfg.seed == cfg.seeds[0]

@@ -1,4 +1,4 @@
-"""One validation layer for env options and ``sg-train`` flags (issue 17, findings 5 and 6).
+"""One validation layer for env options and ``sg-train`` flags.
 
 * ``sg_torchrl.make`` refuses bad options, ``num_envs``, ``seed`` and ``device`` with our exception
   types, naming the argument and the env id, before building anything;

@@ -385,7 +385,7 @@ class SafeEnv(EnvBase, abc.ABC):
     def _single_cost(self, raw: dict[str, float]) -> tuple[float, dict[str, float]]:
         """One simulator's emitted ``(cost, cost_info)`` from its raw costs as Python floats: :meth:`_aggregate_cost`'s
         values (the same float64 sum from 0 in the same order, the same ``> 0`` indicators, float32 rounding)
-        without one-element arrays per constraint (issue 19)."""
+        without one-element arrays per constraint (for single-env speed)."""
         total = 0.0
         for value in raw.values():
             total += value

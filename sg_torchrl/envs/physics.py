@@ -20,7 +20,7 @@ code that writes into ``MjData`` directly must call :meth:`refresh`.
 One simulator: with ``num_sims == 1`` the state cache arrays are ``(1, ...)`` views of that
 simulator's ``MjData`` arrays rather than copies, and :meth:`step` reads its instability counters as
 three scalars. A single simulator is where the work around ``mj_step`` decides the speed (the
-gymnasium façade, issue 19), and the values read are the same either way: nothing reads the cache
+gymnasium façade), and the values read are the same either way: nothing reads the cache
 between a write into ``MjData`` and the :meth:`refresh` that would follow it.
 
 Divergence: when a simulator's state becomes non-finite or huge, MuJoCo raises one of its
@@ -197,7 +197,7 @@ class MujocoBatch:
 
         Returns whether MuJoCo found it unstable (also in :attr:`unstable`). Only for one simulator
         (:meth:`step` comes here itself after writing the control); a one-simulator env's single step
-        writes the clipped action straight into ``ctrl`` and calls this (issue 19). The state cache is a
+        writes the clipped action straight into ``ctrl`` and calls this. The state cache is a
         view of its ``MjData`` (nothing to gather) and its instability warnings are three counters read
         as scalars; driven mocap bodies go sub-step by sub-step as :meth:`step` drives them.
         """

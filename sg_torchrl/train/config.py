@@ -107,7 +107,7 @@ _MULTI_AGENT_DEFAULTS = dict(
     lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
 )
 #: Paper appendix table, per algorithm. FOCOPS and CUP bound their multiplier nu by 2.0 (the table's
-#: "nu 2.00"; SafePO's CUP script uses 0.2, compared on PointGoal1 in benchmarks/RESULTS.md, session 7).
+#: "nu 2.00"; SafePO's CUP script uses 0.2, compared on PointGoal1 in benchmarks/RESULTS.md's 1M tables).
 #: Fields not listed here have one default for all.
 ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: dict(_FIRST_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name not in SECOND_ORDER},

@@ -12,7 +12,7 @@ from typing import Any
 __all__ = ["PRESETS"]
 
 PRESETS: dict[str, dict[str, Any]] = {
-    # `make run` (issue 18 item 5): a safe agent in about ten minutes on 2 cores. A seed group
+    # `make run`: a safe agent in about ten minutes on 2 cores. A seed group
     # (sg_torchrl.train.seed_group): PPO-Lag on SafetySwimmerVelocity-v1, seeds 0 1 2 side by side in
     # one process, 300,000 steps each. The swimmer pays cost 1 for every step faster than its velocity
     # threshold (limit 25 per 1000-step episode) and starts far over it (EpCost about 290 at random),
@@ -33,7 +33,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         algo="ppo_lag", env_id="SafetySwimmerVelocity-v1", seeds=[0, 1, 2], total_steps=300_000, num_envs=10,
         steps_per_epoch=10_000, lagrangian_lr=0.3, eval_episodes=10, run_name="make-run",
     ),
-    # PPO-Lag from pixels (issue 7): SafetyPointGoal1Vision-v0 sees only its 64 x 64 RGB camera
+    # PPO-Lag from pixels: SafetyPointGoal1Vision-v0 sees only its 64 x 64 RGB camera
     # (env_options; the id's default is the vector and a 256 x 256 image, 16 times the pixels to render
     # and convolve) and trains CNN encoders (sg_torchrl.train.models). Sized for 10-15 minutes on a CPU
     # (15.5 min with evaluation on the shared 2-core machine kind), not for the paper's budget: rendering
@@ -42,13 +42,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     # finishes one 1000-step episode per epoch, so EpRet / EpCost are defined from the first epoch), 4
     # passes of minibatch 64 instead of 40 (Atari PPO's 4 epochs; KL early stop as always), 80,000 steps
     # in all. A first look, not the paper's curve: seed 0 took EpRet from -0.1 to 1.4 and EpCost from 93
-    # to 67 (limit 25) in 8 epochs, on the scene before it took the original's look (issue 19).
+    # to 67 (limit 25) in 8 epochs, on the scene before it took the original's look.
     "vision": dict(
         algo="ppo_lag", env_id="SafetyPointGoal1Vision-v0", env_options={"obs_mode": "rgb", "image_size": 64},
         total_steps=80_000, num_envs=10,
         steps_per_epoch=10_000, update_iters=4, minibatch_size=64, eval_episodes=5, run_name="vision",
     ),
-    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (issue 8; sg_torchrl.dexhands). SafePO's
+    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (sg_torchrl.dexhands). SafePO's
     # Isaac Gym override config where a CPU can follow it: gamma 0.96, target KL 0.016, 8 passes of 4
     # minibatches, gradient-norm clip 1.0, no critic L2. Scaled down for a CPU: 64 simulators on two
     # physics threads (not 2,048 on a GPU), 9,600-step epochs (two 75-step episodes per simulator;

@@ -180,7 +180,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         self._terminated = np.zeros(num_envs, dtype=bool)
         # Per robot, where its pseudo-lidar readings go: one block view of the observation when its groups
         # follow each other (pseudo_lidars then takes every group's maximum in one call), else one view each.
-        # One simulator: the block's row as a flat view too, for pseudo_lidars_one (Python floats, issue 19).
+        # One simulator: the block's row as a flat view too, for pseudo_lidars_one (Python floats).
         self._lidar_outs, self._lidar_rows = [], []
         for groups in self._lidar_groups:
             parts = [part for _, part in groups]
@@ -224,7 +224,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>`, through
         :class:`~sg_torchrl.envs.navigation.single.SingleNavigationStep` where it applies (one simulator,
-        one robot, no pixels): the same values, its bookkeeping on Python floats (issue 19)."""
+        one robot, no pixels): the same values, its bookkeeping on Python floats (for single-env speed)."""
         single = self._single
         if single is None:
             return super().step_one(action)

@@ -52,7 +52,7 @@ def egocentric_xy(agent_pos: np.ndarray, agent_mat: np.ndarray, targets_xy: np.n
     The world offset ``(dx, dy, -z_robot)`` (targets at z = 0) as a row vector times the first two
     columns of the body-to-world matrix, i.e. rotated into the body frame: ``x_j = dx m0j + dy m1j +
     dz m2j``, summed in that order (``np.einsum``'s order, so the values are the same bit for bit),
-    in five array operations whatever ``K`` (issue 19: a one-simulator step is mostly per-operation
+    in five array operations whatever ``K`` (a one-simulator step is mostly per-operation
     overhead, and einsum's own is several of them).
     """
     delta = targets_xy - agent_pos[:, None, :2]  # (N, K, 2): dx, dy

@@ -1,4 +1,4 @@
-"""One navigation simulator stepped on Python values: the gymnasium façade's step (issue 19).
+"""One navigation simulator stepped on Python values: the gymnasium façade's step, for single-env speed.
 
 :meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>` runs the batched step
 (:meth:`~sg_torchrl.envs.base.SafeEnv._transition_arrays`) on ``N = 1`` and reads its outputs. On one

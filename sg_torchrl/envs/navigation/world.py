@@ -362,7 +362,7 @@ class Scene:
 
         ``sqrt(dx * dx + dy * dy)``: the products and the sum ``np.einsum`` would take, in its order
         (same values bit for bit), without its call overhead; one simulator reads the robot's position
-        as two Python floats (issue 19: a one-simulator step is mostly per-operation overhead).
+        as two Python floats (a one-simulator step is mostly per-operation overhead).
         """
         if self.num_envs == 1:
             x, y = self._agent_xy[0].tolist()

@@ -309,7 +309,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         arithmetic on Python floats where it is elementwise.
 
         Why: a gymnasium step of a small robot (HalfCheetah, Hopper, Swimmer, Walker2d) spent as long
-        in a dozen operations on one-element arrays as in the physics (issue 19). This path does the
+        in a dozen operations on one-element arrays as in the physics. This path does the
         same float64 operations in the same order as :meth:`_transition_arrays` and the hooks it
         calls (the positions' finite difference, the reward terms, the threshold comparison, the
         health rule: :meth:`HealthCheck.healthy_one`), keeps numpy for the control penalty's sum (its

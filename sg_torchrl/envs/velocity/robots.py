@@ -62,7 +62,7 @@ class HealthCheck:
         on Python floats (float64 both ways; NaN and inf are ruled out first, as there).
 
         Why: on one simulator the five ``(1,)``-array operations of the batched rule cost several
-        microseconds, a sizeable share of a small robot's step (issue 19)."""
+        microseconds, a sizeable share of a small robot's step."""
         q, v = qpos.tolist(), qvel.tolist()
         isfinite = math.isfinite
         if not (all(map(isfinite, q)) and all(map(isfinite, v))):

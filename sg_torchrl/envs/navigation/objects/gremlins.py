@@ -93,7 +93,7 @@ class Gremlins(ContactCost, FreeObject):
 
         The array returned is this object's buffer for that shape, overwritten by the next call: read it
         (or copy it) before calling again. Why: the physics drives the mocaps with it within the step, and
-        a one-simulator step is mostly the cost of numpy calls (issue 19): the buffer's heights are
+        a one-simulator step is mostly the cost of numpy calls: the buffer's heights are
         written once, and the circle's displacements (:meth:`offset`) are kept per ``times``
         (:meth:`_circle`): each target is its centre plus ``travel * sin(t)`` / ``travel * cos(t)``, as
         ``place`` starts it.

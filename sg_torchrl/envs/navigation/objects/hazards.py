@@ -45,7 +45,7 @@ class Hazards(StaticObject):
         return {self.name: np.where(depth >= 0.0, depth, 0.0).sum(axis=1)}
 
     def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
-        """:meth:`costs` of one simulator on Python floats (issue 19): the same depths ``size - d``
+        """:meth:`costs` of one simulator on Python floats (for single-env speed): the same depths ``size - d``
         (:meth:`Scene.planar_distances_one <sg_torchrl.envs.navigation.world.Scene.planar_distances_one>`),
         the same ``>= 0`` test (NaN fails it). The array sum adds the other hazards' ``+0.0`` in numpy's
         pairwise order; with at most two positive depths every order gives the same sum, so this adds

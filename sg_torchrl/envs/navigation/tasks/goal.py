@@ -57,7 +57,7 @@ class GoalTask(Task):
         return reward
 
     def reward_one(self, env: NavigationEnv) -> float:
-        """:meth:`reward` of one simulator on Python floats (issue 19): the distance from
+        """:meth:`reward` of one simulator on Python floats (for single-env speed): the distance from
         :meth:`Scene.planar_distances_one <sg_torchrl.envs.navigation.world.Scene.planar_distances_one>`
         (the same value), :meth:`reached` given that float (a task may ignore it and answer from its own
         state: a one-element array reads as its bool), the same :meth:`_shaped` arithmetic. A subclass
