@@ -32,7 +32,6 @@ advantages are combined (``multiplier.sum_norm`` / ``multiplier.diff_norm``).
 """
 from __future__ import annotations
 
-import contextlib
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -42,11 +41,11 @@ import torch
 from tensordict import is_tensor_collection, TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
-from torch import distributions as D, nn, Tensor
+from torch import distributions as D, Tensor
 from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.utils import distance_loss
 
-from sg_torchrl.objectives.kl import gaussian_kl
+from sg_torchrl.objectives.kl import kl_to_stored_gaussian
+from sg_torchrl.objectives.cost_critic import CostCriticLosses
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective, Surrogate
 from sg_torchrl.objectives.value import AdvantageEstimation
@@ -60,45 +59,13 @@ _MATH_HOOKS = ("_surrogate", "_combined_advantage", "_actor_loss", "forward", "c
                "loss_critic")
 
 
-def _kl_to_stored_gaussian(
-    dist: D.Distribution, tensordict: TensorDictBase, loc_key: NestedKey, scale_key: NestedKey
-) -> Tensor:
-    """Per-sample :math:`\\mathrm{KL}(\\pi_\\theta \\,\\|\\, \\mathcal N(\\mu, \\sigma))`, shape ``[*B, 1]``.
-
-    ``dist`` is the current (diagonal Gaussian) policy; :math:`\\mu, \\sigma` are read from
-    ``tensordict`` under ``loc_key`` / ``scale_key``. The KL is summed over the action dimension and
-    is differentiable in the current policy only.
-
-    Raises:
-        TypeError: if ``dist`` is not a (possibly ``Independent``-wrapped) ``Normal``.
-        KeyError: if a stored parameter is missing.
-    """
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal):
-        raise TypeError(
-            f"The KL to a stored policy is computed in closed form for diagonal Gaussian policies "
-            f"(Normal / IndependentNormal); the actor produced {type(dist).__name__}."
-        )
-    stored = []
-    for key in (loc_key, scale_key):
-        value = tensordict.get(key, None)
-        if value is None:
-            raise KeyError(
-                f"{key!r} (a stored policy parameter) is missing from the input; write it into the "
-                f"batch first, or remap the key with loss.set_keys(...)."
-            )
-        stored.append(value)
-    loc, scale = stored
-    return gaussian_kl(base.loc, base.scale, loc, scale).unsqueeze(-1)
-
-
 def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
     if isinstance(keys, list):
         return list(keys)
     return [keys]
 
 
-class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
+class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
     """PPO-Lagrangian loss: clipped PPO on the Lagrangian advantage, plus reward and cost critics.
 
     With :math:`r_t(\\theta) = \\pi_\\theta(a_t|s_t) / \\pi_{\\text{old}}(a_t|s_t)` and
@@ -372,81 +339,6 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
             )
         return value
 
-    # --------------------------------------------------------------- critics
-    def _squared_param_norm(self, network_name: str) -> Tensor | None:
-        """Sum of squared parameters (weights and biases) of a critic; ``None`` if it has none."""
-        if self.functional:
-            params_td = getattr(self, network_name + "_params")
-            params = [p for p in params_td.values(True, True) if isinstance(p, nn.Parameter)]
-        else:
-            params = list(getattr(self, network_name).parameters())
-        if not params:
-            return None
-        return torch.stack([p.pow(2).sum() for p in params]).sum()
-
-    def loss_cost_critic(
-        self, tensordict: TensorDictBase
-    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """Cost-critic regression loss, before reduction and without the L2 penalty.
-
-        Mirrors :meth:`~torchrl.objectives.PPOLoss.loss_critic` for the cost critic: distance
-        (``loss_critic_type``) between the cost critic's prediction and
-        ``tensor_keys.cost_value_target``, optionally value-clipped around the stored
-        ``tensor_keys.cost_value``, times ``cost_critic_coeff``. The reward critic's
-        ``_critic_loss_inputs`` hook (e.g. PopArt value normalisation) is deliberately not applied:
-        its statistics belong to the reward.
-
-        Args:
-            tensordict (TensorDictBase): the input batch.
-
-        Returns:
-            ``(loss, clip_fraction, explained_variance)``; ``loss`` is per sample, the other two
-            are ``None`` when value clipping / explained-variance logging is off.
-        """
-        if self.separate_losses:
-            tensordict = tensordict.detach()
-        target = self._get_required(
-            tensordict, self.tensor_keys.cost_value_target, "make_cost_gae(cost_critic)"
-        )
-        old_value = None
-        if self.clip_value is not None:
-            old_value = self._get_required(
-                tensordict, self.tensor_keys.cost_value, "make_cost_gae(cost_critic)"
-            )
-        with (
-            self.cost_critic_network_params.to_module(
-                self.cost_critic_network, preserve_module_state=False
-            )
-            if self.functional
-            else contextlib.nullcontext()
-        ):
-            out = self.cost_critic_network(tensordict.copy())
-        value = out.get(self.tensor_keys.cost_value, None)
-        if value is None:
-            raise KeyError(
-                f"The cost critic did not write {self.tensor_keys.cost_value!r}; check its out_keys "
-                f"or call loss.set_keys(cost_value=...)."
-            )
-        loss = distance_loss(target, value, loss_function=self.loss_critic_type)
-        clip_fraction = None
-        if old_value is not None:
-            delta = value - old_value
-            clipped = delta.clamp(-self.clip_value, self.clip_value)
-            loss_clipped = distance_loss(
-                target, old_value + clipped, loss_function=self.loss_critic_type
-            )
-            loss = torch.maximum(loss, loss_clipped)
-            with torch.no_grad():
-                clip_fraction = (delta != clipped).to(value.dtype).mean()
-        explained_variance = None
-        if self.log_explained_variance:
-            with torch.no_grad():
-                tgt, pred = target.detach(), value.detach()
-                eps = torch.finfo(tgt.dtype).eps
-                resid = torch.var(tgt - pred, correction=0, dim=0)
-                explained_variance = 1.0 - resid / (torch.var(tgt, correction=0, dim=0) + eps)
-        return self.cost_critic_coeff * loss, clip_fraction, explained_variance
-
     # --------------------------------------------------------------- policy
     @property
     def surrogate(self) -> Surrogate:
@@ -498,7 +390,7 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
         kl = None
         if surrogate.reference is not None:
             loc_key, scale_key = self._reference_keys(surrogate.reference)
-            kl = _kl_to_stored_gaussian(dist, tensordict, loc_key, scale_key)
+            kl = kl_to_stored_gaussian(dist, tensordict, loc_key, scale_key)
         loss = surrogate.loss(log_weight, advantage, cost_advantage=tensordict.get(self.tensor_keys.cost_advantage, None),
                               kl=kl, lam=self.multiplier.value, log_is_weight=log_is_weight)
         return loss, surrogate.diagnostics(log_weight, kl=kl)
@@ -575,11 +467,6 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
         return [f"{cls.__name__}.{name}" for name in _MATH_HOOKS
                 if inspect.unwrap(getattr(cls, name)) is not inspect.unwrap(getattr(owner, name))]
 
-    @staticmethod
-    def _behaviour_log_ratio(log_weight: Tensor, log_is_weight: Tensor | None) -> Tensor:
-        """:math:`\\log \\pi_\\theta / \\pi_{\\text{behav}}`, the log importance weight."""
-        return log_weight if log_is_weight is None else log_weight + log_is_weight
-
     def _actor_loss(self, tensordict: TensorDictBase, advantage: Tensor) -> TensorDictBase:
         """Unreduced policy terms on ``advantage``: :meth:`_surrogate`, ratio diagnostics, entropy.
 
@@ -609,7 +496,7 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
         )
         td_out = TensorDict({"loss_objective": loss, **diagnostics})
         with torch.no_grad():
-            log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight).detach()
+            log_ratio = Surrogate.log_ratio(log_weight, log_is_weight).detach()
             flat = log_ratio.reshape(-1)  # over every sample, also of an [N, T] rollout
             ess = (2 * flat.logsumexp(0) - (2 * flat).logsumexp(0)).exp()
             ratio = log_ratio.exp()
@@ -625,56 +512,6 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
                 logged = torch.stack(list(entropy.values(True, True))).sum(0)
             td_out.set("entropy", logged.detach().mean())
             td_out.set("loss_entropy", self._weighted_loss_entropy(entropy))
-        return td_out
-
-    def _reduce_losses(self, td_out: TensorDictBase, tensordict: TensorDictBase) -> TensorDictBase:
-        """Applies the loss's reduction (and the input's loss mask) to every ``loss_*`` entry."""
-        return td_out.named_apply(
-            lambda name, value: self._reduce_loss(value, tensordict).squeeze(-1)
-            if name.startswith("loss_")
-            else value,
-        )
-
-    # --------------------------------------------------------------- forward
-    def critic_losses(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """The reduced reward- and cost-critic losses, each with the critic L2 penalty.
-
-        ``loss_critic`` and ``loss_cost_critic`` (plus ``value_clip_fraction`` /
-        ``cost_value_clip_fraction`` with ``clip_value``, and the explained variances with
-        ``log_explained_variance``); the actor is not evaluated. :meth:`forward` uses it, and
-        the second-order updates train their critics with it alone.
-        """
-        td_out = TensorDict()
-        if self._has_critic:
-            loss_critic, clip_fraction, explained_variance = self.loss_critic(tensordict.copy())
-            td_out.set("loss_critic", loss_critic)
-            if clip_fraction is not None:
-                td_out.set("value_clip_fraction", clip_fraction)
-            if explained_variance is not None:
-                td_out.set("explained_variance", explained_variance)
-        loss_cost, cost_clip_fraction, cost_ev = self.loss_cost_critic(tensordict)
-        td_out.set("loss_cost_critic", loss_cost)
-        if cost_clip_fraction is not None:
-            td_out.set("cost_value_clip_fraction", cost_clip_fraction)
-        if cost_ev is not None:
-            td_out.set("cost_explained_variance", cost_ev)
-        td_out = self._reduce_losses(td_out, tensordict)
-        if self.critic_l2_coeff is not None:
-            for key, network in (
-                ("loss_critic", "critic_network"),
-                ("loss_cost_critic", "cost_critic_network"),
-            ):
-                norm = self._squared_param_norm(network) if key in td_out.keys() else None
-                if norm is not None:
-                    td_out.set(key, td_out.get(key) + self.critic_l2_coeff * norm)
-        self._clear_weakrefs(
-            tensordict,
-            td_out,
-            "critic_network_params",
-            "target_critic_network_params",
-            "cost_critic_network_params",
-            "target_cost_critic_network_params",
-        )
         return td_out
 
     @dispatch
