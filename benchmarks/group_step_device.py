@@ -30,7 +30,8 @@ import torch
 from torchrl.data import Bounded
 
 from sg_torchrl.objectives import LagrangeMultiplier
-from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedBatch, SeedShuffler, multiplier_values
+from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective
+from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, multiplier_values
 from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.stacked import StackedActorCritic
 
@@ -49,7 +50,7 @@ def build(obs_dim: int, act_dim: int, seeds: int, device: torch.device, minibatc
             nets.append(make_actor_critics(obs_dim, Bounded(-1.0, 1.0, shape=(act_dim,), device=device), HIDDEN))
         model = StackedActorCritic.from_single(nets)
     optimizer = FusedFirstOrderStep.make_optimizer(model, LR, LR, max_grad_norm=MAX_NORM)
-    spec = FirstOrderSpec("ppo", combine="sum_norm", clip_epsilon=CLIP, critic_l2=L2)
+    spec = SeedBatchedObjective(ClipSurrogate(CLIP), combine="sum_norm", critic_l2=L2)
     fused = FusedFirstOrderStep(model, optimizer, spec)
     gen = torch.Generator().manual_seed(0)
     fields = {"observation": torch.randn(seeds, SAMPLES, obs_dim, generator=gen),

@@ -39,7 +39,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torchrl.data import Bounded
 
 from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss
-from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedBatch, SeedShuffler, multiplier_values
+from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective
+from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, multiplier_values
 from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.stacked import StackedActorCritic
 
@@ -166,7 +167,7 @@ def fused_step(obs_dim: int, act_dim: int, minibatch: int, seeds: int, compile: 
         nets.append(make_actor_critics(obs_dim, Bounded(-1.0, 1.0, shape=(act_dim,)), HIDDEN))
     model = StackedActorCritic.from_single(nets)
     optimizer = FusedFirstOrderStep.make_optimizer(model, LR, LR, max_grad_norm=MAX_NORM, compile=compile)
-    spec = FirstOrderSpec("ppo", combine="sum_norm", clip_epsilon=CLIP, critic_l2=L2)
+    spec = SeedBatchedObjective(ClipSurrogate(CLIP), combine="sum_norm", critic_l2=L2)
     fused = FusedFirstOrderStep(model, optimizer, spec, compile=compile)
     rollouts = [rollout(obs_dim, act_dim, seed) for seed in range(seeds)]
     batch = SeedBatch.pack({key: torch.stack([r[key] for r in rollouts]) for key in spec.fields})

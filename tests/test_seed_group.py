@@ -46,7 +46,7 @@ from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, GroupTrainer, TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.config import SEED_GROUP_ALGORITHMS  # noqa: E402
-from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedShuffler  # noqa: E402
+from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler  # noqa: E402
 from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts  # noqa: E402
 from sg_torchrl.train.models import make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_group import seed_entry  # noqa: E402
@@ -187,7 +187,7 @@ def synthetic_update(passes: int, target_kl: float, nan_seed: int | None = None)
     optimizer = FusedFirstOrderStep.make_optimizer(model, 3e-4, 3e-4, max_grad_norm=40.0)
     parts = GroupParts(model, optimizer, SeedShuffler(seeds), passes=passes, minibatch_size=32, target_kl=target_kl)
     loss = PPOLagLoss(*nets[0], LagrangeMultiplier(cost_limit=0.0), critic_l2_coeff=1e-3, functional=False)
-    update = FirstOrderGroupUpdate(parts, FirstOrderSpec.from_loss(loss))
+    update = FirstOrderGroupUpdate(parts, loss.seed_batched_objective())
     generator = torch.Generator().manual_seed(0)
     obs = torch.randn(2, size, obs_dim, generator=generator)
     action, log_prob, loc, scale = model.sample(obs, [torch.Generator().manual_seed(s) for s in seeds])

@@ -35,13 +35,12 @@ from sg_torchrl.objectives import (  # noqa: E402
     PPOLagLoss,
     gaussian_kl,
 )
+from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective  # noqa: E402
 from sg_torchrl.train.fused import (  # noqa: E402
-    FirstOrderSpec,
     FusedFirstOrderStep,
     SeedBatch,
     SeedShuffler,
     batch_kl,
-    first_order_diagnostics,
     multiplier_values,
 )
 from sg_torchrl.train.models import make_actor_critics  # noqa: E402
@@ -229,13 +228,13 @@ def test_fused_losses_and_gradients_match_single_seed_losses(group, case):
     # As sg_torchrl.train.algorithms builds them: critic_l2 as the trainer sets it, functional=False.
     losses = [loss_class(*triple, m, critic_l2_coeff=1e-3, functional=False, **options)
               for triple, m in zip(nets, multipliers)]
-    spec = FirstOrderSpec.from_loss(losses[0])
+    spec = losses[0].seed_batched_objective()
     model = StackedActorCritic.from_single(nets)
     step = FusedFirstOrderStep(model, FusedFirstOrderStep.make_optimizer(model, 3e-4, 3e-4), spec)
     batch = stack_batches(batches, spec.fields)
     lam = multiplier_values(multipliers)
     returned = step.backward(batch, lam)
-    diagnostics = first_order_diagnostics(model, batch, lam, spec)
+    diagnostics = spec.diagnostics(model, batch.fields(), lam)
     for s, (triple, loss, data) in enumerate(zip(nets, losses, batches)):
         for p in [*triple[0].parameters(), *triple[1].parameters(), *triple[2].parameters()]:
             p.grad = None
@@ -256,12 +255,12 @@ def test_fused_losses_and_gradients_match_single_seed_losses(group, case):
             torch.testing.assert_close(diagnostics["kl_mask_fraction"][s], out["kl_mask_fraction"], rtol=0, atol=0)
 
 
-def test_from_loss_rejects_what_the_fused_step_lacks(group):
+def test_seed_batched_objective_rejects_what_the_fused_step_lacks(group):
     triple = group[0][0]
     with pytest.raises(ValueError, match="clip_value"):
-        FirstOrderSpec.from_loss(PPOLagLoss(*triple, NoMultiplier(), clip_value=0.2, functional=False))
+        PPOLagLoss(*triple, NoMultiplier(), clip_value=0.2, functional=False).seed_batched_objective()
     with pytest.raises(ValueError, match="entropy_bonus"):
-        FirstOrderSpec.from_loss(PPOLagLoss(*triple, NoMultiplier(), entropy_coeff=0.01, functional=False))
+        PPOLagLoss(*triple, NoMultiplier(), entropy_coeff=0.01, functional=False).seed_batched_objective()
 
 
 # --------------------------------------------------------------------------- (c, d) Adam and clip
@@ -362,7 +361,7 @@ def test_per_seed_clip_matches_clip_grad_norm():
 
 
 # --------------------------------------------------------------------------- (e) trajectories
-def _run_group(seed_ids, nets, batches, steps_per_pass: int, passes: int, spec: FirstOrderSpec, lam_of):
+def _run_group(seed_ids, nets, batches, steps_per_pass: int, passes: int, spec: SeedBatchedObjective, lam_of):
     """A seed group's minibatch passes with per-seed KL stops; returns each step's parameters of every seed."""
     model = StackedActorCritic.from_single([nets[i] for i in seed_ids])
     optimizer = FusedFirstOrderStep.make_optimizer(model, 3e-4, 3e-4, max_grad_norm=40.0)
@@ -386,7 +385,7 @@ def _run_group(seed_ids, nets, batches, steps_per_pass: int, passes: int, spec: 
 
 def test_seed_in_a_group_of_three_moves_as_in_a_group_of_one(group):
     nets, batches = group
-    spec = FirstOrderSpec("ppo", combine="sum_norm")
+    spec = SeedBatchedObjective(ClipSurrogate(0.2), combine="sum_norm")
     lam_of = [torch.tensor(v) for v in (0.2, 0.5, 1.5)]
     batches = [b.clone().set("advantage", b["advantage"] * 50) for b in batches]  # big steps: ratios leave the clip range
     three = _run_group([0, 1, 2], nets, batches, 3, 3, spec, lam_of)
@@ -418,7 +417,7 @@ def test_group_of_one_tracks_the_trainer_loop(group):
     data = batches[seed_index].select(*loss.in_keys)
 
     model = StackedActorCritic.from_single([nets[seed_index]])
-    spec = FirstOrderSpec.from_loss(loss)
+    spec = loss.seed_batched_objective()
     step = FusedFirstOrderStep(model, FusedFirstOrderStep.make_optimizer(model, 3e-4, 1e-3, max_grad_norm=40.0), spec)
     stacked = stack_batches([batches[seed_index]], spec.fields)
     shuffler = SeedShuffler([SEEDS[seed_index]])

@@ -264,7 +264,8 @@ def synthetic_group(passes: int, target_kl: float):
     """A two-seed PPO-Lag group on synthetic data: seed 0's advantages are large (its KL stop fires
     after its first pass), seed 1's are zero (its actor never moves: KL 0, it runs every pass)."""
     import sg_torchrl
-    from sg_torchrl.train.fused import FirstOrderSpec, FusedFirstOrderStep, SeedShuffler
+    from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective
+    from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler
     from sg_torchrl.train.group_updates import GroupParts
     from sg_torchrl.train.models import make_actor_critics
     from sg_torchrl.train.stacked import StackedActorCritic
@@ -278,7 +279,7 @@ def synthetic_group(passes: int, target_kl: float):
     model = StackedActorCritic.from_single(nets)
     optimizer = FusedFirstOrderStep.make_optimizer(model, 1e-3, 1e-3, max_grad_norm=40.0)
     parts = GroupParts(model, optimizer, SeedShuffler(seeds), passes=passes, minibatch_size=32, target_kl=target_kl)
-    step = FusedFirstOrderStep(model, optimizer, FirstOrderSpec("ppo", critic_l2=1e-3))
+    step = FusedFirstOrderStep(model, optimizer, SeedBatchedObjective(ClipSurrogate(0.2), critic_l2=1e-3))
     generator = torch.Generator().manual_seed(0)
     obs = torch.randn(2, size, obs_dim, generator=generator)
     with torch.no_grad():

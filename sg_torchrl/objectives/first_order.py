@@ -3,9 +3,11 @@
 SafePO's first-order family (Ji et al. 2023, "Safety-Gymnasium: A Unified Safe Reinforcement
 Learning Benchmark", the algorithms behind its single-agent tables) shares one update loop:
 minibatch Adam steps on actor + reward critic + cost critic with KL early stopping. The
-algorithms differ only in the policy objective, so each loss here overrides
-:meth:`PPOLagLoss._surrogate` (what is made of the importance ratio and the advantage), and keeps
-the actor evaluation, ratio diagnostics and both critic losses of :class:`PPOLagLoss`:
+algorithms differ only in the policy objective, so each loss here returns its own
+:attr:`PPOLagLoss.surrogate` (what is made of the importance ratio and the advantage; the math is
+written once, in :mod:`sg_torchrl.objectives.surrogates`, and the seed-batched engine trains the
+same object), and keeps the actor evaluation, ratio diagnostics and both critic losses of
+:class:`PPOLagLoss`:
 
 * **PPO** (unconstrained) needs no class: ``PPOLagLoss(actor, critic, cost_critic, NoMultiplier())``
   optimises the clipped surrogate on the reward advantage alone, and still trains and reports the
@@ -28,45 +30,13 @@ from typing import Any
 from tensordict import TensorDictBase
 from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
-from torch import distributions as D, Tensor
+from torch import Tensor
 
-from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multipliers import _as_finite_float, Multiplier, NoMultiplier
 from sg_torchrl.objectives.ppo_lag import _as_key_list, PPOLagLoss
+from sg_torchrl.objectives.surrogates import CUPProjectionSurrogate, FOCOPSSurrogate, PGSurrogate, SeedBatchedObjective
 
 __all__ = ["CUPLoss", "FOCOPSLoss", "PGLoss"]
-
-
-def _kl_to_stored_gaussian(
-    dist: D.Distribution, tensordict: TensorDictBase, loc_key: NestedKey, scale_key: NestedKey
-) -> Tensor:
-    """Per-sample :math:`\\mathrm{KL}(\\pi_\\theta \\,\\|\\, \\mathcal N(\\mu, \\sigma))`, shape ``[*B, 1]``.
-
-    ``dist`` is the current (diagonal Gaussian) policy; :math:`\\mu, \\sigma` are read from
-    ``tensordict`` under ``loc_key`` / ``scale_key``. The KL is summed over the action dimension and
-    is differentiable in the current policy only.
-
-    Raises:
-        TypeError: if ``dist`` is not a (possibly ``Independent``-wrapped) ``Normal``.
-        KeyError: if a stored parameter is missing.
-    """
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal):
-        raise TypeError(
-            f"The KL to a stored policy is computed in closed form for diagonal Gaussian policies "
-            f"(Normal / IndependentNormal); the actor produced {type(dist).__name__}."
-        )
-    stored = []
-    for key in (loc_key, scale_key):
-        value = tensordict.get(key, None)
-        if value is None:
-            raise KeyError(
-                f"{key!r} (a stored policy parameter) is missing from the input; write it into the "
-                f"batch first, or remap the key with loss.set_keys(...)."
-            )
-        stored.append(value)
-    loc, scale = stored
-    return gaussian_kl(base.loc, base.scale, loc, scale).unsqueeze(-1)
 
 
 class PGLoss(PPOLagLoss):
@@ -93,7 +63,6 @@ class PGLoss(PPOLagLoss):
         those of :class:`PPOLagLoss` without ``clip_fraction``.
     """
 
-    _surrogate_out_keys: tuple[str, ...] = ()
 
     def __init__(
         self,
@@ -107,17 +76,10 @@ class PGLoss(PPOLagLoss):
             multiplier = NoMultiplier()
         super().__init__(actor_network, critic_network, cost_critic_network, multiplier, **kwargs)
 
-    def _surrogate(
-        self,
-        log_weight: Tensor,
-        advantage: Tensor,
-        dist: D.Distribution,
-        tensordict: TensorDictBase,
-        *,
-        log_is_weight: Tensor | None = None,
-    ) -> tuple[Tensor, dict[str, Tensor]]:
-        ratio = self._behaviour_log_ratio(log_weight, log_is_weight).exp()
-        return -ratio * advantage, {}
+    @property
+    def surrogate(self) -> PGSurrogate:
+        """:math:`-r A`, no clip (:class:`~sg_torchrl.objectives.surrogates.PGSurrogate`)."""
+        return PGSurrogate()
 
 
 class FOCOPSLoss(PPOLagLoss):
@@ -195,7 +157,6 @@ class FOCOPSLoss(PPOLagLoss):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     _schedulable_buffers = PPOLagLoss._schedulable_buffers | {"temperature", "target_kl"}
-    _surrogate_out_keys: tuple[str, ...] = ("kl", "kl_mask_fraction")
 
     temperature: Tensor
     target_kl: Tensor
@@ -229,27 +190,10 @@ class FOCOPSLoss(PPOLagLoss):
         extra = [*_as_key_list(self.tensor_keys.old_loc), *_as_key_list(self.tensor_keys.old_scale)]
         self._in_keys = list(dict.fromkeys([*self._in_keys, *extra]))
 
-    def _surrogate(
-        self,
-        log_weight: Tensor,
-        advantage: Tensor,
-        dist: D.Distribution,
-        tensordict: TensorDictBase,
-        *,
-        log_is_weight: Tensor | None = None,
-    ) -> tuple[Tensor, dict[str, Tensor]]:
-        ratio = self._behaviour_log_ratio(log_weight, log_is_weight).exp()
-        kl = _kl_to_stored_gaussian(
-            dist, tensordict, self.tensor_keys.old_loc, self.tensor_keys.old_scale
-        )
-        inside = (kl.detach() <= self.target_kl).to(kl.dtype)
-        weighted_gain = ratio * advantage / self.temperature
-        if self.safepo_broadcast:
-            # mean_i of this is SafePO's mean over the (B, B) broadcast matrix
-            loss = kl * inside - inside.mean() * weighted_gain
-        else:
-            loss = (kl - weighted_gain) * inside
-        return loss, {"kl": kl.detach().mean(), "kl_mask_fraction": inside.mean()}
+    @property
+    def surrogate(self) -> FOCOPSSurrogate:
+        """FOCOPS's masked objective with this loss's temperature, threshold and quirk option."""
+        return FOCOPSSurrogate(float(self.temperature), float(self.target_kl), self.safepo_broadcast)
 
     def extra_repr(self) -> str:
         return (
@@ -336,7 +280,6 @@ class CUPLoss(PPOLagLoss):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     _schedulable_buffers = PPOLagLoss._schedulable_buffers | {"cost_coeff"}
-    _surrogate_out_keys: tuple[str, ...] = ("kl",)
 
     reward_stage: PPOLagLoss
     cost_coeff: Tensor
@@ -381,7 +324,7 @@ class CUPLoss(PPOLagLoss):
     @property
     def out_keys(self) -> list[NestedKey]:
         if self._out_keys is None:
-            keys = ["loss_objective", *self._surrogate_out_keys]
+            keys = ["loss_objective", *self.surrogate.diagnostic_names]
             if self.entropy_bonus:
                 keys.extend(["entropy", "loss_entropy"])
             keys.extend(["ESS", "kl_approx", "max_ratio", "mean_ratio", "lagrange_multiplier"])
@@ -392,31 +335,24 @@ class CUPLoss(PPOLagLoss):
     def out_keys(self, values: list[NestedKey]) -> None:
         self._out_keys = values
 
-    def _surrogate(
-        self,
-        log_weight: Tensor,
-        advantage: Tensor,
-        dist: D.Distribution,
-        tensordict: TensorDictBase,
-        *,
-        log_is_weight: Tensor | None = None,
-    ) -> tuple[Tensor, dict[str, Tensor]]:
-        ratio = self._behaviour_log_ratio(log_weight, log_is_weight).exp()
-        kl = _kl_to_stored_gaussian(
-            dist, tensordict, self.tensor_keys.stage1_loc, self.tensor_keys.stage1_scale
-        )
-        nu = self.multiplier.value.to(device=ratio.device, dtype=ratio.dtype)
-        loss = nu * self.cost_coeff * ratio * advantage + kl
-        return loss, {"kl": kl.detach().mean()}
+    @property
+    def surrogate(self) -> CUPProjectionSurrogate:
+        """CUP's projection objective with this loss's :math:`c` (stage one is :attr:`reward_stage`'s)."""
+        return CUPProjectionSurrogate(float(self.cost_coeff))
+
+    def seed_batched_objective(self, *, critics_only: bool = False) -> SeedBatchedObjective:
+        """The projection stage in the engine's form (stage one: ``reward_stage.seed_batched_objective()``).
+
+        The checks of :meth:`PPOLagLoss.seed_batched_objective` apply; the projection trains the
+        actor alone.
+        """
+        return super().seed_batched_objective(critics_only=critics_only)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """CUP's projection (stage-two) loss on a batch; see the class docstring for keys."""
         tensordict = self._with_advantages(tensordict, reward=False)  # computed if missing
-        cost_advantage = self._get_required(
-            tensordict, self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)"
-        )
-        td_out = self._reduce_losses(self._actor_loss(tensordict, cost_advantage), tensordict)
+        td_out = self._reduce_losses(self._actor_loss(tensordict, self._policy_advantage(tensordict)), tensordict)
         ref = td_out.get("loss_objective")
         td_out.set(
             "lagrange_multiplier", self.multiplier.value.to(device=ref.device, dtype=ref.dtype)

@@ -7,9 +7,11 @@ divergence as their trust region. Policies are diagonal Gaussians, so the KL has
 """
 from __future__ import annotations
 
-from torch import Tensor
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import distributions as D, Tensor
 
-__all__ = ["gaussian_kl"]
+__all__ = ["gaussian_kl", "kl_to_stored_gaussian"]
 
 
 def gaussian_kl(loc_old: Tensor, scale_old: Tensor, loc_new: Tensor, scale_new: Tensor) -> Tensor:
@@ -36,3 +38,35 @@ def gaussian_kl(loc_old: Tensor, scale_old: Tensor, loc_new: Tensor, scale_new: 
     var_ratio = (scale_old / scale_new).pow(2)
     mean_term = ((loc_old - loc_new) / scale_new).pow(2)
     return 0.5 * (var_ratio + mean_term - 1.0 - var_ratio.log()).sum(-1)
+
+
+def kl_to_stored_gaussian(
+    dist: D.Distribution, tensordict: TensorDictBase, loc_key: NestedKey, scale_key: NestedKey
+) -> Tensor:
+    """Per-sample :math:`\\mathrm{KL}(\\pi_\\theta \\,\\|\\, \\mathcal N(\\mu, \\sigma))`, shape ``[*B, 1]``.
+
+    ``dist`` is the current (diagonal Gaussian) policy; :math:`\\mu, \\sigma` are read from
+    ``tensordict`` under ``loc_key`` / ``scale_key``. The KL is summed over the action dimension and
+    is differentiable in the current policy only.
+
+    Raises:
+        TypeError: if ``dist`` is not a (possibly ``Independent``-wrapped) ``Normal``.
+        KeyError: if a stored parameter is missing.
+    """
+    base = dist.base_dist if isinstance(dist, D.Independent) else dist
+    if not isinstance(base, D.Normal):
+        raise TypeError(
+            f"The KL to a stored policy is computed in closed form for diagonal Gaussian policies "
+            f"(Normal / IndependentNormal); the actor produced {type(dist).__name__}."
+        )
+    stored = []
+    for key in (loc_key, scale_key):
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"{key!r} (a stored policy parameter) is missing from the input; write it into the "
+                f"batch first, or remap the key with loss.set_keys(...)."
+            )
+        stored.append(value)
+    loc, scale = stored
+    return gaussian_kl(base.loc, base.scale, loc, scale).unsqueeze(-1)

@@ -34,6 +34,8 @@ from numbers import Real
 import torch
 from torch import nn, Tensor
 
+from sg_torchrl.objectives.surrogates import combine_advantages, CombineRule
+
 __all__ = ["Multiplier", "LagrangeMultiplier", "NoMultiplier", "PIDLagrangeMultiplier"]
 
 
@@ -136,14 +138,22 @@ class Multiplier(nn.Module, abc.ABC):
         """Returns :attr:`value`, so the module can be called like any other."""
         return self.value
 
+    @property
+    def combine_rule(self) -> CombineRule:
+        """How :meth:`combine` mixes the advantages: ``"diff_norm"`` > ``"sum_norm"`` > ``"plain"``."""
+        if self.diff_norm:
+            return "diff_norm"
+        return "sum_norm" if self.sum_norm else "plain"
+
     def combine(self, advantage: Tensor, cost_advantage: Tensor) -> Tensor:
         """The Lagrangian advantage every multiplier-based algorithm optimises.
 
         SafePO's :math:`(A_r - \\lambda A_c) / (1 + \\lambda)` when :attr:`sum_norm` (PPO-Lag,
         TRPO-Lag, RCPO, CPPO-PID, FOCOPS), :math:`(1 - \\lambda) A_r - \\lambda A_c` when
         :attr:`diff_norm` (Stooke et al. 2020) and :math:`A_r - \\lambda A_c` otherwise, with
-        :math:`\\lambda` = :attr:`value` (no gradient flows into the multiplier). First- and
-        second-order losses both call this, so the rule lives in one place.
+        :math:`\\lambda` = :attr:`value` (no gradient flows into the multiplier):
+        :func:`~sg_torchrl.objectives.surrogates.combine_advantages` with this multiplier's value and
+        :attr:`combine_rule`, the function the seed-batched engine calls with one value per seed.
 
         Raises:
             ValueError: if the two advantages have different shapes (no silent broadcasting).
@@ -153,12 +163,7 @@ class Multiplier(nn.Module, abc.ABC):
                 f"the reward advantage has shape {tuple(advantage.shape)} but the cost advantage has shape "
                 f"{tuple(cost_advantage.shape)}; they must match (no silent broadcasting)."
             )
-        lam = self.value.to(device=advantage.device, dtype=advantage.dtype)
-        if self.diff_norm:
-            return (1 - lam) * advantage - lam * cost_advantage
-        if self.sum_norm:
-            return (advantage - lam * cost_advantage) / (1 + lam)
-        return advantage - lam * cost_advantage
+        return combine_advantages(advantage, cost_advantage, self.value, self.combine_rule)
 
 
 class NoMultiplier(Multiplier):

@@ -32,7 +32,7 @@ advantages are combined (``multiplier.sum_norm`` / ``multiplier.diff_norm``).
 """
 from __future__ import annotations
 
-import contextlib
+import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -41,14 +41,22 @@ import torch
 from tensordict import is_tensor_collection, TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
-from torch import distributions as D, nn, Tensor
+from torch import distributions as D, Tensor
 from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.utils import distance_loss
 
+from sg_torchrl.objectives.kl import kl_to_stored_gaussian
+from sg_torchrl.objectives.cost_critic import CostCriticLosses
 from sg_torchrl.objectives.multipliers import Multiplier
+from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective, Surrogate
 from sg_torchrl.objectives.value import AdvantageEstimation
 
 __all__ = ["PPOLagLoss"]
+
+
+#: The methods that define a first-order loss's math; a subclass overriding one of them must define its own
+#: ``seed_batched_objective`` (see :meth:`PPOLagLoss.seed_batched_objective`).
+_MATH_HOOKS = ("_surrogate", "_combined_advantage", "_actor_loss", "forward", "critic_losses", "loss_cost_critic",
+               "loss_critic")
 
 
 def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
@@ -57,7 +65,7 @@ def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
     return [keys]
 
 
-class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
+class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
     """PPO-Lagrangian loss: clipped PPO on the Lagrangian advantage, plus reward and cost critics.
 
     With :math:`r_t(\\theta) = \\pi_\\theta(a_t|s_t) / \\pi_{\\text{old}}(a_t|s_t)` and
@@ -69,12 +77,13 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
         \\qquad A_t = \\frac{A^r_t - \\lambda A^c_t}{1 + \\lambda}
 
     (``multiplier.sum_norm``; :math:`A^r - \\lambda A^c` without it, and
-    :math:`(1 - \\lambda) A^r - \\lambda A^c` with ``multiplier.diff_norm``). Two hooks carry
-    what the first-order variants change: :meth:`_combined_advantage` (which advantage the policy
-    sees) and :meth:`_surrogate` (what is made of the ratio and that advantage: the clipped
-    surrogate here; plain importance weighting in :class:`~sg_torchrl.objectives.PGLoss`, the
-    KL-regularised targets of :class:`~sg_torchrl.objectives.FOCOPSLoss` and
-    :class:`~sg_torchrl.objectives.CUPLoss`). The actor is evaluated once per call; the ratio
+    :math:`(1 - \\lambda) A^r - \\lambda A^c` with ``multiplier.diff_norm``). What the first-order
+    variants change is one object, :attr:`surrogate` (what is made of the ratio and the advantage:
+    the clipped surrogate here; plain importance weighting in :class:`~sg_torchrl.objectives.PGLoss`,
+    the KL-regularised targets of :class:`~sg_torchrl.objectives.FOCOPSLoss` and
+    :class:`~sg_torchrl.objectives.CUPLoss`), written once in :mod:`sg_torchrl.objectives.surrogates`
+    and trained by the seed-batched engine through :meth:`seed_batched_objective`; the advantage rule
+    is the multiplier's. The actor is evaluated once per call; the ratio
     (torchrl's ``_log_weight``), ratio diagnostics, entropy and reward-critic loss are
     :class:`~torchrl.objectives.ClipPPOLoss`'s own methods.
 
@@ -190,8 +199,6 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     _schedulable_buffers = frozenset({"critic_l2_coeff", "cost_critic_coeff"})
-    #: Detached diagnostics returned by :meth:`_surrogate` (listed in :attr:`out_keys`).
-    _surrogate_out_keys: tuple[str, ...] = ("clip_fraction",)
 
     cost_critic_network: TensorDictModule
     cost_critic_network_params: TensorDictParams
@@ -283,7 +290,7 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
     def out_keys(self) -> list[NestedKey]:
         if self._out_keys is None:
             keys = [k for k in ClipPPOLoss.out_keys.fget(self) if k != "clip_fraction"]
-            keys.extend(self._surrogate_out_keys)
+            keys.extend(self.surrogate.diagnostic_names)
             keys.extend(["loss_cost_critic", "lagrange_multiplier"])
             if self.clip_value is not None:
                 keys.append("cost_value_clip_fraction")
@@ -298,7 +305,7 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
     def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
         """The advantage fed to the clipped surrogate: the Lagrangian mix of :math:`A^r` and :math:`A^c`.
 
-        This is the one hook Lagrangian variants override. The default is SafePO's
+        The multiplier's rule (:meth:`~sg_torchrl.objectives.Multiplier.combine`): SafePO's
         :math:`(A^r - \\lambda A^c) / (1 + \\lambda)` when ``multiplier.sum_norm`` (PPO-Lag,
         CPPO-PID), :math:`(1 - \\lambda) A^r - \\lambda A^c` when ``multiplier.diff_norm`` (Stooke
         et al. 2020) and :math:`A^r - \\lambda A^c` otherwise, with :math:`\\lambda` =
@@ -332,82 +339,20 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
             )
         return value
 
-    # --------------------------------------------------------------- critics
-    def _squared_param_norm(self, network_name: str) -> Tensor | None:
-        """Sum of squared parameters (weights and biases) of a critic; ``None`` if it has none."""
-        if self.functional:
-            params_td = getattr(self, network_name + "_params")
-            params = [p for p in params_td.values(True, True) if isinstance(p, nn.Parameter)]
-        else:
-            params = list(getattr(self, network_name).parameters())
-        if not params:
-            return None
-        return torch.stack([p.pow(2).sum() for p in params]).sum()
-
-    def loss_cost_critic(
-        self, tensordict: TensorDictBase
-    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """Cost-critic regression loss, before reduction and without the L2 penalty.
-
-        Mirrors :meth:`~torchrl.objectives.PPOLoss.loss_critic` for the cost critic: distance
-        (``loss_critic_type``) between the cost critic's prediction and
-        ``tensor_keys.cost_value_target``, optionally value-clipped around the stored
-        ``tensor_keys.cost_value``, times ``cost_critic_coeff``. The reward critic's
-        ``_critic_loss_inputs`` hook (e.g. PopArt value normalisation) is deliberately not applied:
-        its statistics belong to the reward.
-
-        Args:
-            tensordict (TensorDictBase): the input batch.
-
-        Returns:
-            ``(loss, clip_fraction, explained_variance)``; ``loss`` is per sample, the other two
-            are ``None`` when value clipping / explained-variance logging is off.
-        """
-        if self.separate_losses:
-            tensordict = tensordict.detach()
-        target = self._get_required(
-            tensordict, self.tensor_keys.cost_value_target, "make_cost_gae(cost_critic)"
-        )
-        old_value = None
-        if self.clip_value is not None:
-            old_value = self._get_required(
-                tensordict, self.tensor_keys.cost_value, "make_cost_gae(cost_critic)"
-            )
-        with (
-            self.cost_critic_network_params.to_module(
-                self.cost_critic_network, preserve_module_state=False
-            )
-            if self.functional
-            else contextlib.nullcontext()
-        ):
-            out = self.cost_critic_network(tensordict.copy())
-        value = out.get(self.tensor_keys.cost_value, None)
-        if value is None:
-            raise KeyError(
-                f"The cost critic did not write {self.tensor_keys.cost_value!r}; check its out_keys "
-                f"or call loss.set_keys(cost_value=...)."
-            )
-        loss = distance_loss(target, value, loss_function=self.loss_critic_type)
-        clip_fraction = None
-        if old_value is not None:
-            delta = value - old_value
-            clipped = delta.clamp(-self.clip_value, self.clip_value)
-            loss_clipped = distance_loss(
-                target, old_value + clipped, loss_function=self.loss_critic_type
-            )
-            loss = torch.maximum(loss, loss_clipped)
-            with torch.no_grad():
-                clip_fraction = (delta != clipped).to(value.dtype).mean()
-        explained_variance = None
-        if self.log_explained_variance:
-            with torch.no_grad():
-                tgt, pred = target.detach(), value.detach()
-                eps = torch.finfo(tgt.dtype).eps
-                resid = torch.var(tgt - pred, correction=0, dim=0)
-                explained_variance = 1.0 - resid / (torch.var(tgt, correction=0, dim=0) + eps)
-        return self.cost_critic_coeff * loss, clip_fraction, explained_variance
-
     # --------------------------------------------------------------- policy
+    @property
+    def surrogate(self) -> Surrogate:
+        """The policy objective (:mod:`sg_torchrl.objectives.surrogates`): PPO's clipped surrogate here.
+
+        The one definition of the algorithm's per-sample math: :meth:`_surrogate` evaluates it on this
+        loss's batch and the seed-batched engine on S stacked seeds (:meth:`seed_batched_objective`).
+        Subclasses return their own (``PGLoss``, ``FOCOPSLoss``, ``CUPLoss``); a new first-order
+        algorithm is a new :class:`~sg_torchrl.objectives.surrogates.Surrogate` returned here.
+        """
+        if self._asymmetric_clip:
+            return ClipSurrogate(float(self.clip_epsilon_low), float(self.clip_epsilon_high))
+        return ClipSurrogate(float(self.clip_epsilon))
+
     def _surrogate(
         self,
         log_weight: Tensor,
@@ -419,10 +364,8 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """The per-sample policy loss (the negated surrogate) and its detached diagnostics.
 
-        The second hook of the first-order family, next to :meth:`_combined_advantage`: this
-        default is PPO's clipped surrogate :math:`-\\min(r A, \\mathrm{clip}(r, 1-\\epsilon,
-        1+\\epsilon) A)` with ``clip_fraction`` as diagnostic; PG, FOCOPS and CUP override it.
-        Everything an override may need comes from the single actor evaluation of the call.
+        Evaluates :attr:`surrogate` on the batch: the KL to the stored policy it names (if any) is
+        taken in closed form from ``dist``, and :math:`\\lambda` is the multiplier's value.
 
         Args:
             log_weight (Tensor): :math:`\\log \\pi_\\theta(a|s) - \\log \\pi_{\\text{prox}}(a|s)`,
@@ -430,33 +373,99 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
                 ``max_importance_ratio`` options the proximal policy is the behaviour policy whose
                 log-prob is stored under ``tensor_keys.sample_log_prob``.
             advantage (Tensor): the advantage the policy optimises, same shape as ``log_weight``.
-            dist (Distribution): the current policy at the batch's observations (differentiable),
-                e.g. for a KL to a stored policy.
-            tensordict (TensorDictBase): the input batch as given to ``forward``; the actor's
-                outputs are written elsewhere, so stored entries (e.g. the rollout ``loc`` /
-                ``scale``) are the stored values.
+            dist (Distribution): the current policy at the batch's observations (differentiable).
+            tensordict (TensorDictBase): the input batch as given to ``forward`` (stored entries,
+                e.g. the rollout ``loc`` / ``scale``, keep their stored values).
 
         Keyword Args:
             log_is_weight (Tensor, optional): :math:`\\log \\pi_{\\text{prox}} - \\log
                 \\pi_{\\text{behav}}` (torchrl's importance correction), ``None`` when the proximal
-                policy is the behaviour policy. See :meth:`_behaviour_log_ratio`.
+                policy is the behaviour policy.
 
         Returns:
             ``(loss, diagnostics)``: the unreduced loss, shape ``[*B, 1]``, and a dict of detached
-            scalars whose keys are :attr:`_surrogate_out_keys`.
+            scalars keyed by the surrogate's ``diagnostic_names``.
         """
-        log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight)
-        clipped_log_weight = log_weight.clamp(*self._clip_bounds)
-        clip_fraction = (clipped_log_weight != log_weight).to(log_weight.dtype).mean()
-        if log_is_weight is not None:
-            clipped_log_weight = clipped_log_weight + log_is_weight
-        gain = torch.minimum(log_ratio.exp() * advantage, clipped_log_weight.exp() * advantage)
-        return -gain, {"clip_fraction": clip_fraction}
+        surrogate = self.surrogate
+        kl = None
+        if surrogate.reference is not None:
+            loc_key, scale_key = self._reference_keys(surrogate.reference)
+            kl = kl_to_stored_gaussian(dist, tensordict, loc_key, scale_key)
+        loss = surrogate.loss(log_weight, advantage, cost_advantage=tensordict.get(self.tensor_keys.cost_advantage, None),
+                              kl=kl, lam=self.multiplier.value, log_is_weight=log_is_weight)
+        return loss, surrogate.diagnostics(log_weight, kl=kl)
 
-    @staticmethod
-    def _behaviour_log_ratio(log_weight: Tensor, log_is_weight: Tensor | None) -> Tensor:
-        """:math:`\\log \\pi_\\theta / \\pi_{\\text{behav}}`, the log importance weight."""
-        return log_weight if log_is_weight is None else log_weight + log_is_weight
+    def _policy_advantage(self, tensordict: TensorDictBase) -> Tensor:
+        """The advantage :attr:`surrogate` optimises: the combined one, or :math:`A_r` / :math:`A_c` itself."""
+        kind = self.surrogate.advantage
+        if kind == "combined":
+            return self._combined_advantage(tensordict)
+        key, producer = ((self.tensor_keys.advantage, "make_gae(critic)") if kind == "reward"
+                         else (self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)"))
+        return self._get_required(tensordict, key, producer)
+
+    def _reference_keys(self, reference: str) -> tuple[NestedKey, NestedKey]:
+        """The batch keys of the stored policy a surrogate's KL goes to (``"rollout"`` or ``"stage1"``)."""
+        names = {"rollout": ("old_loc", "old_scale"), "stage1": ("stage1_loc", "stage1_scale")}[reference]
+        try:
+            return tuple(getattr(self.tensor_keys, name) for name in names)
+        except AttributeError:
+            raise TypeError(
+                f"{type(self).__name__}'s surrogate reads the {reference!r} policy, but its tensor_keys have no "
+                f"{names[0]!r} / {names[1]!r}: declare them in its _AcceptedKeys"
+            ) from None
+
+    # --------------------------------------------------------------- the engine's form
+    def seed_batched_objective(self, *, critics_only: bool = False) -> SeedBatchedObjective:
+        """This loss in the form the seed-batched engine trains (S seeds, one pass): the public protocol.
+
+        The engine never builds an objective from an algorithm's name: it asks the loss object.
+        The objective holds this loss's :attr:`surrogate`, the multiplier's advantage rule and the
+        critics' L2 weight, so seed ``s`` of the engine's step is this loss's step on seed ``s``.
+        With ``critics_only``, the critics' regression alone (what the second-order updates train
+        the critics with, :meth:`critic_losses`).
+
+        Raises:
+            TypeError: if a subclass overrides the math (``_surrogate``, ``_combined_advantage``,
+                ``forward``, ...) without defining its own ``seed_batched_objective``: the engine
+                would train another algorithm than the one the class defines.
+            ValueError: for options the seed-batched form does not implement (entropy bonus,
+                value clipping, in-loss advantage normalisation, non-MSE critics, critic
+                coefficients other than 1, ``delay_actor`` / ``max_importance_ratio``).
+        """
+        overrides = self._unbatched_overrides()
+        if overrides:
+            raise TypeError(
+                f"{type(self).__name__} overrides {', '.join(overrides)} but not seed_batched_objective(): the "
+                f"seed-batched engine cannot train it as defined. Give the loss a Surrogate (the 'surrogate' "
+                f"property) instead of overriding the hooks, or define seed_batched_objective()."
+            )
+        unsupported = {
+            "entropy_bonus": bool(self.entropy_bonus),
+            "clip_value": self.clip_value is not None,
+            "normalize_advantage": bool(self.normalize_advantage),
+            "loss_critic_type != 'l2'": self.loss_critic_type != "l2",
+            "critic_coeff != 1": self.critic_coeff is not None and float(self.critic_coeff) != 1.0,
+            "cost_critic_coeff != 1": float(self.cost_critic_coeff) != 1.0,
+            "delay_actor / max_importance_ratio": bool(self.delay_actor) or self.max_importance_ratio is not None,
+        }
+        used = [name for name, present in unsupported.items() if present]
+        if used:
+            raise ValueError(f"the seed-batched engine does not implement: {', '.join(used)}")
+        l2 = 0.0 if self.critic_l2_coeff is None else float(self.critic_l2_coeff)
+        surrogate = None if critics_only else self.surrogate
+        return SeedBatchedObjective(surrogate, combine=self.multiplier.combine_rule, critic_l2=l2)
+
+    def _unbatched_overrides(self) -> list[str]:
+        """The math hooks this object's class redefines below the class that defines ``seed_batched_objective``.
+
+        Compared through ``inspect.unwrap``: TorchRL's loss metaclass re-wraps ``forward`` in every
+        subclass, so a wrapper alone is no redefinition.
+        """
+        cls = type(self)
+        owner = next(klass for klass in cls.__mro__ if "seed_batched_objective" in vars(klass))
+        return [f"{cls.__name__}.{name}" for name in _MATH_HOOKS
+                if inspect.unwrap(getattr(cls, name)) is not inspect.unwrap(getattr(owner, name))]
 
     def _actor_loss(self, tensordict: TensorDictBase, advantage: Tensor) -> TensorDictBase:
         """Unreduced policy terms on ``advantage``: :meth:`_surrogate`, ratio diagnostics, entropy.
@@ -487,7 +496,7 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
         )
         td_out = TensorDict({"loss_objective": loss, **diagnostics})
         with torch.no_grad():
-            log_ratio = self._behaviour_log_ratio(log_weight, log_is_weight).detach()
+            log_ratio = Surrogate.log_ratio(log_weight, log_is_weight).detach()
             flat = log_ratio.reshape(-1)  # over every sample, also of an [N, T] rollout
             ess = (2 * flat.logsumexp(0) - (2 * flat).logsumexp(0)).exp()
             ratio = log_ratio.exp()
@@ -505,61 +514,11 @@ class PPOLagLoss(AdvantageEstimation, ClipPPOLoss):
             td_out.set("loss_entropy", self._weighted_loss_entropy(entropy))
         return td_out
 
-    def _reduce_losses(self, td_out: TensorDictBase, tensordict: TensorDictBase) -> TensorDictBase:
-        """Applies the loss's reduction (and the input's loss mask) to every ``loss_*`` entry."""
-        return td_out.named_apply(
-            lambda name, value: self._reduce_loss(value, tensordict).squeeze(-1)
-            if name.startswith("loss_")
-            else value,
-        )
-
-    # --------------------------------------------------------------- forward
-    def critic_losses(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """The reduced reward- and cost-critic losses, each with the critic L2 penalty.
-
-        ``loss_critic`` and ``loss_cost_critic`` (plus ``value_clip_fraction`` /
-        ``cost_value_clip_fraction`` with ``clip_value``, and the explained variances with
-        ``log_explained_variance``); the actor is not evaluated. :meth:`forward` uses it, and
-        the second-order updates train their critics with it alone.
-        """
-        td_out = TensorDict()
-        if self._has_critic:
-            loss_critic, clip_fraction, explained_variance = self.loss_critic(tensordict.copy())
-            td_out.set("loss_critic", loss_critic)
-            if clip_fraction is not None:
-                td_out.set("value_clip_fraction", clip_fraction)
-            if explained_variance is not None:
-                td_out.set("explained_variance", explained_variance)
-        loss_cost, cost_clip_fraction, cost_ev = self.loss_cost_critic(tensordict)
-        td_out.set("loss_cost_critic", loss_cost)
-        if cost_clip_fraction is not None:
-            td_out.set("cost_value_clip_fraction", cost_clip_fraction)
-        if cost_ev is not None:
-            td_out.set("cost_explained_variance", cost_ev)
-        td_out = self._reduce_losses(td_out, tensordict)
-        if self.critic_l2_coeff is not None:
-            for key, network in (
-                ("loss_critic", "critic_network"),
-                ("loss_cost_critic", "cost_critic_network"),
-            ):
-                norm = self._squared_param_norm(network) if key in td_out.keys() else None
-                if norm is not None:
-                    td_out.set(key, td_out.get(key) + self.critic_l2_coeff * norm)
-        self._clear_weakrefs(
-            tensordict,
-            td_out,
-            "critic_network_params",
-            "target_critic_network_params",
-            "cost_critic_network_params",
-            "target_cost_critic_network_params",
-        )
-        return td_out
-
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
         tensordict = self._with_advantages(tensordict)
-        td_out = self._actor_loss(tensordict, self._combined_advantage(tensordict))
+        td_out = self._actor_loss(tensordict, self._policy_advantage(tensordict))
         td_out = self._reduce_losses(td_out, tensordict)
         td_out.update(self.critic_losses(tensordict))
         ref = td_out.get("loss_objective")

@@ -27,7 +27,8 @@ with one. Adding an algorithm adds a row here, not trainer code.
 
 A row's ``make_group_update`` is its update loop for a seed group (``sg-train --seeds``,
 :mod:`sg_torchrl.train.group_updates`), built from the single-seed loss
-(:meth:`~sg_torchrl.train.fused.FirstOrderSpec.from_loss`) and, for the second-order rows, from the
+(the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_objective`, through
+:func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the second-order rows, from the
 row's single-seed step class through :data:`~sg_torchrl.train.stacked_trust_region.STACKED_STEPS`
 with the options the single-seed update passes (:func:`_trust_region_options`), so both paths read
 the same hyper-parameters. Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
@@ -57,7 +58,7 @@ from sg_torchrl.objectives import (
     TRPOStep,
 )
 from sg_torchrl.train.config import TrainConfig
-from sg_torchrl.train.fused import FirstOrderSpec, combine_rule
+from sg_torchrl.train.fused import objective_of
 from sg_torchrl.train.group_updates import (
     FirstOrderGroupUpdate,
     GroupParts,
@@ -156,18 +157,17 @@ def _trust_region_group(step_class: type, *, line_search: bool = True) -> MakeGr
     """The seed-group update of a second-order row: ``step_class``'s stacked step, critics-only passes."""
     def make(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
         step = STACKED_STEPS[step_class](parts.model, **_trust_region_options(cfg, line_search))
-        return TrustRegionGroupUpdate(parts, step, FirstOrderSpec.from_loss(loss, critics_only=True),
-                                      combine_rule(loss.multiplier))
+        return TrustRegionGroupUpdate(parts, step, objective_of(loss, critics_only=True))
 
     return make
 
 
 def _first_order_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
-    return FirstOrderGroupUpdate(parts, FirstOrderSpec.from_loss(loss))
+    return FirstOrderGroupUpdate(parts, objective_of(loss))
 
 
 def _two_stage_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
-    return TwoStageGroupUpdate(parts, FirstOrderSpec.from_loss(loss.reward_stage), FirstOrderSpec.from_loss(loss))
+    return TwoStageGroupUpdate(parts, objective_of(loss.reward_stage), objective_of(loss))
 
 
 def _second_order(title: str, make_multiplier: Callable[[TrainConfig], Multiplier], step_class: type, *,

@@ -45,15 +45,8 @@ import torch
 from torch import Tensor
 
 from sg_torchrl.objectives.passes import RowMeans, run_passes
-from sg_torchrl.train.fused import (
-    CombineRule,
-    FirstOrderSpec,
-    FusedFirstOrderStep,
-    SeedBatch,
-    SeedShuffler,
-    batch_kl,
-    combine_advantages,
-)
+from sg_torchrl.objectives.surrogates import SeedBatchedObjective, combine_advantages
+from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
 from sg_torchrl.train.stacked import StackedActorCritic
 from sg_torchrl.train.stacked_trust_region import StackedTrustRegionStep
@@ -271,7 +264,7 @@ def seed_passes(
     """
     model, spec = parts.model, step.spec
     if spec.kl_stop and reference is None:
-        raise ValueError(f"the {spec.objective!r} passes stop on the KL to a reference policy: give reference")
+        raise ValueError(f"the passes of {spec.surrogate!r} stop on the KL to a reference policy: give reference")
     batch = SeedBatch.pack({name: data[name] for name in spec.fields})
     observation = data["observation"]
     means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), observation.device)
@@ -318,7 +311,7 @@ class GroupUpdate(abc.ABC):
 class FirstOrderGroupUpdate(GroupUpdate):
     """SafePO's first-order loop for every seed: fused minibatch steps of actor and critics, KL stop per seed."""
 
-    def __init__(self, parts: GroupParts, spec: FirstOrderSpec) -> None:
+    def __init__(self, parts: GroupParts, spec: SeedBatchedObjective) -> None:
         super().__init__(parts)
         self.step = FusedFirstOrderStep(parts.model, parts.optimizer, spec, compile=parts.compile)
 
@@ -341,10 +334,10 @@ class TwoStageGroupUpdate(GroupUpdate):
     whenever its stage one stopped.
     """
 
-    def __init__(self, parts: GroupParts, reward_spec: FirstOrderSpec, projection_spec: FirstOrderSpec) -> None:
+    def __init__(self, parts: GroupParts, reward_spec: SeedBatchedObjective, projection_spec: SeedBatchedObjective) -> None:
         super().__init__(parts)
         if not projection_spec.actor_only:
-            raise ValueError(f"CUP's projection stage is actor-only, got objective {projection_spec.objective!r}")
+            raise ValueError(f"CUP's projection stage is actor-only, got {projection_spec.surrogate!r}")
         self.reward_step = FusedFirstOrderStep(parts.model, parts.optimizer, reward_spec, compile=parts.compile)
         self.projection_step = FusedFirstOrderStep(parts.model, parts.optimizer, projection_spec,
                                                    compile=parts.compile)
@@ -374,10 +367,10 @@ class TrustRegionGroupUpdate(GroupUpdate):
     NPG, TRPO, TRPO-Lag, RCPO, CPO and PCPO: one trust-region step of the actors on the whole batch
     (``policy_step``, a :class:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep`
     moving every live seed's row of ``model.flat_actor`` at once), then ``parts.passes`` passes of
-    critics-only minibatch steps (``critic_spec``, objective ``"critics"``: Adam's critic group only,
-    no KL stop) through :func:`seed_passes`. Per seed, the step sees the advantage its single-seed
+    critics-only minibatch steps (``critic_spec``, the loss's objective with ``critics_only``: Adam's
+    critic group only, no KL stop) through :func:`seed_passes`. Per seed, the step sees the advantage its single-seed
     update hands its step: ``combine_advantages`` with the seed's multiplier value and the
-    multiplier class's rule ``combine`` (the reward advantage itself under ``NoMultiplier``), the
+    multiplier's rule ``critic_spec.combine`` (the reward advantage itself under ``NoMultiplier``), the
     cost advantage, and the seed's ``cost_violation`` :math:`J_{c,s} - d` (``Multiplier.violation``,
     float64, read by CPO and PCPO).
 
@@ -394,16 +387,16 @@ class TrustRegionGroupUpdate(GroupUpdate):
     critic steps, with their L2 term).
     """
 
-    def __init__(self, parts: GroupParts, policy_step: StackedTrustRegionStep, critic_spec: FirstOrderSpec,
-                 combine: CombineRule) -> None:
+    def __init__(self, parts: GroupParts, policy_step: StackedTrustRegionStep, critic_spec: SeedBatchedObjective
+                 ) -> None:
         super().__init__(parts)
         if not critic_spec.critics_only:
-            raise ValueError(f"the second-order passes train the critics only, got objective {critic_spec.objective!r}")
+            raise ValueError(f"the second-order passes train the critics only, got {critic_spec.surrogate!r}")
         if policy_step.model is not parts.model:
             raise ValueError("the trust-region step must move the group's own model (parts.model)")
         self.policy_step = policy_step
         self.critic_step = FusedFirstOrderStep(parts.model, parts.optimizer, critic_spec, compile=parts.compile)
-        self.combine = combine
+        self.combine = critic_spec.combine
 
     def __call__(self, data: Mapping[str, Tensor], lam: Tensor, cost_violation: Tensor, active: Tensor
                  ) -> GroupResult:

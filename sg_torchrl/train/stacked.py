@@ -27,7 +27,6 @@ Only flat-vector observations are supported (images need stacked convolutions: n
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -38,23 +37,10 @@ from torch import Tensor, nn
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP
 
+from sg_torchrl.objectives.surrogates import gaussian_log_prob
 from sg_torchrl.train.models import make_actor_critics
 
-__all__ = ["StackedActorCritic", "StackedMLP", "gaussian_log_prob", "quiet_layout_warning"]
-
-_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def gaussian_log_prob(action: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
-    """Log-density of a diagonal Gaussian, summed over the last (action) dimension.
-
-    The same expression as ``torch.distributions.Normal.log_prob`` summed by ``Independent`` (the
-    trainer's ``IndependentNormal``), so values agree with the single-seed loss to the last bit
-    where the inputs do; ``scale`` may broadcast (e.g. ``(S, 1, A)`` against ``(S, B, A)``).
-    """
-    var = scale**2
-    return (-((action - loc) ** 2) / (2 * var) - scale.log() - _LOG_SQRT_2PI).sum(-1)
-
+__all__ = ["StackedActorCritic", "StackedMLP", "quiet_layout_warning"]
 
 def _linear_layers(mlp: nn.Module) -> list[nn.Linear]:
     """The ``Linear`` layers of a tanh MLP (``Linear``, ``Tanh``, ..., ``Linear``), checked."""

@@ -63,7 +63,8 @@ from sg_torchrl.objectives.trust_region import (
     TrustRegionOptions,
     _per_sample,  # value reshaped to (S, N) per sample, refusing silent broadcasting
 )
-from sg_torchrl.train.stacked import StackedActorCritic, gaussian_log_prob
+from sg_torchrl.objectives.surrogates import gaussian_log_prob
+from sg_torchrl.train.stacked import StackedActorCritic
 
 __all__ = [
     "STACKED_STEPS",

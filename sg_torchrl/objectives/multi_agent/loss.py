@@ -39,6 +39,7 @@ from torchrl.objectives.multiagent import MAPPOLoss
 
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
+from sg_torchrl.objectives.surrogates import Surrogate
 
 __all__ = ["AgentPPOLoss"]
 
@@ -165,6 +166,6 @@ class AgentPPOLoss(PPOLagLoss, MAPPOLoss):
         loss, diagnostics = super()._surrogate(log_weight, advantage, dist, tensordict, log_is_weight=log_is_weight)
         cost_advantage = tensordict.get(self.tensor_keys.cost_advantage)
         with torch.no_grad():
-            ratio = self._behaviour_log_ratio(log_weight, log_is_weight).exp()
+            ratio = Surrogate.log_ratio(log_weight, log_is_weight).exp()
             diagnostics["cost_surrogate"] = (ratio * cost_advantage.reshape(ratio.shape)).mean()
         return loss, diagnostics
