@@ -39,6 +39,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from sg_torchrl import seeding
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_
 from sg_torchrl.train.stacked import StackedActorCritic, gaussian_log_prob, quiet_layout_warning
@@ -262,8 +263,8 @@ class SeedShuffler:
     """
 
     def __init__(self, seeds: Sequence[int] = (), *, generators: Sequence[torch.Generator] | None = None) -> None:
-        self.generators = list(generators) if generators is not None else [torch.Generator().manual_seed(int(s))
-                                                                           for s in seeds]
+        self.generators = list(generators) if generators is not None else [
+            seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
         if not self.generators:
             raise ValueError("SeedShuffler needs seeds or generators")
 
