@@ -35,8 +35,9 @@ purpose         rule                                          consumers
 
 Two coincidences of these rules are kept on purpose (changing either would change every golden
 trajectory): ``init`` and ``minibatches`` seed a torch generator with ``s`` alike, so the global RNG
-after ``torch.manual_seed(s)`` and the minibatch generator start from the same state (they are
-distinct objects and draw different amounts, so the streams only share their first numbers); and the
+after ``torch.manual_seed(s)`` and the minibatch generator start from the same state (two objects,
+so neither advances the other, but the networks' initial weights and the first minibatch order are
+made from the same raw numbers); and the
 ``evaluation`` env of seed ``s`` is seeded as the ``simulators`` of seed ``s + 10_000``.
 
 No other module of the package calls ``torch.manual_seed``, ``np.random.SeedSequence``,
