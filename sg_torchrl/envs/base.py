@@ -11,10 +11,11 @@ class owns everything tasks share:
   *which* constraint fired; ``terminated`` / ``truncated`` / ``done``;
 * partial resets through the ``"_reset"`` mask, the episode step counter and time-limit
   truncation;
-* seeding with one generator per simulator (``SeedSequence(seed).spawn``), so simulator ``i`` with
-  seed ``s`` produces the same trajectory whatever ``N`` is; a list of seeds splits the simulators
-  into equal contiguous blocks, block ``k`` seeded as an env of its own with ``seeds[k]`` (the
-  simulators of a seed group, :func:`block_seeds`);
+* seeding with one generator per simulator (``SeedSequence(seed).spawn``: the ``simulators`` rule
+  of :mod:`sg_torchrl.seeding`), so simulator ``i`` with seed ``s`` produces the same trajectory
+  whatever ``N`` is; a list of seeds splits the simulators into equal contiguous blocks, block ``k``
+  seeded as an env of its own with ``seeds[k]`` (the simulators of a seed group,
+  :func:`~sg_torchrl.seeding.block_seeds`, re-exported here);
 * action validation (shape, finiteness) with errors that name the problem, clipping to the
   action bounds as the reference does, and isolation of a diverged simulator or one whose reward
   or cost is not finite (it is reset and reported ``truncated``, the rest of the batch carries on).
@@ -37,7 +38,6 @@ from __future__ import annotations
 
 import abc
 import math
-import numbers
 from collections.abc import Sequence
 from typing import Literal
 
@@ -46,6 +46,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
+
+from sg_torchrl.seeding import block_seeds, numpy_generators
 
 __all__ = ["SafeEnv", "CostMode", "block_seeds"]
 
@@ -76,28 +78,6 @@ def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> Non
     if complex_valued:
         raise TypeError(f"{type(env).__name__}: action has complex dtype {action.dtype}; actions must be real "
                         f"(a floating-point tensor)")
-
-
-def block_seeds(seed: int | Sequence[int] | None, num_envs: int) -> list[np.random.SeedSequence]:
-    """The seed sequences of ``num_envs`` simulators seeded by ``seed``, one per simulator.
-
-    An int (or ``None``: OS entropy) gives ``SeedSequence(seed).spawn(num_envs)``: simulator ``i``
-    depends only on ``(seed, i)``. A sequence of ``K`` seeds splits the simulators into ``K`` equal
-    contiguous blocks and gives block ``k`` the children of ``seeds[k]`` an env of
-    ``num_envs // K`` simulators would give its own, so block ``k`` replays that env exactly (a
-    seed group trains ``K`` runs in one batched env this way).
-
-    Raises:
-        ValueError: an empty sequence, or one whose length does not divide ``num_envs``.
-    """
-    if seed is None or isinstance(seed, numbers.Integral):
-        return np.random.SeedSequence(seed).spawn(num_envs)
-    seeds = [int(s) for s in seed]
-    if not seeds or num_envs % len(seeds):
-        raise ValueError(f"{len(seeds)} seeds cannot split {num_envs} simulators into equal blocks "
-                         f"(num_envs must be a positive multiple of the number of seeds)")
-    block = num_envs // len(seeds)
-    return [child for s in seeds for child in np.random.SeedSequence(s).spawn(block)]
 
 
 class SafeEnv(EnvBase, abc.ABC):
@@ -284,7 +264,7 @@ class SafeEnv(EnvBase, abc.ABC):
     # ------------------------------------------------------------------ TorchRL API
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
         # Child i depends only on (seed, i): simulator i replays identically whatever N is.
-        self._rngs = [np.random.default_rng(child) for child in block_seeds(seed, self.num_envs)]
+        self._rngs = numpy_generators(seed, self.num_envs)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)

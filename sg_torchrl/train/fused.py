@@ -33,6 +33,7 @@ from collections.abc import Iterator, Mapping, Sequence
 import torch
 from torch import Tensor
 
+from sg_torchrl import seeding
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective
 from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_
@@ -145,8 +146,8 @@ class SeedShuffler:
     """
 
     def __init__(self, seeds: Sequence[int] = (), *, generators: Sequence[torch.Generator] | None = None) -> None:
-        self.generators = list(generators) if generators is not None else [torch.Generator().manual_seed(int(s))
-                                                                           for s in seeds]
+        self.generators = list(generators) if generators is not None else [
+            seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
         if not self.generators:
             raise ValueError("SeedShuffler needs seeds or generators")
 

@@ -47,6 +47,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 import sg_torchrl
+from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.envs.normalization import RunningObservationNorm
@@ -164,7 +165,7 @@ class MultiAgentTeam:
         networks = make_multi_agent_networks(
             env.observation_dim, env.action_sizes, env.state_dim, hidden_sizes=cfg.network_sizes, group=GROUP
         )
-        update_rng = torch.Generator().manual_seed(cfg.seed)
+        update_rng = seeding.generator(cfg.seed, seeding.Purpose.MINIBATCHES)
         return cls(
             networks=networks,
             reward_gae=make_multi_agent_gae(networks.reward_critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda),
@@ -201,7 +202,8 @@ class MultiAgentTrainer(EpochTrainer):
         super().__init__(cfg)
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed, **cfg.env_options)
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs,
+                                        seed=seeding.env_seed(cfg.seed, seeding.Purpose.SIMULATORS), **cfg.env_options)
         self.obs_norms = observation_norms(self.base_env) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
 
@@ -220,7 +222,8 @@ class MultiAgentTrainer(EpochTrainer):
 
     def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
-        return evaluate_policy(cfg.env_id, self.networks.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
+        return evaluate_policy(cfg.env_id, self.networks.actor, cfg.eval_episodes,
+                               seed=seeding.env_seed(cfg.seed, seeding.Purpose.EVALUATION),
                                obs_norm=self.obs_norms, env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints

@@ -8,7 +8,8 @@ single-seed :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer` run with th
   seed=[s0, s1, ...])``), collected at once by one :class:`~sg_torchrl.collectors.RolloutCollector`;
 * **team**: per seed its own :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` (networks, both
   GAEs, the algorithm's round with its optimisers, multipliers, value normalisers and generator),
-  built by the code the single-seed run builds its team with, after ``torch.manual_seed(s)`` as that
+  built by the code the single-seed run builds its team with, after ``torch.manual_seed(s)``
+  (:func:`~sg_torchrl.seeding.seed_torch`) as that
   run's :class:`~sg_torchrl.train.trainer.EpochTrainer` seeds torch;
 * **observation normalisers**: one row of running statistics per seed for ``("agents",
   "observation")`` (per agent and feature) and ``"state"`` (``RunningObservationNorm(groups=S)``);
@@ -50,6 +51,7 @@ from torch import Tensor
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 import sg_torchrl
+from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.train.config import TrainConfig
@@ -153,7 +155,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
         groups = len(self.seeds)
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs, seed=self.seeds,
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs,
+                                        seed=[seeding.env_seed(s, seeding.Purpose.SIMULATORS) for s in self.seeds],
                                         **cfg.env_options)
         self.obs_norms = observation_norms(self.base_env, groups=groups) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
@@ -163,7 +166,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         self.teams: list[MultiAgentTeam] = []
         states = []
         for run in self.runs:  # each seed's team as its single-seed run builds it, from torch.manual_seed(seed)
-            torch.manual_seed(run.seed)
+            seeding.seed_torch(run.seed)
             self.teams.append(MultiAgentTeam.build(self.base_env, run.cfg))
             states.append(torch.get_rng_state())  # where that run's action noise starts
         self.streams = SeedStreams(states)
@@ -208,7 +211,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         norms = [norm.group_copy(index) for norm in self.obs_norms]
         with self.streams.use(index):
             return evaluate_policy(cfg.env_id, self.teams[index].networks.actor, cfg.eval_episodes,
-                                   seed=seed + 10_000, obs_norm=norms, env_options=cfg.env_options)
+                                   seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norms,
+                                   env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:

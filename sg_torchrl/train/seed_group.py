@@ -16,13 +16,15 @@ run in every respect that is not float rounding:
 * **simulators**: one batched env of ``S * num_envs`` simulators, seed ``s``'s the ``s``-th block of
   ``num_envs``, seeded exactly as a ``num_envs``-simulator env with seed ``s``
   (``sg_torchrl.make(..., seed=[s0, s1, ...])``);
-* **networks**: ``torch.manual_seed(s)`` then ``make_actor_critics``, as the single-seed
-  :class:`~sg_torchrl.train.trainer.Trainer` initialises them, stacked in a
+* **networks**: ``torch.manual_seed(s)`` (:func:`~sg_torchrl.seeding.seed_torch`) then
+  ``make_actor_critics``, as the single-seed :class:`~sg_torchrl.train.trainer.Trainer` initialises
+  them, stacked in a
   :class:`~sg_torchrl.train.stacked.StackedActorCritic`;
 * **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``);
-* **random streams**: action noise from one ``torch.Generator`` per seed (:func:`action_seed`),
-  minibatch order from another (:class:`~sg_torchrl.train.fused.SeedShuffler`, seeded with ``s`` as
-  the single-seed trainer seeds its own);
+* **random streams** (:mod:`sg_torchrl.seeding`): action noise from one ``torch.Generator`` per seed
+  (the ``actions`` purpose, :func:`~sg_torchrl.seeding.action_seed`), minibatch order from another
+  (:class:`~sg_torchrl.train.fused.SeedShuffler`, seeded with ``s`` as the single-seed trainer seeds
+  its own: the ``minibatches`` purpose);
 * **multiplier, advantages, update**: one multiplier per seed, updated from its own episodes'
   mean cost; GAE per simulator, advantage normalisation per seed; the algorithm's group update
   (:mod:`sg_torchrl.train.group_updates`) with per-seed clip, Adam state and KL early stop (second
@@ -66,7 +68,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -75,6 +76,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 import sg_torchrl
+from sg_torchrl import seeding
 from sg_torchrl.collectors import RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae
@@ -86,21 +88,13 @@ from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
+from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
 from sg_torchrl.train.stacked import StackedActorCritic
 
 __all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
 
 #: Update metrics logged as integers, as the single-seed trainer logs them.
 _COUNTS = ("Train/StopIter", "Train/ProjectionStopIter")
-
-
-def action_seed(seed: int) -> int:
-    """The seed of run ``seed``'s action-noise generator: drawn from ``SeedSequence([seed, 1])``.
-
-    Not ``seed`` itself, which seeds the minibatch-order generator: two ``torch.Generator`` s with one
-    seed would draw the same stream.
-    """
-    return int(np.random.SeedSequence([seed, 1]).generate_state(1, dtype=np.uint64)[0])
 
 
 class StackedPolicy(TensorDictModuleBase):
@@ -167,7 +161,8 @@ class GroupTrainer(SeedGroupTrainer):
             raise ValueError(f"{cfg.algo!r} is not yet in seed groups (no group update in the algorithm table)")
         self.title = self.algorithm.title
         groups = len(self.seeds)
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs, seed=self.seeds,
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs,
+                                        seed=[seeding.env_seed(s, seeding.Purpose.SIMULATORS) for s in self.seeds],
                                         **cfg.env_options)
         layout = ObservationLayout.from_spec(self.base_env.observation_spec)
         if layout.images or layout.vector_dim is None:
@@ -177,7 +172,7 @@ class GroupTrainer(SeedGroupTrainer):
 
         singles = []
         for seed in self.seeds:  # each seed's networks as its single-seed Trainer initialises them
-            torch.manual_seed(seed)
+            seeding.seed_torch(seed)
             singles.append(make_actor_critics(layout, self.base_env.action_spec, cfg.network_sizes))
         self.model = StackedActorCritic.from_single(singles)
         self.multipliers = [self.algorithm.make_multiplier(cfg) for _ in self.seeds]
@@ -191,7 +186,7 @@ class GroupTrainer(SeedGroupTrainer):
         self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
         self.shuffler = SeedShuffler(self.seeds)
-        self.action_generators = [torch.Generator().manual_seed(action_seed(seed)) for seed in self.seeds]
+        self.action_generators = [seeding.generator(seed, seeding.Purpose.ACTIONS) for seed in self.seeds]
         parts = GroupParts(self.model, self.optimizer, self.shuffler, passes=cfg.update_iters,
                            minibatch_size=cfg.minibatch_size, target_kl=cfg.target_kl, compile=cfg.compile)
         self.group_update = self.algorithm.make_group_update(parts, loss, cfg)
@@ -271,7 +266,8 @@ class GroupTrainer(SeedGroupTrainer):
         cfg, seed = self.cfg, self.seeds[index]
         actor = self.model.export_seed(index, self.base_env.action_spec)[0]
         norm = None if self.obs_norm is None else self.obs_norm.group_copy(index)
-        return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes, seed=seed + 10_000, obs_norm=norm,
+        return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes,
+                               seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norm,
                                env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints

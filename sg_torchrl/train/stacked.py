@@ -8,8 +8,9 @@ steps into one step of batched matmuls (``torch.baddbmm``) at little more than t
 
 Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
 ``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
-:func:`~sg_torchrl.train.models.make_actor_critics` builds after ``torch.manual_seed(seed)``, so a
-seed starts from the same initialisation as in the single-seed trainer, and
+:func:`~sg_torchrl.train.models.make_actor_critics` builds after ``torch.manual_seed(seed)`` (the
+``init`` stream, :func:`sg_torchrl.seeding.seed_torch`), so a seed starts from the same
+initialisation as in the single-seed trainer, and
 :meth:`StackedActorCritic.export_seed` / :meth:`StackedActorCritic.copy_seed_to` give a seed back as
 those modules (checkpoints, evaluation, equivalence tests).
 
@@ -371,7 +372,8 @@ class StackedActorCritic(nn.Module):
         """Stack the ``(actor, critic, cost_critic)`` of S single-seed runs (``make_actor_critics``'s output).
 
         Seed ``s`` of the result holds copies of ``networks[s]``'s weights, so building each triple
-        after ``torch.manual_seed(seed_s)`` gives every seed its single-seed initialisation.
+        after ``torch.manual_seed(seed_s)`` (:func:`sg_torchrl.seeding.seed_torch`) gives every seed its
+        single-seed initialisation.
         """
         if not networks:
             raise ValueError("from_single needs at least one (actor, critic, cost_critic)")

@@ -73,6 +73,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 from tqdm.auto import tqdm
 
 import sg_torchrl
+from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae, normalize_advantages
@@ -237,7 +238,7 @@ class EpochTrainer(abc.ABC):
     def __init__(self, cfg: TrainConfig) -> None:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
+        seeding.seed_torch(cfg.seed)  # the init stream: the networks are built from it
         self.epoch = 0
         self.total_steps = 0
         self.train_seconds = 0.0
@@ -459,7 +460,8 @@ class Trainer(EpochTrainer):
         super().__init__(cfg)
         self.algorithm = ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs, seed=cfg.seed, **cfg.env_options)
+        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs,
+                                        seed=seeding.env_seed(cfg.seed, seeding.Purpose.SIMULATORS), **cfg.env_options)
         # What the networks read (flat vector, pixels, depth) comes from the env's observation spec;
         # the running normaliser applies to the flat vector only (images are scaled in the networks).
         self.layout = ObservationLayout.from_spec(self.base_env.observation_spec)
@@ -489,7 +491,7 @@ class Trainer(EpochTrainer):
         # SafePO anneals the actor learning rate linearly to zero over the run; critics stay constant.
         anneal = [lambda epoch: max(0.0, 1.0 - epoch / epochs)] if not cfg.second_order else []
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, [*anneal, lambda epoch: 1.0])
-        self.minibatch_rng = torch.Generator().manual_seed(cfg.seed)
+        self.minibatch_rng = seeding.generator(cfg.seed, seeding.Purpose.MINIBATCHES)
         parts = UpdateParts(
             actor=self.actor, critics=(self.critic, self.cost_critic), loss=self.loss, optimizer=self.optimizer,
             rng=self.minibatch_rng, passes=cfg.update_iters, minibatch_size=cfg.minibatch_size,
@@ -528,7 +530,8 @@ class Trainer(EpochTrainer):
 
     def _evaluate(self) -> dict[str, float]:
         cfg = self.cfg
-        return evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes, seed=cfg.seed + 10_000,
+        return evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes,
+                               seed=seeding.env_seed(cfg.seed, seeding.Purpose.EVALUATION),
                                obs_norm=self.obs_norm, env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints

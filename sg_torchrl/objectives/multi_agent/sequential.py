@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from sg_torchrl import seeding
+
 __all__ = ["AgentStage", "SequentialAgentUpdate", "SequentialResult"]
 
 #: ``update_agent(agent, factor) -> metrics``: one agent's whole update for the round.
@@ -83,7 +85,8 @@ class SequentialAgentUpdate:
         shuffle (bool): random permutation per round (the paper); ``False`` keeps ``0..n-1``.
             Defaults to ``True``.
         generator (torch.Generator, optional): source of the permutations (checkpoint its state
-            for bit-exact resumes). Defaults to a fresh generator seeded with 0.
+            for bit-exact resumes). Defaults to a fresh generator seeded with 0 (the ``minibatches``
+            stream of seed 0, :mod:`sg_torchrl.seeding`).
     """
 
     def __init__(
@@ -99,7 +102,7 @@ class SequentialAgentUpdate:
         self.n_agents = int(n_agents)
         self.weighted = bool(weighted)
         self.shuffle = bool(shuffle)
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.generator = generator if generator is not None else seeding.generator(0, seeding.Purpose.MINIBATCHES)
 
     def permutation(self) -> list[int]:
         """The next round's agent order."""

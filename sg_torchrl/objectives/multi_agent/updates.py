@@ -57,6 +57,7 @@ from tensordict import TensorDictBase
 from torch import nn, Tensor
 from torchrl.modules import PopArtValueNorm
 
+from sg_torchrl import seeding
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multi_agent.advantages import agent_view, AGENT_VIEW_KEYS
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
@@ -134,7 +135,7 @@ class MultiAgentUpdate(abc.ABC):
         self.gamma = float(gamma)
         self.max_grad_norm = float(max_grad_norm)
         self.group = group
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.generator = generator if generator is not None else seeding.generator(0, seeding.Purpose.MINIBATCHES)
         self.multipliers = nn.ModuleList(multipliers)
         self.value_norms = nn.ModuleList(PopArtValueNorm(shape=1) for _ in range(n)) if value_norm else None
         self.losses = [
