@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import torch
 
 from sg_torchrl.train import TrainConfig, Trainer, trainer_class
-from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES
+from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.fused import FusedFirstOrderStep
 from sg_torchrl.train.memory import keep_freed_memory
 
@@ -105,7 +105,7 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
         common = dict(algo=algo, env_id=env_id, total_steps=epochs * steps, wandb="disabled", eval_episodes=0,
                       progress=False, output_dir=tmp, compile=compile, **settings)
         if seeds is None:  # the baseline: Trainer, the LossModule engine (sg-train's default for one seed is fused)
-            engine = None if algo in MULTI_AGENT_ALGORITHM_NAMES else "loss-module"
+            engine = None if manifest.get(algo).multi_agent else "loss-module"
             cfg = TrainConfig(seed=0, engine=engine, **common)
             trainer, count = trainer_class(cfg)(cfg), 1
             label = f"{type(trainer).__name__} (single seed)" + (" compiled" if compile else "")

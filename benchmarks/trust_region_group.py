@@ -35,13 +35,17 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
-from sg_torchrl.objectives import CPOStep, NaturalPolicyStep, PCPOStep, TRPOStep
+from sg_torchrl.algorithms import manifest
+from sg_torchrl.train.algorithms import TRUST_REGION_STEPS
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.stacked import StackedActorCritic
 from sg_torchrl.train.stacked_trust_region import STACKED_STEPS
 
-STEP_CLASSES = {"npg": NaturalPolicyStep, "trpo": TRPOStep, "cpo": CPOStep, "pcpo": PCPOStep}
+#: The unconstrained second-order algorithms (NPG, TRPO, CPO, PCPO; the Lagrangian ones step the same classes)
+#: and their trust-region step classes, from the algorithm manifest.
+STEP_CLASSES = {entry.name: TRUST_REGION_STEPS[entry.update]
+                for entry in manifest.rows(agents="single", family="second_order") if entry.multiplier == "none"}
 
 
 def rollout(actor, obs_dim: int, samples: int, seed: int) -> TensorDict:

@@ -24,6 +24,7 @@ import signal
 import sys
 from pathlib import Path
 
+from sg_torchrl.algorithms import manifest
 from sg_torchrl.sweep.records import SWEEP_RECORD
 from sg_torchrl.sweep.grid import SweepGrid, SweepGridError, parse_grid_option
 from sg_torchrl.sweep.runner import ClusterUnreachable, run_sweep  # imports Ray only when a sweep runs
@@ -35,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sg-sweep", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     grid = parser.add_argument_group("the grid")
-    grid.add_argument("--algos", nargs="+", metavar="ALGO", help="sg-train --algo values (ppo ppo_lag cpo ...)")
+    grid.add_argument("--algos", nargs="+", metavar="ALGO", help=f"sg-train --algo values ({' '.join(manifest.names())})")
     grid.add_argument("--envs", nargs="+", metavar="ENV_ID", help="env ids (SafetyPointGoal1-v0 ...)")
     grid.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="seeds of every cell (default 0 1 2)")
     grid.add_argument("--seeds-per-cell", type=int, default=None,

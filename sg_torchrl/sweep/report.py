@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from sg_torchrl.algorithms import manifest
 from sg_torchrl.sweep.records import AttemptLog, latest, parse_float, read_progress
 
 __all__ = [
@@ -48,14 +49,10 @@ __all__ = [
 
 #: The Safety-Gymnasium paper's published J^R / J^C tables (Ji et al. 2023), shipped as package data.
 PAPER_RESULTS = Path(__file__).resolve().parent / "paper_results.csv"
-#: Our algorithm ids -> the paper's names (its tables' rows), in the paper's order.
-PAPER_NAMES = {
-    "pg": "PG", "ppo": "PPO", "ppo_lag": "PPO-Lag", "cppo_pid": "CPPO-PID", "focops": "FOCOPS", "cup": "CUP",
-    "npg": "NPG", "trpo": "TRPO", "trpo_lag": "TRPO-Lag", "rcpo": "RCPO", "cpo": "CPO", "pcpo": "PCPO",
-    "mappo": "MAPPO", "happo": "HAPPO", "mappo_lag": "MAPPO-Lag", "macpo": "MACPO",
-}
+#: Our algorithm ids -> the paper's names (its tables' rows), in the paper's order (the algorithm manifest's).
+PAPER_NAMES = {entry.name: entry.paper for entry in manifest.rows()}
 #: The multi-agent algorithms: their J^R is normalised by MAPPO's, the others' by PPO's (the paper's tables).
-MULTI_AGENT = frozenset({"mappo", "happo", "mappo_lag", "macpo"})
+MULTI_AGENT = frozenset(manifest.names(agents="multi"))
 PAPER_TABLES = ("single_agent_raw", "multi_agent_raw")
 #: The cost limit of a cell whose config.json does not say (sg-train's default, the paper's).
 DEFAULT_COST_LIMIT = 25.0
@@ -68,8 +65,8 @@ _SEED_DIR = re.compile(r"seed-(\d+)")
 
 
 def baseline(algo: str) -> str:
-    """``"mappo"`` for the multi-agent algorithms, ``"ppo"`` for the single-agent ones."""
-    return "mappo" if algo in MULTI_AGENT else "ppo"
+    """The algorithm the paper normalises ``algo``'s J^R by: MAPPO for the multi-agent algorithms, else PPO."""
+    return manifest.baseline(algo)
 
 
 def paper_env_name(env_id: str) -> str:

@@ -32,6 +32,7 @@ import os
 import sys
 from typing import TYPE_CHECKING, Any
 
+from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES, PRESETS, TrainConfig, command_line_values
 from sg_torchrl.train.interrupt import TrainingInterrupted
 
@@ -103,12 +104,8 @@ def checkpoint_engine(checkpoint: dict[str, Any]) -> str | None:
 
 
 def algorithm_title(algo: str) -> str:
-    """Display name of an ``--algo`` value (``"mappo_lag"`` -> ``"MAPPO-Lag"``)."""
-    from sg_torchrl.train.algorithms import ALGORITHMS
-    from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS
-
-    table = MULTI_AGENT_ALGORITHMS if algo in MULTI_AGENT_ALGORITHMS else ALGORITHMS
-    return table[algo].title
+    """Display name of an ``--algo`` value (``"mappo_lag"`` -> ``"MAPPO-Lag"``): its manifest row's title."""
+    return manifest.get(algo).title
 
 
 def train(cfg: TrainConfig) -> dict[str, float]:

@@ -1,29 +1,22 @@
-"""The algorithms ``sg-train`` can run, as an explicit table.
+"""The algorithms ``sg-train`` can run: the single-agent rows of the algorithm manifest, built.
 
 An algorithm is three choices over the shared actor and critics: a multiplier rule, a loss and an
 update loop (:mod:`sg_torchrl.train.updates`). The twelve SafePO single-agent algorithms of the
-Safety-Gymnasium paper (section 5) are rows of :data:`ALGORITHMS`:
+Safety-Gymnasium paper (section 5) are the single-agent rows of :mod:`sg_torchrl.algorithms.manifest`,
+which names them and says their kinds; here each kind has its builder, and :data:`ALGORITHMS` holds,
+per row, the builders its kinds choose:
 
-============  ===================================  ==================  =========================
-name          loss                                 multiplier          update
-============  ===================================  ==================  =========================
-pg            PGLoss                               none                first order
-ppo           PPOLagLoss                           none                first order
-ppo_lag       PPOLagLoss                           Lagrange            first order
-cppo_pid      PPOLagLoss                           PID Lagrange        first order
-focops        FOCOPSLoss                           Lagrange, nu <= 2   first order
-cup           CUPLoss (reward stage + projection)  Lagrange, nu <= 2   two stages
-npg           PPOLagLoss (critics)                 none                natural step
-trpo          PPOLagLoss (critics)                 none                TRPO step
-trpo_lag      PPOLagLoss (critics)                 Lagrange            TRPO step
-rcpo          PPOLagLoss (critics)                 Lagrange            natural step
-cpo           PPOLagLoss (critics)                 none                CPO step
-pcpo          PPOLagLoss (critics)                 none                PCPO step
-============  ===================================  ==================  =========================
+* the multiplier kind (``none``, ``lagrange``, ``pid``): :class:`~sg_torchrl.objectives.NoMultiplier`,
+  :class:`~sg_torchrl.objectives.LagrangeMultiplier`, :class:`~sg_torchrl.objectives.PIDLagrangeMultiplier`;
+* the loss class (``PGLoss``, ``PPOLagLoss``, ``FOCOPSLoss``, ``CUPLoss``), built with its options
+  from the config;
+* the update kind: ``first_order`` and ``two_stage`` (CUP's reward stage, then its projection), or a
+  trust-region step of the actor, :data:`TRUST_REGION_STEPS` (``natural``: NPG / RCPO, no line search;
+  ``trpo``; ``cpo``; ``pcpo``), with PPO-Lag's critic losses.
 
 So PPO is PPO-Lag with :class:`~sg_torchrl.objectives.NoMultiplier`, CPPO-PID is PPO-Lag with the PID
 multiplier, TRPO-Lag is TRPO with a Lagrange multiplier and RCPO (as SafePO implements it) is NPG
-with one. Adding an algorithm adds a row here, not trainer code.
+with one. Adding an algorithm of known kinds adds a manifest row, not code here.
 
 A row's ``make_group_update`` is its update loop for a seed group (``sg-train --seeds``,
 :mod:`sg_torchrl.train.group_updates`), built from the single-seed loss
@@ -57,6 +50,8 @@ from sg_torchrl.objectives import (
     PPOLagLoss,
     TRPOStep,
 )
+from sg_torchrl.algorithms import manifest
+from sg_torchrl.algorithms.manifest import AlgorithmEntry
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.fused import objective_of
 from sg_torchrl.train.group_updates import (
@@ -69,7 +64,7 @@ from sg_torchrl.train.group_updates import (
 from sg_torchrl.train.stacked_trust_region import STACKED_STEPS
 from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
-__all__ = ["Algorithm", "ALGORITHMS"]
+__all__ = ["Algorithm", "ALGORITHMS", "TRUST_REGION_STEPS"]
 
 MakeLoss = Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
 MakeUpdate = Callable[[UpdateParts, Multiplier, TrainConfig], PolicyUpdate]
@@ -170,24 +165,32 @@ def _two_stage_group(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> G
     return TwoStageGroupUpdate(parts, objective_of(loss.reward_stage), objective_of(loss))
 
 
-def _second_order(title: str, make_multiplier: Callable[[TrainConfig], Multiplier], step_class: type, *,
-                  line_search: bool = True) -> Algorithm:
-    """A second-order row: PPO-Lag's critic losses, ``step_class`` for the actor (single seed and seed group)."""
-    return Algorithm(title, make_multiplier, _ppo_lag_loss, _trust_region(step_class, line_search=line_search),
-                     _trust_region_group(step_class, line_search=line_search))
+#: The trust-region step class of each second-order update kind (the manifest rows' ``update``).
+TRUST_REGION_STEPS: dict[str, type] = {"natural": NaturalPolicyStep, "trpo": TRPOStep, "cpo": CPOStep,
+                                       "pcpo": PCPOStep}
+#: The update kinds whose step takes no line search (NPG's natural step, and RCPO's).
+_NO_LINE_SEARCH = frozenset({"natural"})
 
-
-ALGORITHMS: dict[str, Algorithm] = {
-    "pg": Algorithm("PG", _none, _pg_loss, _first_order, _first_order_group),
-    "ppo": Algorithm("PPO", _none, _ppo_lag_loss, _first_order, _first_order_group),
-    "ppo_lag": Algorithm("PPO-Lag", _lagrange, _ppo_lag_loss, _first_order, _first_order_group),
-    "cppo_pid": Algorithm("CPPO-PID", _pid, _ppo_lag_loss, _first_order, _first_order_group),
-    "focops": Algorithm("FOCOPS", _lagrange, _focops_loss, _first_order, _first_order_group),
-    "cup": Algorithm("CUP", _lagrange, _cup_loss, _two_stage, _two_stage_group),
-    "npg": _second_order("NPG", _none, NaturalPolicyStep, line_search=False),
-    "trpo": _second_order("TRPO", _none, TRPOStep),
-    "trpo_lag": _second_order("TRPO-Lag", _lagrange, TRPOStep),
-    "rcpo": _second_order("RCPO", _lagrange, NaturalPolicyStep, line_search=False),
-    "cpo": _second_order("CPO", _none, CPOStep),
-    "pcpo": _second_order("PCPO", _none, PCPOStep),
+# ---------------------------------------------------------------------------- the rows
+#: Builders by multiplier kind, loss class and update kind (single seed, seed group).
+_MULTIPLIERS: dict[str, Callable[[TrainConfig], Multiplier]] = {"none": _none, "lagrange": _lagrange, "pid": _pid}
+_LOSSES: dict[type, MakeLoss] = {PGLoss: _pg_loss, PPOLagLoss: _ppo_lag_loss, FOCOPSLoss: _focops_loss,
+                                 CUPLoss: _cup_loss}
+_UPDATES: dict[str, tuple[MakeUpdate, MakeGroupUpdate]] = {
+    "first_order": (_first_order, _first_order_group),
+    "two_stage": (_two_stage, _two_stage_group),
+    **{kind: (_trust_region(step, line_search=kind not in _NO_LINE_SEARCH),
+              _trust_region_group(step, line_search=kind not in _NO_LINE_SEARCH))
+       for kind, step in TRUST_REGION_STEPS.items()},
 }
+
+
+def _algorithm(entry: AlgorithmEntry) -> Algorithm:
+    """A manifest row's builders, chosen by its multiplier kind, loss class and update kind."""
+    make_update, make_group_update = _UPDATES[entry.update]
+    return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _LOSSES[entry.loss_class()], make_update,
+                     make_group_update)
+
+
+#: The single-agent algorithms by ``--algo`` name, in the manifest's order.
+ALGORITHMS: dict[str, Algorithm] = {entry.name: _algorithm(entry) for entry in manifest.rows(agents="single")}

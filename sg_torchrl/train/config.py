@@ -4,22 +4,13 @@ Defaults are the Safety-Gymnasium paper's hyper-parameters (appendix table, also
 defaults): 20,000 steps per epoch from 10 simulators, gamma 0.99, GAE lambda 0.95 for reward and
 cost, critic L2 1e-3, gradient-norm clip 40, Lagrange init 0.001 / lr 0.035, PID gains 0.1 / 0.01 /
 0.01, cost limit 25. Fields whose paper value depends on the algorithm family default to ``None``
-and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built:
-
-* first order (PG, PPO, PPO-Lag, CPPO-PID, FOCOPS, CUP): Adam 3e-4 for the actor (linearly annealed)
-  and both critics, 40 passes of minibatch 64, KL early stop at 0.02, clip 0.2;
-* second order (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): trust region 0.01, conjugate gradient 15
-  iterations with damping 0.1, line search 15 steps of fraction 0.8 (PCPO 200), critics Adam 1e-3
-  for 10 passes of minibatch 128, no actor learning rate;
-* multi agent (MAPPO, HAPPO, MAPPO-Lag, MACPO; :mod:`sg_torchrl.train.multi_agent`): 10,000 steps
-  per update (episode length 1000 x 10 simulators), MLP [128, 128], Adam 5e-4 for actors and
-  critics, 5 epochs of one minibatch (the whole batch), clip 0.2, KL early stop 0.016, MAPPO-Lag's
-  multiplier init 1e-5 and SGD step 0.78; MACPO: trust region 0.01, 10 conjugate-gradient
-  iterations, 10 line-search steps of fraction 0.5, 15 critic epochs. SafePO's settings the paper
-  does not list: gradient-norm clip 10, no critic L2. Observations are normalised (running mean /
-  std per agent and feature, and of the state): SafePO feeds raw observations to networks that
-  start with a LayerNorm of their input, ours (TorchRL's ``MultiAgentMLP``) have none, and on raw
-  Humanoid observations their initial action means reach tens (control cost dominates the reward).
+and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built: the rows' defaults of the
+algorithm manifest (:mod:`sg_torchrl.algorithms.manifest`, which lists them per family), the one place
+that names the algorithms. Multi-agent runs (:mod:`sg_torchrl.train.multi_agent`) use MLP [128, 128]
+and normalise observations (running mean / std per agent and feature, and of the state): SafePO feeds
+raw observations to networks that start with a LayerNorm of their input, ours (TorchRL's
+``MultiAgentMLP``) have none, and on raw Humanoid observations their initial action means reach tens
+(control cost dominates the reward).
 
 Pixel observations (a ``...Vision-v0`` id, or ``env_options`` ``obs_mode=rgb|rgbd|vector+rgb|
 vector+rgbd``) need no option: the single-agent networks read whatever the env's observation spec
@@ -59,6 +50,7 @@ from pathlib import Path
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.presets import PRESETS
 from sg_torchrl.validation import describe, fits, parse_bool
 
@@ -67,20 +59,16 @@ __all__ = [
     "SEED_GROUP_ALGORITHMS", "TrainConfig", "PRESETS", "parse_args",
 ]
 
-SingleAgentAlgorithmName = Literal[
-    "pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo"
-]
-MultiAgentAlgorithmName = Literal["mappo", "happo", "mappo_lag", "macpo"]
 EngineName = Literal["fused", "loss-module"]
 #: The single-agent training engines (``--engine``; :func:`sg_torchrl.train.trainer_class` maps them to trainers).
 ENGINES: tuple[str, ...] = get_args(EngineName)
-AlgorithmName = Literal[SingleAgentAlgorithmName, MultiAgentAlgorithmName]
+# Views of the algorithm manifest (sg_torchrl.algorithms.manifest), kept for the code that imports them here.
 #: The single-agent algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
-ALGORITHM_NAMES: tuple[str, ...] = get_args(SingleAgentAlgorithmName)
+ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="single")
 #: The multi-agent algorithms (rows of :data:`sg_torchrl.train.multi_agent.MULTI_AGENT_ALGORITHMS`).
-MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = get_args(MultiAgentAlgorithmName)
+MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="multi")
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
-SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"})
+SECOND_ORDER = manifest.SECOND_ORDER
 #: The single-agent algorithms a seed group (``--seeds``) can train: the rows of
 #: ``sg_torchrl.train.algorithms.ALGORITHMS`` that have a ``make_group_update`` (``tests/test_seed_group.py``
 #: checks that the two agree): every single-agent algorithm, the second-order ones through
@@ -88,38 +76,9 @@ SECOND_ORDER = frozenset({"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "mac
 #: one round per seed (``sg_torchrl.train.multi_agent_group``), so they are not listed here. Kept here,
 #: free of torch, so that the command line refuses the others in a second.
 SEED_GROUP_ALGORITHMS = frozenset(ALGORITHM_NAMES)
-
-_SINGLE_AGENT_DEFAULTS = dict(
-    env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
-    lagrangian_init=1e-3, lagrangian_lr=0.035, cg_iters=15, step_fraction=0.8, normalize_obs=True,
-)
-_FIRST_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64,
-                             target_kl=0.02)
-_SECOND_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=0.0, critic_lr=1e-3, update_iters=10,
-                              minibatch_size=128, target_kl=0.01, line_search_steps=15)
-# Paper, multi-agent rows (10,000 steps per update from 10 simulators of 1000-step episodes, one
-# minibatch: ``minibatch_size`` at least the batch); SafePO's multi-agent scripts for what the paper
-# does not list (gradient clip 10 per network, critics without L2). Observation normalisation stands
-# in for the input LayerNorm of SafePO's networks (see the module docstring).
-_MULTI_AGENT_DEFAULTS = dict(
-    env_id="Safety2x3HalfCheetahVelocity-v0", steps_per_epoch=10_000, actor_lr=5e-4, critic_lr=5e-4, update_iters=5,
-    minibatch_size=10_000, target_kl=0.016, max_grad_norm=10.0, critic_l2=0.0, lagrangian_init=1e-5,
-    lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
-)
-#: Paper appendix table, per algorithm. FOCOPS and CUP bound their multiplier nu by 2.0 (the table's
-#: "nu 2.00"; SafePO's CUP script uses 0.2, compared on PointGoal1 in benchmarks/RESULTS.md's 1M tables).
-#: Fields not listed here have one default for all.
-ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
-    **{name: dict(_FIRST_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name not in SECOND_ORDER},
-    **{name: dict(_SECOND_ORDER_DEFAULTS) for name in ALGORITHM_NAMES if name in SECOND_ORDER},
-    "focops": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
-    "cup": dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0),
-    "pcpo": dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200),
-    **{name: dict(_MULTI_AGENT_DEFAULTS) for name in MULTI_AGENT_ALGORITHM_NAMES},
-    # MACPO: trust region 0.01, CG 10, 10 search steps of 0.5, 15 critic epochs ("SGD iters").
-    "macpo": dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, target_kl=0.01, update_iters=15, cg_iters=10,
-                  line_search_steps=10, step_fraction=0.5),
-}
+#: The paper's hyper-parameters per algorithm (the manifest rows' ``defaults``; a fresh copy here).
+#: Fields not listed have one default for all.
+ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {entry.name: dict(entry.defaults) for entry in manifest.rows()}
 
 
 def _opt(default: Any, help: str, **kwargs: Any) -> Any:
@@ -134,7 +93,8 @@ def _opt(default: Any, help: str, **kwargs: Any) -> Any:
 class TrainConfig:
     """One experiment. Every field is a command-line flag (``--total-steps 200000``)."""
 
-    algo: AlgorithmName = _opt("ppo_lag", "safe RL algorithm (mappo, happo, mappo_lag, macpo: multi-agent)")
+    algo: str = _opt("ppo_lag", f"safe RL algorithm ({', '.join(MULTI_AGENT_ALGORITHM_NAMES)}: multi-agent)",
+                     choices=manifest.names())
     env_id: str | None = _opt(
         None, "Safety-Gymnasium env id (sg_torchrl.list_envs()); default SafetyHalfCheetahVelocity-v1, for "
         "multi-agent algorithms Safety2x3HalfCheetahVelocity-v0")
@@ -253,7 +213,7 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        names = ALGORITHM_NAMES + MULTI_AGENT_ALGORITHM_NAMES
+        names = manifest.names()
         if self.algo not in names:
             raise ValueError(f"config: unknown algo {self.algo!r}; choose from {', '.join(names)}")
         self._validate_types()
@@ -526,6 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
         literal = next((a for a in (hint, *get_args(hint)) if get_origin(a) is Literal), None)  # also X | None
         if literal is not None:
             kwargs["choices"] = list(get_args(literal))
+        if "choices" in f.metadata:  # a str field checked against a table (--algo: the algorithm manifest)
+            kwargs["choices"] = list(f.metadata["choices"])
         if get_origin(hint) in (list, dict):
             kwargs["nargs"] = "+"
         if f.name == "seeds":

@@ -8,7 +8,8 @@ TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). 
    the group layout as it is);
 2. per-agent reward and cost GAE, standardised per agent
    (:func:`~sg_torchrl.objectives.multi_agent.make_multi_agent_gae`);
-3. the algorithm's round (:data:`MULTI_AGENT_ALGORITHMS`): the agents updated one at a time in a
+3. the algorithm's round (:data:`MULTI_AGENT_ALGORITHMS`, built from the multi-agent rows of
+   :mod:`sg_torchrl.algorithms.manifest`): the agents updated one at a time in a
    random order. The mean cost of the episodes finished in the epoch is handed to the round;
    MAPPO-Lag steps each agent's multiplier inside the round, after every minibatch step, so the
    trainer updates no multiplier itself;
@@ -51,14 +52,12 @@ from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.envs.normalization import RunningObservationNorm
+from sg_torchrl.algorithms import manifest
+from sg_torchrl.algorithms.manifest import AlgorithmEntry
 from sg_torchrl.objectives.multi_agent import (
-    HAPPOUpdate,
-    MACPOUpdate,
     make_multi_agent_cost_gae,
     make_multi_agent_gae,
     make_multi_agent_networks,
-    MAPPOLagUpdate,
-    MAPPOUpdate,
     MultiAgentNetworks,
     MultiAgentUpdate,
 )
@@ -98,31 +97,42 @@ def _common(cfg: TrainConfig, generator: torch.Generator) -> dict[str, Any]:
     return options
 
 
-def _ppo_round(update_class: type[MultiAgentUpdate]) -> MakeUpdate:
+def _ppo_round(entry: AlgorithmEntry) -> MakeUpdate:
+    """A first-order row's round (MAPPO, HAPPO, MAPPO-Lag): its round class, with the multiplier's options
+    when the row has a Lagrange multiplier (MAPPO-Lag's, one per agent)."""
+    update_class = entry.round_class()
+
     def make(networks: MultiAgentNetworks, cfg: TrainConfig, generator: torch.Generator) -> MultiAgentUpdate:
         options = dict(actor_lr=cfg.actor_lr, epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg),
                        target_kl=cfg.target_kl, **_common(cfg, generator))
-        if update_class is MAPPOLagUpdate:
+        if entry.multiplier == "lagrange":
             options.update(multiplier_init=cfg.lagrangian_init, multiplier_lr=cfg.lagrangian_lr)
         return update_class(networks, **options)
 
     return make
 
 
-def _macpo_round(networks: MultiAgentNetworks, cfg: TrainConfig, generator: torch.Generator) -> MultiAgentUpdate:
-    return MACPOUpdate(
-        networks, target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping,
-        line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction, critic_epochs=cfg.update_iters,
-        num_minibatches=num_minibatches(cfg), **_common(cfg, generator),
-    )
+def _cpo_round(entry: AlgorithmEntry) -> MakeUpdate:
+    """A CPO-step row's round (MACPO): one trust-region step per agent, then critic epochs."""
+    update_class = entry.round_class()
+
+    def make(networks: MultiAgentNetworks, cfg: TrainConfig, generator: torch.Generator) -> MultiAgentUpdate:
+        return update_class(
+            networks, target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping,
+            line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction,
+            critic_epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg), **_common(cfg, generator),
+        )
+
+    return make
 
 
-#: The multi-agent algorithms of the Safety-Gymnasium paper, by ``--algo`` name.
+#: Round builders by a multi-agent row's update kind.
+_ROUNDS: dict[str, Callable[[AlgorithmEntry], MakeUpdate]] = {"first_order": _ppo_round, "cpo": _cpo_round}
+
+#: The multi-agent algorithms of the Safety-Gymnasium paper, by ``--algo`` name (the manifest's multi-agent rows).
 MULTI_AGENT_ALGORITHMS: dict[str, MultiAgentAlgorithm] = {
-    "mappo": MultiAgentAlgorithm("MAPPO", _ppo_round(MAPPOUpdate)),
-    "happo": MultiAgentAlgorithm("HAPPO", _ppo_round(HAPPOUpdate)),
-    "mappo_lag": MultiAgentAlgorithm("MAPPO-Lag", _ppo_round(MAPPOLagUpdate)),
-    "macpo": MultiAgentAlgorithm("MACPO", _macpo_round),
+    entry.name: MultiAgentAlgorithm(entry.title, _ROUNDS[entry.update](entry))
+    for entry in manifest.rows(agents="multi")
 }
 
 

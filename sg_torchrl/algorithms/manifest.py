@@ -1,0 +1,262 @@
+"""The algorithm manifest: every algorithm ``sg-train`` runs, one row each, and nowhere else.
+
+Plain data, free of torch (importing it loads neither torch nor TorchRL), so that the command line,
+the config check and the sweep can list, check and describe algorithms in a second. Everything that
+needs an algorithm's name, title, kind or paper defaults reads these rows: the config
+(:mod:`sg_torchrl.train.config`: ``--algo`` choices, :data:`~sg_torchrl.train.config.ALGORITHM_DEFAULTS`),
+the single-agent builders (:mod:`sg_torchrl.train.algorithms`, which choose a row's multiplier, loss and
+update builders by its :attr:`~AlgorithmEntry.multiplier`, :attr:`~AlgorithmEntry.loss` and
+:attr:`~AlgorithmEntry.update`), the multi-agent rounds (:mod:`sg_torchrl.train.multi_agent`), the
+sweep's report (paper names, baselines) and the benchmarks.
+
+==========  =========  ======  ============  ===========  ==========  ===========================
+name        title      agents  family        update       multiplier  loss
+==========  =========  ======  ============  ===========  ==========  ===========================
+pg          PG         single  first order   first_order  none        PGLoss
+ppo         PPO        single  first order   first_order  none        PPOLagLoss
+ppo_lag     PPO-Lag    single  first order   first_order  lagrange    PPOLagLoss
+cppo_pid    CPPO-PID   single  first order   first_order  pid         PPOLagLoss
+focops      FOCOPS     single  first order   first_order  lagrange    FOCOPSLoss
+cup         CUP        single  first order   two_stage    lagrange    CUPLoss
+npg         NPG        single  second order  natural      none        PPOLagLoss (critics)
+trpo        TRPO       single  second order  trpo         none        PPOLagLoss (critics)
+trpo_lag    TRPO-Lag   single  second order  trpo         lagrange    PPOLagLoss (critics)
+rcpo        RCPO       single  second order  natural      lagrange    PPOLagLoss (critics)
+cpo         CPO        single  second order  cpo          none        PPOLagLoss (critics)
+pcpo        PCPO       single  second order  pcpo         none        PPOLagLoss (critics)
+mappo       MAPPO      multi   first order   first_order  none        AgentPPOLoss (MAPPOUpdate)
+happo       HAPPO      multi   first order   first_order  none        AgentPPOLoss (HAPPOUpdate)
+mappo_lag   MAPPO-Lag  multi   first order   first_order  lagrange    AgentPPOLoss (MAPPOLagUpdate)
+macpo       MACPO      multi   second order  cpo          none        AgentPPOLoss (MACPOUpdate)
+==========  =========  ======  ============  ===========  ==========  ===========================
+
+Update kinds: ``first_order`` (SafePO's minibatch passes with a KL early stop), ``two_stage`` (CUP: a
+reward stage, then the projection), and the trust-region steps of the actor, ``natural`` (NPG's
+step, no line search), ``trpo``, ``cpo`` and ``pcpo``. A multi-agent row's update is its
+:attr:`~AlgorithmEntry.round` (the agents updated one at a time): first-order clipped-PPO epochs per
+agent, or MACPO's per-agent CPO step. Multiplier kinds: ``none``, ``lagrange`` (Adam projected
+ascent; MAPPO-Lag: per agent, SGD after every minibatch step) and ``pid`` (CPPO-PID).
+
+Defaults are the Safety-Gymnasium paper's hyper-parameters (appendix table, also SafePO's CLI
+defaults), per family; fields of :class:`~sg_torchrl.train.config.TrainConfig` that a row does not
+set have one default for all:
+
+* first order (PG, PPO, PPO-Lag, CPPO-PID, FOCOPS, CUP): Adam 3e-4 for the actor (linearly annealed)
+  and both critics, 40 passes of minibatch 64, KL early stop at 0.02, clip 0.2;
+* second order (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): trust region 0.01, conjugate gradient 15
+  iterations with damping 0.1, line search 15 steps of fraction 0.8 (PCPO 200), critics Adam 1e-3
+  for 10 passes of minibatch 128, no actor learning rate;
+* multi agent (MAPPO, HAPPO, MAPPO-Lag, MACPO): 10,000 steps per update (episode length 1000 x 10
+  simulators), Adam 5e-4 for actors and critics, 5 epochs of one minibatch (the whole batch), KL
+  early stop 0.016, MAPPO-Lag's multiplier init 1e-5 and SGD step 0.78; MACPO: trust region 0.01,
+  10 conjugate-gradient iterations, 10 line-search steps of fraction 0.5, 15 critic epochs. SafePO's
+  settings the paper does not list: gradient-norm clip 10, no critic L2.
+
+Adding an algorithm adds a row here (and, for a new kind, its builder in :mod:`sg_torchrl.train`).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Mapping
+
+__all__ = [
+    "AGENTS", "BASELINES", "ENTRIES", "FAMILIES", "MULTIPLIERS", "SECOND_ORDER", "UPDATES", "AlgorithmEntry",
+    "UnknownAlgorithmError", "baseline", "get", "names", "resolve", "rows",
+]
+
+AGENTS = ("single", "multi")
+FAMILIES = ("first_order", "second_order")
+#: Update kinds: the first-order loops, then the trust-region steps of the actor.
+UPDATES = ("first_order", "two_stage", "natural", "trpo", "cpo", "pcpo")
+MULTIPLIERS = ("none", "lagrange", "pid")
+
+
+class UnknownAlgorithmError(KeyError, ValueError):
+    """An algorithm name the manifest does not hold: a ``KeyError`` (a missing row) and a ``ValueError``
+    (a bad ``algo`` value), whose message lists the known names."""
+
+    def __str__(self) -> str:  # KeyError would quote the whole message
+        return str(self.args[0])
+
+
+def resolve(path: str) -> Any:
+    """The object a ``"package.module:Name"`` path names (imports the module)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class AlgorithmEntry:
+    """One algorithm: its ``--algo`` name, how the paper prints it, its kinds and its paper defaults.
+
+    Attributes:
+        name: the ``sg-train --algo`` value (and run directory component).
+        title: the name as the Safety-Gymnasium paper and SafePO print it (``"PPO-Lag"``).
+        agents: ``"single"`` or ``"multi"``.
+        family: ``"first_order"`` or ``"second_order"`` (the actor moves by a trust-region step, no actor
+            learning rate).
+        update: the update kind (:data:`UPDATES`), which chooses the update builder.
+        multiplier: the multiplier kind (:data:`MULTIPLIERS`), which chooses the multiplier builder.
+        loss: the loss class as ``"module:Name"``, imported only by :meth:`loss_class`.
+        defaults: ``TrainConfig`` field values the paper gives this algorithm (read-only).
+        round: multi-agent rows: the round class (``"module:Name"``) that updates the agents one at a time.
+        paper_name: the row's name in the paper's results tables (``paper_results.csv``) when not ``title``.
+    """
+
+    name: str
+    title: str
+    agents: str
+    family: str
+    update: str
+    multiplier: str
+    loss: str
+    defaults: Mapping[str, Any] = field(default_factory=dict, hash=False)
+    round: str | None = None
+    paper_name: str | None = None
+
+    def __post_init__(self) -> None:
+        for attribute, allowed in (("agents", AGENTS), ("family", FAMILIES), ("update", UPDATES),
+                                   ("multiplier", MULTIPLIERS)):
+            if getattr(self, attribute) not in allowed:
+                raise ValueError(f"algorithm {self.name!r}: {attribute} {getattr(self, attribute)!r} is not one of "
+                                 f"{', '.join(allowed)}")
+        if (self.round is None) == (self.agents == "multi"):
+            raise ValueError(f"algorithm {self.name!r}: a round class is given for multi-agent rows only, and always")
+        object.__setattr__(self, "defaults", MappingProxyType(dict(self.defaults)))
+
+    @property
+    def multi_agent(self) -> bool:
+        return self.agents == "multi"
+
+    @property
+    def second_order(self) -> bool:
+        return self.family == "second_order"
+
+    @property
+    def paper(self) -> str:
+        """The row's name in the paper's results tables."""
+        return self.paper_name or self.title
+
+    def loss_class(self) -> type:
+        """The loss class (imports torch)."""
+        return resolve(self.loss)
+
+    def round_class(self) -> type | None:
+        """A multi-agent row's round class (imports torch); ``None`` for single-agent rows."""
+        return resolve(self.round) if self.round else None
+
+
+# ---------------------------------------------------------------------------- paper defaults
+_SINGLE_AGENT_DEFAULTS = dict(
+    env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
+    lagrangian_init=1e-3, lagrangian_lr=0.035, cg_iters=15, step_fraction=0.8, normalize_obs=True,
+)
+_FIRST_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64,
+                             target_kl=0.02)
+_SECOND_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=0.0, critic_lr=1e-3, update_iters=10,
+                              minibatch_size=128, target_kl=0.01, line_search_steps=15)
+# FOCOPS and CUP bound their multiplier nu by 2.0 (the table's "nu 2.00"; SafePO's CUP script uses 0.2,
+# compared on PointGoal1 in benchmarks/RESULTS.md).
+_BOUNDED_NU_DEFAULTS = dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0)
+# Paper, multi-agent rows (10,000 steps per update from 10 simulators of 1000-step episodes, one
+# minibatch: ``minibatch_size`` at least the batch); SafePO's multi-agent scripts for what the paper
+# does not list (gradient clip 10 per network, critics without L2). Observation normalisation stands
+# in for the input LayerNorm of SafePO's networks (see sg_torchrl.train.config).
+_MULTI_AGENT_DEFAULTS = dict(
+    env_id="Safety2x3HalfCheetahVelocity-v0", steps_per_epoch=10_000, actor_lr=5e-4, critic_lr=5e-4, update_iters=5,
+    minibatch_size=10_000, target_kl=0.016, max_grad_norm=10.0, critic_l2=0.0, lagrangian_init=1e-5,
+    lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
+)
+# MACPO: trust region 0.01, CG 10, 10 search steps of 0.5, 15 critic epochs ("SGD iters").
+_MACPO_DEFAULTS = dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, target_kl=0.01, update_iters=15, cg_iters=10,
+                       line_search_steps=10, step_fraction=0.5)
+
+# ---------------------------------------------------------------------------- the rows
+_PG_LOSS = "sg_torchrl.objectives:PGLoss"
+_PPO_LAG_LOSS = "sg_torchrl.objectives:PPOLagLoss"
+_AGENT_LOSS = "sg_torchrl.objectives.multi_agent:AgentPPOLoss"
+_ROUNDS = "sg_torchrl.objectives.multi_agent:"
+
+
+def _single(name: str, title: str, family: str, update: str, multiplier: str, loss: str,
+            defaults: Mapping[str, Any]) -> AlgorithmEntry:
+    return AlgorithmEntry(name, title, "single", family, update, multiplier, loss, defaults)
+
+
+def _multi(name: str, title: str, family: str, update: str, multiplier: str, round_name: str,
+           defaults: Mapping[str, Any]) -> AlgorithmEntry:
+    return AlgorithmEntry(name, title, "multi", family, update, multiplier, _AGENT_LOSS, defaults, _ROUNDS + round_name)
+
+
+_FIRST, _SECOND = FAMILIES
+#: Every algorithm, in the paper's order (its tables' rows): single agent, then multi agent.
+ENTRIES: tuple[AlgorithmEntry, ...] = (
+    _single("pg", "PG", _FIRST, "first_order", "none", _PG_LOSS, _FIRST_ORDER_DEFAULTS),
+    _single("ppo", "PPO", _FIRST, "first_order", "none", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
+    _single("ppo_lag", "PPO-Lag", _FIRST, "first_order", "lagrange", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
+    _single("cppo_pid", "CPPO-PID", _FIRST, "first_order", "pid", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
+    _single("focops", "FOCOPS", _FIRST, "first_order", "lagrange", "sg_torchrl.objectives:FOCOPSLoss",
+            _BOUNDED_NU_DEFAULTS),
+    _single("cup", "CUP", _FIRST, "two_stage", "lagrange", "sg_torchrl.objectives:CUPLoss", _BOUNDED_NU_DEFAULTS),
+    # Second order: PPO-Lag's critic losses, a trust-region step for the actor. RCPO, as SafePO
+    # implements it, is NPG with a Lagrange multiplier; TRPO-Lag is TRPO with one.
+    _single("npg", "NPG", _SECOND, "natural", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    _single("trpo", "TRPO", _SECOND, "trpo", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    _single("trpo_lag", "TRPO-Lag", _SECOND, "trpo", "lagrange", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    _single("rcpo", "RCPO", _SECOND, "natural", "lagrange", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    _single("cpo", "CPO", _SECOND, "cpo", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    _single("pcpo", "PCPO", _SECOND, "pcpo", "none", _PPO_LAG_LOSS,
+            dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200)),
+    _multi("mappo", "MAPPO", _FIRST, "first_order", "none", "MAPPOUpdate", _MULTI_AGENT_DEFAULTS),
+    _multi("happo", "HAPPO", _FIRST, "first_order", "none", "HAPPOUpdate", _MULTI_AGENT_DEFAULTS),
+    _multi("mappo_lag", "MAPPO-Lag", _FIRST, "first_order", "lagrange", "MAPPOLagUpdate", _MULTI_AGENT_DEFAULTS),
+    _multi("macpo", "MACPO", _SECOND, "cpo", "none", "MACPOUpdate", _MACPO_DEFAULTS),
+)
+_BY_NAME = {entry.name: entry for entry in ENTRIES}
+assert len(_BY_NAME) == len(ENTRIES), "two rows share a name"
+
+#: The unconstrained algorithm the paper normalises J^R by, per ``agents`` (PPO's, MAPPO's).
+BASELINES: Mapping[str, str] = MappingProxyType({"single": "ppo", "multi": "mappo"})
+
+
+def _check(value: str | None, allowed: tuple[str, ...], what: str) -> None:
+    if value is not None and value not in allowed:
+        raise ValueError(f"{what} must be one of {', '.join(allowed)} (or None), got {value!r}")
+
+
+def rows(agents: str | None = None, family: str | None = None) -> tuple[AlgorithmEntry, ...]:
+    """The rows, in the paper's order, of ``agents`` (``"single"`` / ``"multi"``) and ``family`` when given."""
+    _check(agents, AGENTS, "agents")
+    _check(family, FAMILIES, "family")
+    return tuple(entry for entry in ENTRIES
+                 if agents in (None, entry.agents) and family in (None, entry.family))
+
+
+def names(agents: str | None = None, family: str | None = None) -> tuple[str, ...]:
+    """The names of :func:`rows`' rows (``names(agents="multi")`` -> ``("mappo", "happo", "mappo_lag", "macpo")``)."""
+    return tuple(entry.name for entry in rows(agents, family))
+
+
+def get(name: str) -> AlgorithmEntry:
+    """The row of ``name``.
+
+    Raises:
+        UnknownAlgorithmError: no such row; the message lists the known names.
+    """
+    try:
+        return _BY_NAME[name]
+    except (KeyError, TypeError):  # TypeError: an unhashable value
+        raise UnknownAlgorithmError(f"unknown algorithm {name!r}; known: {', '.join(_BY_NAME)}") from None
+
+
+def baseline(name: str) -> str:
+    """The algorithm whose J^R the paper normalises ``name``'s by: MAPPO for a multi-agent one, else PPO."""
+    entry = _BY_NAME.get(name)
+    return BASELINES[entry.agents if entry is not None else "single"]
+
+
+#: Algorithms whose actor moves by a trust-region step (no actor learning rate).
+SECOND_ORDER: frozenset[str] = frozenset(names(family="second_order"))
