@@ -86,6 +86,7 @@ from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts, write_values
+from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
     "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer", "epoch_row",
@@ -198,8 +199,8 @@ def write_run_summary(
         logger.log({**evaluation, "Train/TotalSteps": total_steps}, step=total_steps)
         summary.update(evaluation)
     summary.update(extra or {})
-    (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": total_steps,
-                                                          "Time/Total": train_seconds}, indent=2))
+    write_atomic(cfg.run_dir / "summary.json", json.dumps({**summary, "Train/TotalSteps": total_steps,
+                                                            "Time/Total": train_seconds}, indent=2))
     history = [row for row in logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
     plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
                 title=f"{title} on {cfg.env_id} (seed {cfg.seed})")
@@ -306,9 +307,11 @@ class EpochTrainer(abc.ABC):
         Raises:
             TrainingInterrupted: on Ctrl-C or ``SIGTERM`` (:mod:`~sg_torchrl.train.interrupt`),
                 after the epoch under way has finished and been checkpointed.
+            RunWriteError: a file of the run could not be written (:mod:`~sg_torchrl.train.writes`); the
+                last checkpoint written and the logs up to it are intact.
         """
         cfg = self.cfg
-        cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        make_dirs(cfg.run_dir)
         cfg.save(cfg.run_dir / "config.json")
         last_epoch = cfg.epochs if max_epochs is None else min(cfg.epochs, self.epoch + max_epochs)
         metrics: dict[str, float] = {}
@@ -390,7 +393,7 @@ class EpochTrainer(abc.ABC):
         Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`).
         """
         path = path or self.checkpoint_path
-        path.parent.mkdir(parents=True, exist_ok=True)
+        make_dirs(path.parent)
         state = {
             "config": self.cfg.to_dict(),
             "epoch": self.epoch,
