@@ -42,6 +42,9 @@ class RunWriteError(Exception):
         self.path, self.reason = Path(path), reason
         super().__init__(f"cannot write {path}: {reason}")
 
+    def __reduce__(self):  # pickled as (path, reason): Ray sends a task's exception back to the driver
+        return type(self), (str(self.path), self.reason)
+
 
 def reason(error: OSError) -> str:
     """The cause of ``error`` in words, without the errno number or the path: ``"file too large"``."""
