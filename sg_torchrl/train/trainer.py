@@ -390,10 +390,14 @@ class EpochTrainer(abc.ABC):
     def save_checkpoint(self, path: Path | None = None) -> Path:
         """Write everything that influences the future to ``path`` (default ``<run dir>/checkpoint.pt``).
 
-        Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`).
+        Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`). The run directory
+        is not created again here: one that vanished during the run (an unmounted disk) is an error
+        (:class:`~sg_torchrl.train.writes.RunWriteError`), not a new empty run directory.
         """
-        path = path or self.checkpoint_path
-        make_dirs(path.parent)
+        if path is None:
+            path = self.checkpoint_path
+        else:
+            make_dirs(path.parent)
         state = {
             "config": self.cfg.to_dict(),
             "epoch": self.epoch,

@@ -104,15 +104,15 @@ def append_text(path: str | os.PathLike, text: str) -> None:
     Raises:
         RunWriteError: naming ``path`` and the cause.
     """
-    with writing(path), open(path, "a", newline="") as handle:
-        start = handle.tell()
+    data = memoryview(text.encode())
+    with writing(path), open(path, "ab", buffering=0) as handle:  # unbuffered: nothing is left to flush later
+        start = os.fstat(handle.fileno()).st_size
         try:
-            handle.write(text)
-            handle.flush()
+            while data:
+                data = data[handle.write(data):]
         except OSError:
             with contextlib.suppress(OSError):
-                handle.truncate(start)  # shrinking needs no space; a failed flush leaves the buffer unwritten
-                os.ftruncate(handle.fileno(), start)
+                os.ftruncate(handle.fileno(), start)  # shrinking needs no space
             raise
 
 
