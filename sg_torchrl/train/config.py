@@ -198,7 +198,8 @@ class TrainConfig:
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
     run_name: str | None = _opt(
-        None, "run directory name (default: <env>/<algo>/seed-<seed>; a seed group: <env>/<algo>/seeds-0-1-2)")
+        None, "run directory name inside output_dir, '/' for nested folders; absolute paths and '..' are refused "
+        "(default: <env>/<algo>/seed-<seed>; a seed group: <env>/<algo>/seeds-0-1-2)")
     wandb: Literal["offline", "online", "disabled"] = _opt("offline", "wandb mode; offline needs no account")
     checkpoint_every: int = _opt(
         10, "epochs between checkpoints; the first epoch a process trains and the last epoch are always saved")
