@@ -19,8 +19,8 @@ How a child's exit maps to the task's outcome: 0, or 1 with a summary (every see
 cell; a death by a signal (``SIGKILL``, the OOM killer) raises :class:`CellKilled`, which Ray retries;
 130 / 143 (a stop request) raises :class:`CellInterrupted`; any other exit raises :class:`CellFailed` whose
 first line is ``sg-train`` 's own error line when it printed one (exit 3: a file of the cell could not be
-written, ``cannot write <file>: <cause>``), then the end of the log. A finished cell is never trained again: the task returns at once when the cell's
-``summary.json`` exists.
+written, ``cannot write <file>: <cause>``), then the end of the log. A finished cell is never trained again:
+the task returns at once when the cell's ``summary.json`` exists.
 """
 
 from __future__ import annotations
@@ -194,9 +194,13 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
         start = time.monotonic()
         with writing(directory / "sweep.log"):
             log = open(directory / "sweep.log", "ab")
-            log.write(f"\n=== attempt {number} on {node} ({time.ctime()}): sg-train "
-                      f"{' '.join(command)}\n".encode())
-            log.flush()
+            try:
+                log.write(f"\n=== attempt {number} on {node} ({time.ctime()}): sg-train "
+                          f"{' '.join(command)}\n".encode())
+                log.flush()
+            except OSError:
+                log.close()
+                raise
         with log:
             child = subprocess.Popen([sys.executable, "-m", "sg_torchrl.train", *command], stdout=log,
                                      stderr=subprocess.STDOUT, start_new_session=True, pass_fds=(lock.fileno(),),
