@@ -17,9 +17,10 @@ the worker itself trains because:
 
 How a child's exit maps to the task's outcome: 0, or 1 with a summary (every seed diverged), is a finished
 cell; a death by a signal (``SIGKILL``, the OOM killer) raises :class:`CellKilled`, which Ray retries;
-130 / 143 (a stop request) raises :class:`CellInterrupted`; any other exit raises :class:`CellFailed` with
-the end of the log. A finished cell is never trained again: the task returns at once when the cell's
-``summary.json`` exists.
+130 / 143 (a stop request) raises :class:`CellInterrupted`; any other exit raises :class:`CellFailed` whose
+first line is ``sg-train`` 's own error line when it printed one (exit 3: a file of the cell could not be
+written, ``cannot write <file>: <cause>``), then the end of the log. A finished cell is never trained again:
+the task returns at once when the cell's ``summary.json`` exists.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from sg_torchrl.sweep.records import SWEEP_RECORD, AttemptLog, epochs_logged
+from sg_torchrl.train.writes import EXIT_WRITE_FAILED, check_run_name, make_dirs, writing
 
 __all__ = ["CellFailed", "CellInterrupted", "CellKilled", "SweepStorageError", "check_storage", "run_cell"]
 
@@ -168,12 +170,16 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
 
     Raises:
         CellKilled / CellFailed / CellInterrupted / SweepStorageError: see the module docstring.
+        RunWriteError: the cell's directory, lock, log or attempt record cannot be written (the cell fails).
+        ValueError: ``run_name`` leaves ``output_dir`` (absolute, or a ``..`` part).
     """
     root = Path(output_dir)
     check_storage(root, token)
-    directory = root / run_name
-    directory.mkdir(parents=True, exist_ok=True)
-    with open(directory / ".lock", "a+") as lock:
+    check_run_name(run_name)  # a cell's files stay inside the sweep's output directory
+    directory = make_dirs(root / run_name)
+    with writing(directory / ".lock"):
+        lock = open(directory / ".lock", "a+")
+    with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # an orphaned sg-train of a lost attempt may still be checkpointing
         if (directory / "summary.json").exists():
             return {"status": "done", "ran": False}
@@ -186,10 +192,16 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
         number = attempts.begin(node=node, node_id=_node_id(), pid=os.getpid(), resumed=resume,
                                 epochs_before=epochs_logged(directory, seeds))
         start = time.monotonic()
-        with open(directory / "sweep.log", "ab") as log:
-            log.write(f"\n=== attempt {number} on {node} ({time.ctime()}): sg-train "
-                      f"{' '.join(command)}\n".encode())
-            log.flush()
+        with writing(directory / "sweep.log"):
+            log = open(directory / "sweep.log", "ab")
+            try:
+                log.write(f"\n=== attempt {number} on {node} ({time.ctime()}): sg-train "
+                          f"{' '.join(command)}\n".encode())
+                log.flush()
+            except OSError:
+                log.close()
+                raise
+        with log:
             child = subprocess.Popen([sys.executable, "-m", "sg_torchrl.train", *command], stdout=log,
                                      stderr=subprocess.STDOUT, start_new_session=True, pass_fds=(lock.fileno(),),
                                      preexec_fn=_die_with_parent)
@@ -214,5 +226,8 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
             attempts.end(number, "interrupted", **figures)
             raise CellInterrupted(f"stopped on request after a checkpointed epoch (exit {code})")
         attempts.end(number, "failed", **figures)
-        raise CellFailed(f"sg-train exited with {code}; log: {directory / 'sweep.log'}\n"
-                         f"{_log_tail(directory / 'sweep.log')}")
+        tail = _log_tail(directory / "sweep.log")
+        # sg-train's own one-line error first (a full disk: exit 3, "cannot write ..."), then the log's end.
+        said = next((line for line in reversed(tail.splitlines()) if line.startswith("sg-train: error:")), None)
+        what = "could not write a file" if code == EXIT_WRITE_FAILED else f"exited with {code}"
+        raise CellFailed(f"{said or 'sg-train ' + what} (exit {code}); log: {directory / 'sweep.log'}\n{tail}")

@@ -14,7 +14,9 @@ finished, also in a copy of the output directory on another machine.
     sg-sweep ... --address auto          # join the cluster started with `ray start --head` on this machine
 
 Flags after ``--`` go to every cell's ``sg-train`` (``sg-train --help`` lists them). Exit status: 0 when
-every cell finished, 1 when some failed (or were stopped from outside the sweep), 2 for bad arguments, 130 after a Ctrl-C.
+every cell finished, 1 when some failed (or were stopped from outside the sweep), 2 for bad arguments, 3 when the
+output directory (its sweep.json, lock or report) cannot be written, 130 after a Ctrl-C. A cell that cannot write
+its own files fails ("[failed] ...: sg-train: error: cannot write <file>: <cause>") and the other cells go on.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from sg_torchrl.algorithms import manifest
 from sg_torchrl.sweep.records import SWEEP_RECORD
 from sg_torchrl.sweep.grid import SweepGrid, SweepGridError, parse_grid_option
 from sg_torchrl.sweep.runner import ClusterUnreachable, run_sweep  # imports Ray only when a sweep runs
+from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError
 
 __all__ = ["main", "build_parser", "grid_from_args"]
 
@@ -81,7 +84,11 @@ def _report(output_dir: Path) -> int:
     if not output_dir.is_dir():
         print(f"sg-sweep: error: {output_dir} does not exist", file=sys.stderr)
         return 2
-    paths = write_report(output_dir)
+    try:
+        paths = write_report(output_dir)
+    except RunWriteError as error:
+        print(f"sg-sweep: error: {error}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     table = paths.get("table.md") or next((p for p in paths.values() if str(p).endswith(".md")), None)
     if table is not None:
         print(Path(table).read_text())
@@ -108,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     except (SweepGridError, ClusterUnreachable) as error:  # a bad grid, or a bad --address (or no token for it)
         print(f"sg-sweep: error: {error}", file=sys.stderr)
         return 2
+    except RunWriteError as error:  # the output directory is a file, read-only or full (a cell's own: [failed])
+        print(f"sg-sweep: error: {error}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     except ModuleNotFoundError as error:
         if error.name != "ray":
             raise

@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sg_torchrl.train.writes import write_atomic
+
 __all__ = ["AttemptLog", "SWEEP_RECORD", "epochs_logged", "latest", "parse_float", "read_progress"]
 
 #: The sweep's record at the root of its output directory (grid, shared options, cells, storage token).
@@ -76,9 +78,7 @@ class AttemptLog:
         return [attempt for attempt in attempts if isinstance(attempt, dict)]
 
     def _write(self, attempts: list[dict[str, Any]]) -> None:
-        temporary = self.path.with_suffix(".tmp")
-        temporary.write_text("".join(json.dumps(a) + "\n" for a in attempts))
-        temporary.replace(self.path)
+        write_atomic(self.path, "".join(json.dumps(a) + "\n" for a in attempts), sync=False)
 
     @staticmethod
     def _mark_lost(attempts: list[dict[str, Any]]) -> bool:

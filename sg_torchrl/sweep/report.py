@@ -30,6 +30,7 @@ numbers (``paper_results.csv`` in this package, 10M steps) normalised the same w
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -40,6 +41,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.sweep.records import AttemptLog, latest, parse_float, read_progress
+from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
     "CellResult", "MULTI_AGENT", "PAPER_NAMES", "PAPER_RESULTS", "baseline", "cell_histories", "collect",
@@ -340,11 +342,11 @@ def write_csv(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike) -> Pat
     """Write ``rows`` as CSV (every key a column; floats in full precision, NaN as ``nan``, None empty)."""
     path = Path(path)
     columns = list(dict.fromkeys(key for row in rows for key in row))
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows({key: "" if value is None else value for key, value in row.items()} for row in rows)
-    return path
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows({key: "" if value is None else value for key, value in row.items()} for row in rows)
+    return write_atomic(path, text.getvalue(), sync=False)
 
 
 def plot_env_curves(results: Iterable[CellResult], env_id: str, path: str | os.PathLike) -> Path:
@@ -393,7 +395,7 @@ def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
     ``-`` and ``_`` in the id become ``_``). Returns ``{file name: path}``."""
     root = Path(output_dir)
     report = root / REPORT_DIR
-    report.mkdir(parents=True, exist_ok=True)
+    make_dirs(report)
     results = collect(root)
     table, seeds = paper_rows(results), seed_rows(results)
     unfinished = [cell for cell in sorted(results, key=_order) if not cell.finished]
@@ -411,7 +413,7 @@ def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
     ]
     text += [_progress_line(cell) for cell in unfinished] or ["None."]
     paths = {"table.md": report / "table.md"}
-    paths["table.md"].write_text("\n".join(text) + "\n")
+    write_atomic(paths["table.md"], "\n".join(text) + "\n", sync=False)
     paths["table.csv"] = write_csv(table, report / "table.csv")
     paths["seeds.csv"] = write_csv(seeds, report / "seeds.csv")
     for env_id in sorted({cell.env_id for cell in results}):

@@ -36,6 +36,7 @@ from typing import Any, Callable, Iterator
 from sg_torchrl.sweep.cell import CellInterrupted, CellKilled, check_storage, run_cell
 from sg_torchrl.sweep.grid import Cell, SweepGrid, SweepGridError, merge_records
 from sg_torchrl.sweep.records import SWEEP_RECORD, AttemptLog, latest, read_progress
+from sg_torchrl.train.writes import make_dirs, write_atomic, writing
 
 __all__ = ["ClusterUnreachable", "SweepOutcome", "cell_finished", "cell_steps", "run_sweep", "prepare_output"]
 
@@ -70,14 +71,12 @@ def prepare_output(grid: SweepGrid) -> str:
     Raises:
         SweepGridError: the directory holds a sweep with another budget or other shared options.
     """
-    grid.output_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(grid.output_dir)
     path = grid.output_dir / SWEEP_RECORD
     previous = json.loads(path.read_text()) if path.exists() else None
     record = merge_records(previous, grid)
     record["token"] = (previous or {}).get("token") or secrets.token_hex(8)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(record, indent=2))
-    temporary.replace(path)
+    write_atomic(path, json.dumps(record, indent=2))
     return record["token"]
 
 
@@ -198,7 +197,9 @@ def _driver_lock(output_dir: Path) -> Iterator[None]:
     Raises:
         SweepGridError: another ``sg-sweep`` holds the lock (its pid is in the message).
     """
-    with open(output_dir / ".sweep.lock", "a+") as lock:
+    with writing(output_dir / ".sweep.lock"):
+        lock = open(output_dir / ".sweep.lock", "a+")
+    with lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -229,12 +230,14 @@ def run_sweep(grid: SweepGrid, *, address: str | None = None, num_cpus: int | No
 
     Raises:
         SweepGridError: a bad cell command line, or an output directory holding another kind of sweep.
+        RunWriteError: the output directory (its ``sweep.json``, its lock) cannot be written. A cell that
+            cannot write is a failed cell (``outcome.failed``, with ``sg-train``'s line), the others go on.
         ClusterUnreachable: ``address`` could not be joined.
         KeyboardInterrupt: after a Ctrl-C, once the running cells have checkpointed (``outcome.interrupted``
             is not returned then: the exception is the report).
     """
     grid.validate()
-    grid.output_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(grid.output_dir)
     with _driver_lock(grid.output_dir):
         token = prepare_output(grid)
         outcome = SweepOutcome()

@@ -30,11 +30,13 @@ import dataclasses
 import importlib
 import os
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES, PRESETS, TrainConfig, command_line_values
 from sg_torchrl.train.interrupt import TrainingInterrupted
+from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError, make_dirs
 
 if TYPE_CHECKING:
     from sg_torchrl.train.trainer import EpochTrainer
@@ -118,6 +120,8 @@ def train(cfg: TrainConfig) -> dict[str, float]:
         RunDirectoryError: a new run in a directory that already holds one, without ``cfg.overwrite``
             (checked before anything is built).
         CheckpointError: ``cfg.resume`` names a checkpoint that is damaged or not ours.
+        RunWriteError: a file of the run could not be written (a full disk, a read-only or vanished
+            directory); the last checkpoint and the logs up to it are intact.
     """
     from sg_torchrl.train.checkpoint import check_new_run_dir
 
@@ -187,6 +191,17 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     return dataclasses.replace(merged, output_dir=str(run_dir.parent), run_name=run_dir.name)
 
 
+def _after_write_error(run_dir: Path) -> str:
+    """What is left after a failed write, and how to go on: the last checkpoint's epoch and ``--resume``."""
+    from sg_torchrl.train.checkpoint import load_checkpoint
+
+    try:
+        epoch = load_checkpoint(run_dir)["epoch"]
+    except (OSError, ValueError):  # no checkpoint (the first one failed, the directory vanished), or unreadable
+        return f"{run_dir} holds no checkpoint to continue from: run the same command again once the cause is fixed"
+    return f"the last checkpoint (epoch {epoch}) is intact, continue with: sg-train --resume {run_dir}"
+
+
 def _seeds_text(config: dict[str, Any]) -> str:
     seeds = config.get("seeds") or []
     return f"--seeds {' '.join(map(str, seeds))}" if seeds else f"--seed {config.get('seed')}"
@@ -226,6 +241,10 @@ def main(argv: list[str] | None = None) -> int:
 
         if not cfg.resume:
             check_new_run_dir(cfg.run_dir, cfg.overwrite)  # before anything is built
+        make_dirs(cfg.run_dir)  # an output directory that is a file, or read-only: said before anything is built
+    except RunWriteError as error:
+        print(f"sg-train: error: {error}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     except SystemExit as stop:  # argparse: --help (0), or a bad flag (2) with its "sg-train: error:" line
         return stop.code if isinstance(stop.code, int) else 2
     except (ValueError, FileNotFoundError) as error:  # CheckpointError and RunDirectoryError included
@@ -240,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     except TrainingInterrupted as stop:
         print(f"sg-train: {stop}\n  continue with: sg-train --resume {run_dir}", file=sys.stderr)
         return stop.exit_code
+    except RunWriteError as error:  # a full disk, a quota, a read-only or vanished directory
+        print(f"sg-train: error: {error}; {_after_write_error(run_dir)}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     print()
     if cfg.group:
         _print_group(cfg, metrics)

@@ -59,6 +59,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from sg_torchrl.train.writes import write_atomic, writing
+
 __all__ = [
     "CHECKPOINT_NAME", "CheckpointError", "RUN_FILES", "RunDirectoryError", "SEED_DIR_PATTERN", "check_new_run_dir",
     "checkpoint_file", "clear_run_dir", "decode_state", "encode_state", "existing_run_files", "load_checkpoint", "resume_run_dir",
@@ -185,21 +187,19 @@ def checkpoint_file(path: str | Path) -> Path:
 
 
 def save_checkpoint(state: Mapping[str, Any], path: str | Path) -> Path:
-    """Write ``state`` to ``path`` (header, checksum, weights-only payload), atomically; returns ``path``."""
+    """Write ``state`` to ``path`` (header, checksum, weights-only payload), atomically; returns ``path``.
+
+    Raises:
+        RunWriteError: the file could not be written (its temporary file is removed, ``path`` is untouched).
+    """
     path = Path(path)
     buffer = io.BytesIO()
     torch.save(encode_state(dict(state)), buffer)
     payload = buffer.getvalue()
     header = b"%s v%d sha256=%s bytes=%d\n" % (_MAGIC, FORMAT_VERSION, hashlib.sha256(payload).hexdigest().encode(),
                                                len(payload))
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        handle.write(header)
-        handle.write(payload)
-        handle.flush()
-        os.fsync(handle.fileno())
-    tmp.replace(path)  # atomic: an interrupted save leaves the previous checkpoint as it was
-    return path
+    # Atomic: a save that fails (a full disk) or is interrupted leaves the previous checkpoint as it was.
+    return write_atomic(path, header, payload)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -296,11 +296,19 @@ def clear_run_dir(run_dir: str | Path) -> list[str]:
 
     In a seed group's directory, also from each ``seed-XXX/`` run directory, which is then removed
     when nothing else is left in it.
+
+    Raises:
+        RunWriteError: a file could not be removed (a read-only directory).
     """
     run_dir = Path(run_dir)
+    with writing(run_dir):
+        return _clear(run_dir)
+
+
+def _clear(run_dir: Path) -> list[str]:
     removed = []
     for seed_dir in _seed_dirs(run_dir):
-        removed += [f"{seed_dir.name}/{name}" for name in clear_run_dir(seed_dir)]
+        removed += [f"{seed_dir.name}/{name}" for name in _clear(seed_dir)]
         if not any(seed_dir.iterdir()):
             seed_dir.rmdir()
     for name in RUN_FILES:

@@ -52,6 +52,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.presets import PRESETS
+from sg_torchrl.train.writes import check_run_name, write_atomic
 from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
@@ -157,7 +158,8 @@ class TrainConfig:
     eval_episodes: int = _opt(10, "deterministic evaluation episodes at the end (0 disables)")
     output_dir: str = _opt("runs", "root folder of run directories")
     run_name: str | None = _opt(
-        None, "run directory name (default: <env>/<algo>/seed-<seed>; a seed group: <env>/<algo>/seeds-0-1-2)")
+        None, "run directory name inside output_dir, '/' for nested folders; absolute paths and '..' are refused "
+        "(default: <env>/<algo>/seed-<seed>; a seed group: <env>/<algo>/seeds-0-1-2)")
     wandb: Literal["offline", "online", "disabled"] = _opt("offline", "wandb mode; offline needs no account")
     checkpoint_every: int = _opt(
         10, "epochs between checkpoints; the first epoch a process trains and the last epoch are always saved")
@@ -267,6 +269,8 @@ class TrainConfig:
         self._validate_observation_mode()
         self._validate_engine()
         self._validate_checkpointing()
+        if self.run_name is not None:  # every file of the run stays inside output_dir
+            check_run_name(self.run_name)
 
     def _validate_seeds(self) -> None:
         """A seed group's seeds: distinct, >= 0, agreeing with ``seed``, and an algorithm a group can train
@@ -443,7 +447,7 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     def save(self, path: Path) -> None:
-        path.write_text(json.dumps(self.to_dict(), indent=2))
+        write_atomic(path, json.dumps(self.to_dict(), indent=2), sync=False)
 
 
 def _flag_type(hint: Any):
@@ -474,6 +478,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sg-train",
         description="Train a safe RL agent on a Safety-Gymnasium task (sg_torchrl).",
+        epilog="exit status: 0 trained to the end; 1 the run diverged (a seed group: every seed); 2 a bad command "
+               "line, run directory or checkpoint, refused before anything runs; 3 a file could not be written (a "
+               "full disk or quota, a read-only or vanished directory, an output directory that is a file): the "
+               "last checkpoint is intact and --resume continues from it; 128+N stopped by signal N (130 Ctrl-C, "
+               "143 SIGTERM) after a checkpointed epoch.",
     )
     parser.add_argument("--preset", choices=sorted(PRESETS), help="start from a named preset, then apply flags")
     hints = get_type_hints(TrainConfig)

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import io
 import os
 from pathlib import Path
 from typing import Any
 
 from torchrl.record.loggers import CSVLogger, Logger
+
+from sg_torchrl.train.writes import append_text, make_dirs, write_atomic, writing
 
 __all__ = ["RunLogger"]
 
@@ -37,8 +40,12 @@ class RunLogger:
             whose row ``progress.csv`` lacks: it is appended here (to ``progress.csv`` only; the
             TorchRL loggers' files miss that epoch).
 
+    Every write goes through :mod:`sg_torchrl.train.writes`: a row is appended to ``progress.csv`` whole or
+    not at all, and cutting the file back replaces it atomically.
+
     Raises:
         FileExistsError: a new run (no ``resume_epoch``) over an existing ``progress.csv``.
+        RunWriteError: a file could not be written (here or in :meth:`log`).
     """
 
     def __init__(
@@ -52,17 +59,20 @@ class RunLogger:
         resume_row: dict[str, float] | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        make_dirs(self.run_dir)
         self.progress_path = self.run_dir / "progress.csv"
         if resume_epoch is None and self.progress_path.exists():
             raise FileExistsError(f"{self.progress_path} exists: a new run does not overwrite another run's log")
-        self.backends: list[Logger] = [CSVLogger(exp_name=exp_name, log_dir=str(self.run_dir / "csv"))]
+        with writing(self.run_dir / "csv"):
+            self.backends: list[Logger] = [CSVLogger(exp_name=exp_name, log_dir=str(self.run_dir / "csv"))]
         if importlib.util.find_spec("tensorboard") is not None:
             from torchrl.record.loggers import TensorboardLogger
 
-            self.backends.append(TensorboardLogger(exp_name=exp_name, log_dir=str(self.run_dir / "tb")))
+            with writing(self.run_dir / "tb"):
+                self.backends.append(TensorboardLogger(exp_name=exp_name, log_dir=str(self.run_dir / "tb")))
         if wandb_mode != "disabled":
-            self.backends.append(self._wandb(exp_name, wandb_mode, config))
+            with writing(self.run_dir / "wandb"):
+                self.backends.append(self._wandb(exp_name, wandb_mode, config))
         self._columns: list[str] | None = None
         if resume_epoch is not None:
             logged = self._truncate_progress(resume_epoch) if self.progress_path.exists() else None
@@ -83,9 +93,8 @@ class RunLogger:
         if epoch is None:
             return None
         # Rows without an epoch are a finished run's final summary: the resumed run writes its own.
-        kept = [row for row in rows[1:] if row[epoch] != "" and float(row[epoch]) <= last_epoch]
-        with self.progress_path.open("w", newline="") as handle:
-            csv.writer(handle).writerows([self._columns, *kept])
+        kept = [row for row in rows[1:] if len(row) > epoch and row[epoch] != "" and float(row[epoch]) <= last_epoch]
+        write_atomic(self.progress_path, _csv_text([self._columns, *kept]))
         return float(kept[-1][epoch]) if kept else None
 
     def _wandb(self, exp_name: str, mode: str, config: dict[str, Any] | None) -> Logger:
@@ -102,18 +111,18 @@ class RunLogger:
         )
 
     def log(self, metrics: dict[str, float], step: int) -> None:
-        for backend in self.backends:
-            for name, value in metrics.items():
-                backend.log_scalar(name, float(value), step=step)
+        """Log one row: ``progress.csv`` first (the file resumed runs and reports read), then the backends."""
         self._append_progress(metrics)
+        for backend in self.backends:
+            with writing(getattr(backend, "log_dir", self.run_dir)):
+                for name, value in metrics.items():
+                    backend.log_scalar(name, float(value), step=step)
 
     def _append_progress(self, metrics: dict[str, float]) -> None:
-        if self._columns is None:
-            self._columns = list(metrics)
-            with self.progress_path.open("w", newline="") as handle:
-                csv.writer(handle).writerow(self._columns)
-        with self.progress_path.open("a", newline="") as handle:
-            csv.writer(handle).writerow([metrics.get(name, "") for name in self._columns])
+        rows = [] if self._columns is not None else [list(metrics)]
+        columns = self._columns or rows[0]
+        append_text(self.progress_path, _csv_text([*rows, [metrics.get(name, "") for name in columns]]))
+        self._columns = columns
 
     def history(self) -> list[dict[str, float]]:
         """All rows of ``progress.csv`` so far (numbers parsed)."""
@@ -128,3 +137,10 @@ class RunLogger:
             finish = getattr(experiment, "finish", None)
             if callable(finish):
                 finish()
+
+
+def _csv_text(rows: list[list[Any]]) -> str:
+    """``rows`` as CSV text (what ``csv.writer`` would write to a file)."""
+    buffer = io.StringIO()
+    csv.writer(buffer).writerows(rows)
+    return buffer.getvalue()

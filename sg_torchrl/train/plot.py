@@ -14,6 +14,7 @@ half-width panel, so the step axis has at most five ticks written as 250k / 1.5M
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -24,6 +25,8 @@ matplotlib.use("Agg")  # headless: never needs a display
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
+
+from sg_torchrl.train.writes import write_atomic  # noqa: E402
 
 __all__ = ["figure_panels", "finish_figure", "format_steps", "plot_curves", "plot_group_curves", "training_rows"]
 
@@ -107,8 +110,10 @@ def finish_figure(fig: plt.Figure, axes: tuple[Axes, Axes], path: Path, cost_lim
     for ax in axes:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="best", fontsize="small")
-    fig.savefig(path, dpi=110)
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=110)
     plt.close(fig)
+    write_atomic(path, image.getvalue(), sync=False)
 
 
 def _finite(value: float) -> bool:

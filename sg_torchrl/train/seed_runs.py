@@ -48,6 +48,7 @@ from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.plot import plot_group_curves
 from sg_torchrl.train.trainer import EpochTrainer, epoch_row, finished_episode_cost, open_run_logger, write_run_summary
+from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = ["SeedGroupTrainer", "SeedRun", "mean_row", "seed_entry"]
 
@@ -193,7 +194,7 @@ class SeedGroupTrainer(EpochTrainer):
     def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
         """Each seed's directory: its single-seed ``config.json`` and its logger (cut back to the checkpoint)."""
         for run in self.runs:
-            run.cfg.run_dir.mkdir(parents=True, exist_ok=True)
+            make_dirs(run.cfg.run_dir)
             run.cfg.save(run.cfg.run_dir / "config.json")
             run.logger = open_run_logger(run.cfg, checkpoint, run.last_row)
 
@@ -216,7 +217,7 @@ class SeedGroupTrainer(EpochTrainer):
         cfg = self.cfg
         summaries = {run.seed: self._finish_seed(index) for index, run in enumerate(self.runs)}
         mean = mean_row([s for run, s in zip(self.runs, summaries.values()) if run.alive])
-        (cfg.run_dir / "summary.json").write_text(json.dumps(
+        write_atomic(cfg.run_dir / "summary.json", json.dumps(
             {"seeds": {str(seed): summary for seed, summary in summaries.items()}, "mean": mean,
              "diverged": [run.seed for run in self.runs if not run.alive], "Train/TotalSteps": self.total_steps,
              "Time/Total": self.train_seconds}, indent=2))

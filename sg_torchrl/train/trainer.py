@@ -87,6 +87,7 @@ from sg_torchrl.train.logging import RunLogger
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts, write_values
+from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
     "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer", "epoch_row",
@@ -199,8 +200,8 @@ def write_run_summary(
         logger.log({**evaluation, "Train/TotalSteps": total_steps}, step=total_steps)
         summary.update(evaluation)
     summary.update(extra or {})
-    (cfg.run_dir / "summary.json").write_text(json.dumps({**summary, "Train/TotalSteps": total_steps,
-                                                          "Time/Total": train_seconds}, indent=2))
+    write_atomic(cfg.run_dir / "summary.json", json.dumps({**summary, "Train/TotalSteps": total_steps,
+                                                            "Time/Total": train_seconds}, indent=2))
     history = [row for row in logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
     plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
                 title=f"{title} on {cfg.env_id} (seed {cfg.seed})")
@@ -307,9 +308,11 @@ class EpochTrainer(abc.ABC):
         Raises:
             TrainingInterrupted: on Ctrl-C or ``SIGTERM`` (:mod:`~sg_torchrl.train.interrupt`),
                 after the epoch under way has finished and been checkpointed.
+            RunWriteError: a file of the run could not be written (:mod:`~sg_torchrl.train.writes`); the
+                last checkpoint written and the logs up to it are intact.
         """
         cfg = self.cfg
-        cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        make_dirs(cfg.run_dir)
         cfg.save(cfg.run_dir / "config.json")
         last_epoch = cfg.epochs if max_epochs is None else min(cfg.epochs, self.epoch + max_epochs)
         metrics: dict[str, float] = {}
@@ -388,10 +391,14 @@ class EpochTrainer(abc.ABC):
     def save_checkpoint(self, path: Path | None = None) -> Path:
         """Write everything that influences the future to ``path`` (default ``<run dir>/checkpoint.pt``).
 
-        Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`).
+        Atomic and verified on load (:func:`sg_torchrl.train.checkpoint.save_checkpoint`). The run directory
+        is not created again here: one that vanished during the run (an unmounted disk) is an error
+        (:class:`~sg_torchrl.train.writes.RunWriteError`), not a new empty run directory.
         """
-        path = path or self.checkpoint_path
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if path is None:
+            path = self.checkpoint_path
+        else:
+            make_dirs(path.parent)
         state = {
             "config": self.cfg.to_dict(),
             "epoch": self.epoch,
