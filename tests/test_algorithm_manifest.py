@@ -14,6 +14,7 @@ from sg_torchrl.algorithms import manifest
 ROOT = Path(__file__).resolve().parents[1]
 SINGLE = ("pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
 MULTI = ("mappo", "happo", "mappo_lag", "macpo")
+BEYOND_THE_PAPER = ("ppo_lag_pessimistic",)
 
 
 def _python(code: str) -> subprocess.CompletedProcess:
@@ -37,8 +38,9 @@ def test_the_manifest_and_the_option_checks_import_without_torch():
 
 
 def test_names_are_the_papers_in_its_order():
-    assert manifest.names() == SINGLE + MULTI
-    assert manifest.names(agents="single") == SINGLE and manifest.names(agents="multi") == MULTI
+    # the paper's algorithms in its order, then those added beyond it
+    assert manifest.names() == SINGLE + BEYOND_THE_PAPER + MULTI
+    assert manifest.names(agents="single") == SINGLE + BEYOND_THE_PAPER and manifest.names(agents="multi") == MULTI
     assert manifest.SECOND_ORDER == {"npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo", "macpo"}
     assert manifest.names(agents="multi", family="second_order") == ("macpo",)
     assert [manifest.get(name).title for name in ("ppo_lag", "cppo_pid", "trpo_lag", "mappo_lag")] == [

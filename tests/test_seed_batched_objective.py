@@ -1,13 +1,14 @@
 """The engine trains each loss through the loss object's own seed-batched form, and refuses what has none.
 
 * every built-in first-order loss hands the engine its own :class:`Surrogate` (the one definition);
-* a new algorithm written as one Surrogate plus one loss subclass (``examples/add_an_algorithm.py``)
+* a new algorithm written as one Surrogate plus one loss subclass (``objectives/pessimistic.py``)
   trains on the engine with the LossModule's exact gradients, and its penalty changes the update;
 * a loss without a seed-batched form (a stock TorchRL loss, a subclass that overrides the math
   hooks) is refused with an error naming the problem, never trained as another algorithm.
 """
 from __future__ import annotations
 
+import csv
 import importlib.util
 from pathlib import Path
 
@@ -17,8 +18,17 @@ from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.objectives import ClipPPOLoss
 
-from sg_torchrl.objectives import CUPLoss, FOCOPSLoss, LagrangeMultiplier, NoMultiplier, PGLoss, PPOLagLoss
+from sg_torchrl.objectives import (
+    CUPLoss,
+    FOCOPSLoss,
+    LagrangeMultiplier,
+    NoMultiplier,
+    PessimisticPPOLagLoss,
+    PGLoss,
+    PPOLagLoss,
+)
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
+from sg_torchrl.objectives.pessimistic import PessimisticCostSurrogate
 from sg_torchrl.objectives.surrogates import (
     ClipSurrogate,
     CUPProjectionSurrogate,
@@ -79,13 +89,12 @@ def test_the_engine_trains_the_loss_objects_own_surrogate(loss_class, options, e
 
 
 def test_a_new_algorithm_is_one_surrogate_and_one_loss_and_its_penalty_changes_the_update():
-    example = _example()
     nets = [_networks(seed) for seed in SEEDS]
     batches = [_batch(seed, net[0]) for seed, net in zip(SEEDS, nets)]
     multipliers = [LagrangeMultiplier(cost_limit=25.0, init=value) for value in (0.5, 2.0)]
-    losses = [example.PessimisticCostPPOLagLoss(*net, m, functional=False) for net, m in zip(nets, multipliers)]
+    losses = [PessimisticPPOLagLoss(*net, m, functional=False) for net, m in zip(nets, multipliers)]
     objective = objective_of(losses[0])
-    assert isinstance(objective.surrogate, example.PessimisticCostSurrogate)
+    assert isinstance(objective.surrogate, PessimisticCostSurrogate)
 
     model = StackedActorCritic.from_single(nets)
     step = FusedFirstOrderStep(model, FusedFirstOrderStep.make_optimizer(model, 3e-4, 3e-4), objective)
@@ -145,5 +154,20 @@ def test_a_seed_batched_objective_checks_what_it_is_given():
 
 def test_the_add_an_algorithm_example_runs_and_shows_a_different_gradient(capsys):
     _example().main()
-    lines = [line for line in capsys.readouterr().out.splitlines() if "|grad|" in line]
+    lines = [line for line in capsys.readouterr().out.splitlines() if "|policy gradient|" in line]
     assert len(lines) == 2 and lines[0].split("=")[1] != lines[1].split("=")[1]
+
+
+def test_the_new_algorithm_trains_through_sg_train_seeds(tmp_path):
+    """One manifest row and the loss: ``sg-train --algo ppo_lag_pessimistic --seeds 0 1`` trains both seeds."""
+    from sg_torchrl.train import main
+
+    code = main(["--algo", "ppo_lag_pessimistic", "--env-id", "SafetyPointGoal1-v0", "--seeds", "0", "1",
+                 "--num-envs", "2", "--steps-per-epoch", "400", "--total-steps", "800", "--update-iters", "2",
+                 "--output-dir", str(tmp_path), "--run-name", "pessimistic", "--wandb", "disabled",
+                 "--eval-episodes", "1"])
+    assert code in (0, None)
+    for seed in (0, 1):
+        with open(tmp_path / "pessimistic" / f"seed-00{seed}" / "progress.csv") as handle:
+            epochs = [row for row in csv.DictReader(handle) if row["Train/Epoch"]]
+        assert [row["Train/Epoch"] for row in epochs] == ["1", "2"] and all(row["Loss/Loss_actor"] for row in epochs)

@@ -101,6 +101,8 @@ class AlgorithmEntry:
         update: the update kind (:data:`UPDATES`), which chooses the update builder.
         multiplier: the multiplier kind (:data:`MULTIPLIERS`), which chooses the multiplier builder.
         loss: the loss class as ``"module:Name"``, imported only by :meth:`loss_class`.
+        loss_options: the loss's keyword arguments taken from the run's config, as ``{keyword: TrainConfig
+            field}`` (``{"clip_epsilon": "clip_ratio"}``): the trainer builds every loss from its row alone.
         defaults: ``TrainConfig`` field values the paper gives this algorithm (read-only).
         round: multi-agent rows: the round class (``"module:Name"``) that updates the agents one at a time.
         paper_name: the row's name in the paper's results tables (``paper_results.csv``) when not ``title``.
@@ -114,6 +116,7 @@ class AlgorithmEntry:
     multiplier: str
     loss: str
     defaults: Mapping[str, Any] = field(default_factory=dict, hash=False)
+    loss_options: Mapping[str, str] = field(default_factory=dict, hash=False)
     round: str | None = None
     paper_name: str | None = None
 
@@ -126,6 +129,7 @@ class AlgorithmEntry:
         if (self.round is None) == (self.agents == "multi"):
             raise ValueError(f"algorithm {self.name!r}: a round class is given for multi-agent rows only, and always")
         object.__setattr__(self, "defaults", MappingProxyType(dict(self.defaults)))
+        object.__setattr__(self, "loss_options", MappingProxyType(dict(self.loss_options)))
 
     @property
     def multi_agent(self) -> bool:
@@ -181,14 +185,20 @@ _AGENT_LOSS = "sg_torchrl.objectives.multi_agent:AgentPPOLoss"
 _ROUNDS = "sg_torchrl.objectives.multi_agent:"
 
 
+#: The first-order losses' options from the config (clip and critic L2; the subclasses add their own).
+_PPO_OPTIONS = {"clip_epsilon": "clip_ratio", "critic_l2_coeff": "critic_l2"}
+
+
 def _single(name: str, title: str, family: str, update: str, multiplier: str, loss: str,
-            defaults: Mapping[str, Any]) -> AlgorithmEntry:
-    return AlgorithmEntry(name, title, "single", family, update, multiplier, loss, defaults)
+            defaults: Mapping[str, Any], **loss_options: str) -> AlgorithmEntry:
+    options = {**_PPO_OPTIONS, **loss_options} if loss != _PG_LOSS else {"critic_l2_coeff": "critic_l2"}
+    return AlgorithmEntry(name, title, "single", family, update, multiplier, loss, defaults, options)
 
 
 def _multi(name: str, title: str, family: str, update: str, multiplier: str, round_name: str,
            defaults: Mapping[str, Any]) -> AlgorithmEntry:
-    return AlgorithmEntry(name, title, "multi", family, update, multiplier, _AGENT_LOSS, defaults, _ROUNDS + round_name)
+    return AlgorithmEntry(name, title, "multi", family, update, multiplier, _AGENT_LOSS, defaults,
+                          round=_ROUNDS + round_name)
 
 
 _FIRST, _SECOND = FAMILIES
@@ -199,8 +209,9 @@ ENTRIES: tuple[AlgorithmEntry, ...] = (
     _single("ppo_lag", "PPO-Lag", _FIRST, "first_order", "lagrange", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
     _single("cppo_pid", "CPPO-PID", _FIRST, "first_order", "pid", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
     _single("focops", "FOCOPS", _FIRST, "first_order", "lagrange", "sg_torchrl.objectives:FOCOPSLoss",
-            _BOUNDED_NU_DEFAULTS),
-    _single("cup", "CUP", _FIRST, "two_stage", "lagrange", "sg_torchrl.objectives:CUPLoss", _BOUNDED_NU_DEFAULTS),
+            _BOUNDED_NU_DEFAULTS, temperature="focops_temperature", target_kl="target_kl"),
+    _single("cup", "CUP", _FIRST, "two_stage", "lagrange", "sg_torchrl.objectives:CUPLoss", _BOUNDED_NU_DEFAULTS,
+            gamma="gamma", cup_lambda="cup_lambda"),
     # Second order: PPO-Lag's critic losses, a trust-region step for the actor. RCPO, as SafePO
     # implements it, is NPG with a Lagrange multiplier; TRPO-Lag is TRPO with one.
     _single("npg", "NPG", _SECOND, "natural", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
@@ -210,6 +221,10 @@ ENTRIES: tuple[AlgorithmEntry, ...] = (
     _single("cpo", "CPO", _SECOND, "cpo", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
     _single("pcpo", "PCPO", _SECOND, "pcpo", "none", _PPO_LAG_LOSS,
             dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200)),
+    # Beyond the paper: PPO-Lag with the cost term clipped apart and pessimistically (README, "Add an
+    # algorithm": one Surrogate, one loss subclass and this row).
+    _single("ppo_lag_pessimistic", "PPO-Lag-Pessimistic", _FIRST, "first_order", "lagrange",
+            "sg_torchrl.objectives:PessimisticPPOLagLoss", _FIRST_ORDER_DEFAULTS),
     _multi("mappo", "MAPPO", _FIRST, "first_order", "none", "MAPPOUpdate", _MULTI_AGENT_DEFAULTS),
     _multi("happo", "HAPPO", _FIRST, "first_order", "none", "HAPPOUpdate", _MULTI_AGENT_DEFAULTS),
     _multi("mappo_lag", "MAPPO-Lag", _FIRST, "first_order", "lagrange", "MAPPOLagUpdate", _MULTI_AGENT_DEFAULTS),

@@ -7,7 +7,9 @@
   first-order losses, which compute missing advantages themselves (TorchRL's convention).
 * :class:`PPOLagLoss`: PPO-Lag; CPPO-PID is ``PPOLagLoss(..., multiplier=PIDLagrangeMultiplier())``
   and PPO is ``PPOLagLoss(..., multiplier=NoMultiplier())``.
-* :class:`PGLoss`, :class:`FOCOPSLoss`, :class:`CUPLoss`: the other first-order SafePO losses.
+* :class:`PGLoss`, :class:`FOCOPSLoss`, :class:`CUPLoss`: the other first-order SafePO losses;
+  :class:`PessimisticPPOLagLoss`, PPO-Lag with a pessimistic cost clip (beyond the paper). Their math is
+  one :class:`~sg_torchrl.objectives.surrogates.Surrogate` each (:mod:`sg_torchrl.objectives.surrogates`).
 * :func:`gaussian_kl`: closed-form KL between diagonal Gaussian policies (KL early stop).
 * :func:`run_passes`, :class:`GradientStep`, :class:`ClipGroup` and the minibatch orders
   (:func:`shuffled_slices`, :func:`shuffled_chunks`, :func:`whole_batch`): the one minibatch update
@@ -26,6 +28,7 @@ from sg_torchrl.objectives.multipliers import (
 )
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
 from sg_torchrl.objectives.first_order import CUPLoss, FOCOPSLoss, PGLoss
+from sg_torchrl.objectives.pessimistic import PessimisticPPOLagLoss
 from sg_torchrl.objectives.value import AdvantageEstimation, make_cost_gae, make_gae, normalize_advantages
 from sg_torchrl.objectives.passes import (
     ClipGroup,
@@ -69,6 +72,7 @@ __all__ = [
     "PGLoss",
     "FOCOPSLoss",
     "CUPLoss",
+    "PessimisticPPOLagLoss",
     "gaussian_kl",
     "AdvantageEstimation",
     "make_cost_gae",
