@@ -6,10 +6,12 @@ from typing import Any
 
 import gymnasium
 
+from sg_torchrl.safety_gymnasium.wrappers.base import SafeWrapper
+
 __all__ = ["Gymnasium2SafetyGymnasium", "SafetyGymnasium2Gymnasium", "make_gymnasium_environment"]
 
 
-class SafetyGymnasium2Gymnasium(gymnasium.Wrapper):
+class SafetyGymnasium2Gymnasium(SafeWrapper):
     """A 6-tuple env seen as a gymnasium env: ``step`` returns ``(obs, reward, terminated, truncated,
     info)`` with the cost in ``info["cost"]`` (a warning if the info already held one), so gymnasium's
     own wrappers and vector envs can be used on it."""
@@ -22,7 +24,7 @@ class SafetyGymnasium2Gymnasium(gymnasium.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-class Gymnasium2SafetyGymnasium(gymnasium.Wrapper):
+class Gymnasium2SafetyGymnasium(SafeWrapper):
     """A gymnasium env whose info carries ``"cost"`` seen as a Safety-Gymnasium env (6-tuple ``step``).
 
     Raises:
