@@ -103,6 +103,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.base import SafeEnv
+from sg_torchrl.envs.info import numpy_scalar_info
 from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
@@ -477,6 +478,10 @@ def _observation_space(observation_spec, slices: dict[str, slice] | None = None)
 class GymnasiumEnv(SafetyGymnasiumEnv):
     """:class:`SafetyGymnasiumEnv` with gymnasium's 5-tuple step; the cost is ``info["cost"]``.
 
+    The info's numbers are numpy scalars (``np.float64``, a ``float`` subclass), which TorchRL's
+    ``default_info_dict_reader`` reads: ``GymEnv(twin_id)`` with
+    ``set_info_dict_reader(default_info_dict_reader(["cost"]))`` puts the cost in its TensorDicts.
+
     The counterpart of Safety-Gymnasium's ``Safety<Name>Gymnasium-v<k>`` twins, for code that
     expects a plain :class:`gymnasium.Env` (wrappers, vector envs, other libraries).
     """
@@ -485,7 +490,7 @@ class GymnasiumEnv(SafetyGymnasiumEnv):
         """Advance one step: ``(obs, reward, terminated, truncated, info)`` with ``info["cost"]``."""
         obs, reward, cost, terminated, truncated, info = self._transition(action)
         info["cost"] = cost
-        return obs, reward, terminated, truncated, info
+        return obs, reward, terminated, truncated, numpy_scalar_info(info)
 
 
 register_envs()

@@ -50,3 +50,46 @@ def test_twin_ids_are_registered_by_the_drop_in_import():
         print("ok")
     """)
     assert result.returncode == 0 and "ok" in result.stdout, result.stderr
+
+
+# ---------------------------------------------------------------------------- TorchRL's GymEnv
+@pytest.mark.parametrize("env_id", ["SafetyPointGoal1Gymnasium-v0", "SafetyHalfCheetahVelocityGymnasium-v1"])
+def test_gym_env_reads_the_cost_from_info(env_id):
+    import gymnasium
+    import numpy as np
+    import torch
+    from torchrl.envs import GymEnv, default_info_dict_reader
+
+    import sg_torchrl  # noqa: F401 - registers the twin ids
+
+    env = GymEnv(env_id)
+    env.set_info_dict_reader(default_info_dict_reader(["cost"]))
+    env.set_seed(0)
+    rollout = env.rollout(6, break_when_any_done=False)
+    assert ("next", "cost") in rollout.keys(True)
+    # the same actions on a gymnasium twin seeded alike give the same costs
+    twin = gymnasium.make(env_id)
+    twin.reset(seed=0)
+    expected = [twin.step(action.numpy())[4]["cost"] for action in rollout["action"]]
+    assert all(type(cost) is np.float64 for cost in expected)
+    torch.testing.assert_close(rollout["next", "cost"].reshape(-1).double(), torch.tensor(expected, dtype=torch.float64))
+    # every key of the info (no key list) is readable too
+    env_all = GymEnv(env_id)
+    env_all.set_info_dict_reader(default_info_dict_reader())
+    env_all.rollout(2)
+    env.close()
+    env_all.close()
+    twin.close()
+
+
+def test_gymnasium_conversion_info_is_torchrl_readable():
+    import numpy as np
+
+    import sg_torchrl.safety_gymnasium as safety_gymnasium
+    from sg_torchrl.safety_gymnasium.wrappers import SafetyGymnasium2Gymnasium
+
+    env = SafetyGymnasium2Gymnasium(safety_gymnasium.make("SafetyPointGoal1-v0"))
+    env.reset(seed=0)
+    info = env.step(env.action_space.sample())[4]
+    assert type(info["cost"]) is np.float64 and all(hasattr(value, "dtype") for value in info.values())
+    env.close()
