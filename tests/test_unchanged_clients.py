@@ -93,3 +93,71 @@ def test_gymnasium_conversion_info_is_torchrl_readable():
     info = env.step(env.action_space.sample())[4]
     assert type(info["cost"]) is np.float64 and all(hasattr(value, "dtype") for value in info.values())
     env.close()
+
+
+# ---------------------------------------------------------------------------- python -m sg_torchrl.safety_gymnasium
+WORKER_SCRIPT = '''
+import multiprocessing as mp
+
+import safety_gymnasium
+from safety_gymnasium.wrappers import SafeAutoResetWrapper
+
+
+def make_and_step(queue):
+    env = SafeAutoResetWrapper(safety_gymnasium.make("SafetyPointGoal1-v0"))
+    env.reset(seed=0)
+    queue.put((safety_gymnasium.__name__, len(env.step(env.action_space.sample()))))
+    env.close()
+
+
+def share_worker(remote, parent_remote):
+    # SafePO's multi-agent vector env worker: serves commands until "close", which its users
+    # often never send (the daemon workers are left to die with the script).
+    parent_remote.close()
+    while True:
+        command = remote.recv()
+        remote.send(command)
+
+
+if __name__ == "__main__":
+    print("start method", mp.get_start_method())
+    spawn = mp.get_context("spawn")
+    queue = spawn.Queue()
+    worker = spawn.Process(target=make_and_step, args=(queue,))
+    worker.start()
+    print("spawned", queue.get(timeout=300))
+    worker.join()
+    assert worker.exitcode == 0, worker.exitcode
+    pipes = [mp.Pipe() for _ in range(2)]
+    workers = [mp.Process(target=share_worker, args=(child, parent), daemon=True) for parent, child in pipes]
+    for process in workers:
+        process.start()
+    for (parent, child) in pipes:
+        child.close()
+        parent.send("ping")
+        assert parent.recv() == "ping"
+    print("done")
+'''
+
+
+def test_launcher_alias_reaches_spawned_workers_and_workers_exit_cleanly(tmp_path):
+    script = tmp_path / "train.py"
+    script.write_text(WORKER_SCRIPT)
+    result = run_python("", "-m", "sg_torchrl.safety_gymnasium", str(script), timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr and "Error" not in result.stderr, result.stderr
+    assert "spawned ('sg_torchrl.safety_gymnasium', 6)" in result.stdout and "done" in result.stdout
+    expected = "spawn" if sys.platform in ("darwin", "win32") else "fork"
+    assert f"start method {expected}" in result.stdout or sys.version_info >= (3, 14)
+
+
+def test_launcher_exports_the_stand_in_to_subprocesses(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent('''
+        import subprocess, sys
+        code = "import safety_gymnasium.vector, sys; print(safety_gymnasium.__name__)"
+        print(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+    '''))
+    result = run_python("", "-m", "sg_torchrl.safety_gymnasium", "--start-method", "spawn", str(script))
+    assert result.returncode == 0, result.stderr
+    assert "sg_torchrl.safety_gymnasium" in result.stdout
