@@ -161,3 +161,44 @@ def test_launcher_exports_the_stand_in_to_subprocesses(tmp_path):
     result = run_python("", "-m", "sg_torchrl.safety_gymnasium", "--start-method", "spawn", str(script))
     assert result.returncode == 0, result.stderr
     assert "sg_torchrl.safety_gymnasium" in result.stdout
+
+
+# ---------------------------------------------------------------------------- losses on an agent group
+def test_ppo_lag_loss_runs_on_the_agents_group_after_one_call():
+    import torch
+    from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+    from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, ValueOperator
+
+    import sg_torchrl
+    from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss
+
+    torch.manual_seed(0)
+    env = sg_torchrl.make("Safety2x3HalfCheetahVelocity-v0", num_envs=2, seed=0)
+    obs_dim = env.observation_spec["agents", "observation"].shape[-1]
+    act_dim = env.full_action_spec["agents", "action"].shape[-1]
+    group_obs = [("agents", "observation")]
+    actor = ProbabilisticActor(
+        TensorDictModule(torch.nn.Sequential(MLP(in_features=obs_dim, out_features=act_dim, num_cells=[8]),
+                                             AddStateIndependentNormalScale(act_dim)),
+                         in_keys=group_obs, out_keys=[("agents", "loc"), ("agents", "scale")]),
+        in_keys={"loc": ("agents", "loc"), "scale": ("agents", "scale")}, out_keys=[("agents", "action")],
+        distribution_class=IndependentNormal, return_log_prob=True)
+    critic = ValueOperator(MLP(in_features=obs_dim, out_features=1, num_cells=[8]), in_keys=group_obs,
+                           out_keys=[("agents", "state_value")])
+    cost_critic = ValueOperator(MLP(in_features=obs_dim, out_features=1, num_cells=[8]), in_keys=group_obs,
+                                out_keys=[("agents", "cost_value")])
+    loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier(cost_limit=25.0))
+    assert loss.set_group("agents") is loss  # the one call
+    keys = loss.tensor_keys
+    assert (keys.action, keys.reward, keys.cost, keys.done, keys.cost_advantage) == (
+        ("agents", "action"), ("agents", "reward"), ("agents", "cost"), ("agents", "done"), ("agents", "cost_advantage"))
+    loss.set_group("agents")  # idempotent
+    assert keys.value == ("agents", "state_value")
+    with torch.no_grad():
+        rollout = env.rollout(5, actor)
+    out = loss(rollout)
+    total = sum(value for key, value in out.items() if key.startswith("loss_"))
+    assert torch.isfinite(total)
+    total.backward()
+    assert all(parameter.grad is not None for parameter in actor.parameters())
+    env.close()
