@@ -81,6 +81,7 @@ class _RegisterAfterLoading(importlib.abc.Loader):
         return self._loader.create_module(spec)
 
     def exec_module(self, module: types.ModuleType) -> None:
+        _remove_hook()
         module.__spec__.loader = self._loader
         module.__loader__ = self._loader
         self._loader.exec_module(module)
@@ -91,13 +92,23 @@ class _RegisterAfterLoading(importlib.abc.Loader):
 
 
 class _GymnasiumImportHook(importlib.abc.MetaPathFinder):
-    """Finds ``gymnasium`` as every other finder would, with :class:`_RegisterAfterLoading` around its loader."""
+    """Finds ``gymnasium`` as every other finder would, with :class:`_RegisterAfterLoading` around its loader.
+
+    It stays in place until gymnasium is actually loaded: libraries probe for gymnasium with
+    ``importlib.util.find_spec("gymnasium")`` (TorchRL does) without importing it.
+    """
+
+    def __init__(self) -> None:
+        self._searching = threading.local()
 
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> importlib.machinery.ModuleSpec | None:
-        if fullname != "gymnasium":
+        if fullname != "gymnasium" or getattr(self._searching, "active", False):
             return None
-        _remove_hook()
-        spec = importlib.util.find_spec(fullname)
+        self._searching.active = True  # the search below asks the finders again, this one included
+        try:
+            spec = importlib.util.find_spec(fullname)
+        finally:
+            self._searching.active = False
         if spec is not None and spec.loader is not None:
             spec.loader = _RegisterAfterLoading(spec.loader)
         return spec

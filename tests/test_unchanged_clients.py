@@ -202,3 +202,16 @@ def test_ppo_lag_loss_runs_on_the_agents_group_after_one_call():
     total.backward()
     assert all(parameter.grad is not None for parameter in actor.parameters())
     env.close()
+
+
+def test_twin_ids_are_registered_when_gymnasium_is_probed_before_its_import():
+    # TorchRL probes with importlib.util.find_spec("gymnasium") long before importing it.
+    result = run_python("""
+        import importlib.util
+        import sg_torchrl
+        assert importlib.util.find_spec("gymnasium") is not None
+        import gymnasium
+        gymnasium.spec("SafetyPointGoal1Gymnasium-v0")
+        print("ok")
+    """)
+    assert result.returncode == 0 and "ok" in result.stdout, result.stderr
