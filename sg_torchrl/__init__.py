@@ -8,9 +8,15 @@ torch.Size([4, 5, 1])
 
 Importing the package loads neither torch nor MuJoCo (``make`` does, for the env it builds): the
 registry is plain data, so ``sg-train`` and scripts can check env ids and options in about a second.
+The ids and their ``<Name>Gymnasium-v<k>`` twins are in gymnasium's registry from here on
+(:mod:`sg_torchrl.gym_registration`; without importing gymnasium before a program does).
 """
 
 from sg_torchrl.envs import list_envs, make
+from sg_torchrl.gym_registration import register_when_gymnasium_loads
 
 __version__ = "0.1.0"
 __all__ = ["make", "list_envs", "__version__"]
+
+# gymnasium.make / torchrl's GymEnv find the ids (and their "...Gymnasium-v<k>" twins) from here on.
+register_when_gymnasium_loads()

@@ -61,9 +61,9 @@ API
 
 Gymnasium's registry and the 6-tuple
 ------------------------------------
-Importing this module registers, for every single-agent id of :func:`sg_torchrl.list_envs`, the id itself and
+Importing sg_torchrl registers, for every single-agent id of :func:`sg_torchrl.list_envs`, the id itself and
 its twin ``<Name>Gymnasium-v<k>`` in gymnasium's registry (:func:`register_envs`, idempotent; call
-it again after registering new sg_torchrl ids). What ``gymnasium.make`` (1.4) does to an env: it
+it again after registering new sg_torchrl ids; :mod:`sg_torchrl.gym_registration`). What ``gymnasium.make`` (1.4) does to an env: it
 wraps it in ``PassiveEnvChecker`` (whose first ``step`` raises ``gymnasium.error.Error`` unless the
 result has 4 or 5 elements), then ``OrderEnforcing`` (passes any result through), then
 ``TimeLimit`` when the spec or the call gives ``max_episode_steps`` (it unpacks exactly 5 values, so
@@ -103,9 +103,11 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.base import SafeEnv
+from sg_torchrl.envs.info import numpy_scalar_info
 from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
+from sg_torchrl.gym_registration import ENTRY_POINT, TWIN_SUFFIX, gymnasium_twin_id, register_envs
 from sg_torchrl.render_modes import (
     RENDER_MODES,
     RENDER_OPTIONS,
@@ -123,8 +125,8 @@ __all__ = [
     "register_envs",
 ]
 
-_ENTRY_POINT = "sg_torchrl.gym:make"  # not __name__: stable when this file runs as a script
-_TWIN_SUFFIX = "Gymnasium"
+_ENTRY_POINT = ENTRY_POINT  # not __name__: stable when this file runs as a script
+_TWIN_SUFFIX = TWIN_SUFFIX
 # What ``max_episode_steps=None`` ("no internal limit") becomes for the TorchRL env, which needs an
 # int: effectively unlimited, and within int32 wherever a task stores it.
 _NO_LIMIT = 2**31 - 1
@@ -135,14 +137,6 @@ class EpisodeEndedError(gymnasium.error.ResetNeeded, AssertionError):
 
     Also an ``AssertionError``, so code written for Safety-Gymnasium (which asserts) still catches it.
     """
-
-
-def gymnasium_twin_id(env_id: str) -> str:
-    """The id of the 5-tuple twin: ``"SafetyAntVelocity-v1"`` -> ``"SafetyAntVelocityGymnasium-v1"``."""
-    name, sep, version = env_id.rpartition("-v")
-    if not sep or not version.isdigit():
-        raise ValueError(f"env id {env_id!r} does not end in '-v<version>'")
-    return f"{name}{_TWIN_SUFFIX}-v{version}"
 
 
 def _split_twin_id(env_id: str) -> tuple[str, bool]:
@@ -484,6 +478,10 @@ def _observation_space(observation_spec, slices: dict[str, slice] | None = None)
 class GymnasiumEnv(SafetyGymnasiumEnv):
     """:class:`SafetyGymnasiumEnv` with gymnasium's 5-tuple step; the cost is ``info["cost"]``.
 
+    The info's numbers are numpy scalars (``np.float64``, a ``float`` subclass), which TorchRL's
+    ``default_info_dict_reader`` reads: ``GymEnv(twin_id)`` with
+    ``set_info_dict_reader(default_info_dict_reader(["cost"]))`` puts the cost in its TensorDicts.
+
     The counterpart of Safety-Gymnasium's ``Safety<Name>Gymnasium-v<k>`` twins, for code that
     expects a plain :class:`gymnasium.Env` (wrappers, vector envs, other libraries).
     """
@@ -492,37 +490,7 @@ class GymnasiumEnv(SafetyGymnasiumEnv):
         """Advance one step: ``(obs, reward, terminated, truncated, info)`` with ``info["cost"]``."""
         obs, reward, cost, terminated, truncated, info = self._transition(action)
         info["cost"] = cost
-        return obs, reward, terminated, truncated, info
-
-
-def register_envs() -> list[str]:
-    """Register every sg_torchrl id and its 5-tuple twin in gymnasium's registry.
-
-    Idempotent: ids already registered with this module's entry point are left alone. Returns the
-    ids registered by this call. Runs at import of :mod:`sg_torchrl.gym`; call it again after adding
-    ids to sg_torchrl's registry.
-    """
-    added = []
-    registry = gymnasium.envs.registry
-    for env_id in list_envs():
-        if registry_entry(env_id).multi_agent:  # PettingZoo envs: sg_torchrl.pettingzoo
-            continue
-        twin_id = gymnasium_twin_id(env_id)
-        episode_steps = registry_entry(env_id).max_episode_steps
-        for gym_id, settings in (
-            # 6-tuple: no checker, no OrderEnforcing, no TimeLimit (all assume or allow only 5 values;
-            # the env enforces order and time limit itself). See the module docstring.
-            (env_id, dict(max_episode_steps=None, order_enforce=False, disable_env_checker=True,
-                          kwargs={"env_id": env_id})),
-            # 5-tuple twin: standard gymnasium wrappers; gymnasium's TimeLimit is the only limit.
-            (twin_id, dict(max_episode_steps=episode_steps, kwargs={"env_id": twin_id, "max_episode_steps": None})),
-        ):
-            existing = registry.get(gym_id)
-            if existing is not None and existing.entry_point == _ENTRY_POINT:
-                continue
-            gymnasium.register(id=gym_id, entry_point=_ENTRY_POINT, **settings)
-            added.append(gym_id)
-    return added
+        return obs, reward, terminated, truncated, numpy_scalar_info(info)
 
 
 register_envs()

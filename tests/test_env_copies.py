@@ -59,3 +59,22 @@ def test_envs_built_without_make_copy_attribute_by_attribute():
     assert "_construction" not in env.__dict__
     clone = copy.deepcopy(env)  # the generic copy still works (no rebuild recipe to follow)
     assert type(clone) is VelocityEnv and clone is not env
+
+
+@pytest.mark.parametrize("env_id", ["SafetyAntVelocity-v1", "SafetyHumanoidVelocity-v1"])
+def test_copies_mid_episode_continue_the_reward_exactly(env_id):
+    # Mid-episode (not just after a reset), with one simulator reset between the copy and its first
+    # step: the copy's rewards (x/y velocity) equal the original's from the first step on.
+    env = sg_torchrl.make(env_id, num_envs=2, seed=0)
+    generator = torch.Generator().manual_seed(0)
+    actions = [torch.rand(env.action_spec.shape, generator=generator) * 2 - 1 for _ in range(6)]
+    td = _steps(env, env.reset(), actions[:3])[-1]
+    twin = copy.deepcopy(env)
+    reset = td.clone().set("_reset", torch.tensor([[True], [False]]))
+    roots = [env.reset(reset.clone()), twin.reset(reset.clone())]
+    for action in actions[3:]:
+        steps = [made.step(root.set("action", action)) for made, root in zip((env, twin), roots)]
+        torch.testing.assert_close(steps[0]["next"], steps[1]["next"], rtol=0, atol=0)
+        roots = [step["next"].exclude("reward", "cost") for step in steps]
+    env.close()
+    twin.close()

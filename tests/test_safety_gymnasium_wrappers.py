@@ -184,3 +184,43 @@ def test_unsqueeze_refuses_vector_envs():
     with pytest.raises(ValueError, match="vector"):
         SafeUnsqueeze(envs)
     envs.close()
+
+
+def test_wrappers_forward_unknown_attributes_like_gymnasium_028():
+    # SafePO (num_envs=1) saves ``env.obs_rms`` read through SafeUnsqueeze after its first epoch.
+    env = safety_gymnasium.make(VEL_ID, max_episode_steps=4)
+    env = SafeUnsqueeze(SafeNormalizeObservation(SafeRescaleAction(SafeAutoResetWrapper(env), -1.0, 1.0)))
+    env.reset(seed=0)
+    normalizer = env.env
+    assert env.obs_rms is normalizer.obs_rms
+    assert env.min_action.shape == env.action_space.shape  # SafeRescaleAction's, two layers down
+    assert env.env_id == VEL_ID  # the unwrapped env's, through gymnasium's OrderEnforcing
+    with pytest.raises(AttributeError, match="private"):
+        env._elapsed_steps  # noqa: B018 - private names are not forwarded (as in 0.28)
+    with pytest.raises(AttributeError, match="no_such_attribute"):
+        env.no_such_attribute  # noqa: B018
+    # set_wrapper_attr sets where the attribute lives, not on the outer wrapper
+    replacement = type(normalizer.obs_rms)(shape=normalizer.obs_rms.mean.shape)
+    env.set_wrapper_attr("obs_rms", replacement)
+    assert normalizer.obs_rms is replacement and "obs_rms" not in vars(env)
+    env.close()
+    # around a vector env (SafePO's num_envs > 1 stack) forwarding reaches the vector env's attributes
+    envs = SafeNormalizeReward(SafeNormalizeObservation(
+        safety_gymnasium.vector.make(NAV_ID, num_envs=2, asynchronous=False)))
+    assert envs.obs_rms is envs.env.obs_rms
+    assert envs.single_observation_space == envs.env.env.single_observation_space
+    envs.close()
+
+
+def test_wrappers_are_rebuildable_from_their_spec():
+    from gymnasium.utils.env_checker import check_env
+
+    env = SafetyGymnasium2Gymnasium(safety_gymnasium.make(NAV_ID))
+    check_env(env, skip_render_check=False)
+    env.close()
+    stacked = SafeUnsqueeze(SafeNormalizeReward(SafeRescaleAction(SafeAutoResetWrapper(bare()), -1.0, 1.0),
+                                                gamma=0.9))
+    names = [(spec.name, spec.kwargs) for spec in stacked.spec.additional_wrappers]
+    assert names == [("SafeAutoResetWrapper", {}), ("SafeRescaleAction", {"min_action": -1.0, "max_action": 1.0}),
+                     ("SafeNormalizeReward", {"gamma": 0.9, "epsilon": 1e-8}), ("SafeUnsqueeze", {})]
+    stacked.close()

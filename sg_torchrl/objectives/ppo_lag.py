@@ -136,7 +136,9 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             ``normalize_advantage``, ``clip_value``, ``separate_losses``, ``reduction``, ...).
             ``clip_value`` also clips the cost critic (against the stored ``"cost_value"``).
 
-    Input keys (all configurable with :meth:`set_keys`, see :class:`_AcceptedKeys`):
+    Input keys (all configurable with :meth:`set_keys`, see :class:`_AcceptedKeys`, or moved into
+    a multi-agent env's group at once with ``loss.set_group("agents")``,
+    :meth:`~sg_torchrl.objectives.value.AdvantageEstimation.set_group`):
         the actor's and both critics' ``in_keys`` (e.g. ``"observation"``), ``"action"``,
         ``"action_log_prob"``, ``"advantage"``, ``"value_target"``, ``"cost_advantage"``,
         ``"cost_value_target"``; ``"state_value"`` / ``"cost_value"`` only with ``clip_value``.

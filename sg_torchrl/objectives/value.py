@@ -255,6 +255,7 @@ class AdvantageEstimation:
     * :meth:`estimate_advantages`, both advantages and value targets of a whole batch followed by
       :func:`normalize_advantages`, SafePO's batch rule (reward standardised, cost only centred,
       over every element): exactly what the trainer computes before its minibatch loop;
+    * :meth:`set_group`, every key moved into a multi-agent env's group (``("agents", ...)``) in one call;
     * :meth:`_with_advantages`, which the loss's ``forward`` calls: a batch holding both
       advantages (the trainer's minibatches) is used as given; otherwise the missing ones are
       computed on a shallow copy (the caller's TensorDict is not written to).
@@ -323,6 +324,36 @@ class AdvantageEstimation:
         """
         return make_cost_gae(self.cost_critic_network, gamma=gamma, lmbda=lmbda,
                              keys=self._cost_estimator_keys(), **gae_kwargs)
+
+    def set_group(self, group: str) -> AdvantageEstimation:
+        """Point every tensordict key of the loss at the entries of the agent group ``group``; returns ``self``.
+
+        A multi-agent env (e.g. ``sg_torchrl.make("Safety2x3HalfCheetahVelocity-v0")``) keeps its
+        per-agent entries in a group: ``("agents", "action")``, ``("next", "agents", "reward")``,
+        ``("next", "agents", "cost")``, ... . ``loss.set_group("agents")`` is the one call that
+        remaps the loss (and its reward and cost estimators) onto them: each key of
+        :attr:`tensor_keys` (action, log-prob, advantages, value targets, values, reward, cost,
+        done, terminated, and a subclass's own such as ``factor``) becomes ``(group, key)``, unless it
+        already lies in the group; the log-prob key is left unset (``None``) if it is, as it then
+        follows the actor. The networks' own ``in_keys`` / ``out_keys`` are the networks' business:
+        give them the group's keys (``("agents", "observation")`` -> ``("agents", "state_value")``).
+        Equivalent to ``loss.set_keys(action=("agents", "action"), ...)`` over every key.
+
+        Raises:
+            ValueError: ``group`` is not a non-empty string.
+        """
+        if not isinstance(group, str) or not group:
+            raise ValueError(f"group must be the name of an agent group (e.g. 'agents'), got {group!r}")
+        keys = {}
+        for name in self._AcceptedKeys.__dataclass_fields__:
+            key = getattr(self.tensor_keys, name)
+            if key is None:
+                continue
+            path = (key,) if isinstance(key, str) else tuple(key)
+            if path[0] != group:
+                keys[name] = (group, *path)
+        self.set_keys(**keys)
+        return self
 
     def _cost_estimator_keys(self) -> dict[str, NestedKey]:
         tk = self.tensor_keys

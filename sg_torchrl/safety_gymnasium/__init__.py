@@ -1,13 +1,15 @@
 """Safety-Gymnasium 1.0.0's public API on sg_torchrl: a drop-in for ``safety_gymnasium``.
 
-Safety-Gymnasium 1.0.0 does not install on current Python; scripts written for it run on
+Safety-Gymnasium 1.0.0 does not install on current Python. A script that alone imports it runs on
 sg_torchrl's environments by changing one import::
 
     import sg_torchrl.safety_gymnasium as safety_gymnasium
 
-or, to make every ``import safety_gymnasium`` of a project (its libraries' included) resolve here,
-one line first in the entry script, ``sg_torchrl.safety_gymnasium.install_alias()``, or no change
-at all: ``python -m sg_torchrl.safety_gymnasium script.py [args...]`` (:mod:`.alias`).
+That renames the module in the script only. Where a library imports ``safety_gymnasium`` in its own
+modules (SafePO, OmniSafe), run the unchanged script with ``python -m sg_torchrl.safety_gymnasium
+script.py [args...]`` (the alias in this process and in every worker process, :mod:`.__main__`), or
+call ``sg_torchrl.safety_gymnasium.install_alias()`` first in the entry script, before the library is
+imported (this process and its forked workers, :mod:`.alias`).
 
 What it provides (the original's names, signatures and behaviour, on current gymnasium)
 --------------------------------------------------------------------------------------

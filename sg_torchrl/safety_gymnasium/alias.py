@@ -8,7 +8,10 @@ process (the script's, and those of the libraries it uses, such as SafePO or Omn
 >>> from safety_gymnasium.wrappers import SafeAutoResetWrapper
 >>> from safety_gymnasium.vector.async_vector_env import SafetyAsyncVectorEnv
 
-or, without touching the script, ``python -m sg_torchrl.safety_gymnasium script.py [args...]``.
+or, without touching the script, ``python -m sg_torchrl.safety_gymnasium script.py [args...]``, which
+also makes every child process (``spawn`` / ``forkserver`` workers, Python subprocesses) install the
+alias and restores the platform's multiprocessing start method (:mod:`.__main__`). A script that calls
+:func:`install_alias` itself gets it in forked workers only.
 
 How: :func:`install_alias` puts a finder at the front of ``sys.meta_path``. For a name
 ``safety_gymnasium[.rest]`` it returns the module ``sg_torchrl.safety_gymnasium[.rest]`` itself (the

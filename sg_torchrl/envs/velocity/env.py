@@ -193,6 +193,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
 
     # ------------------------------------------------------------------ hooks
     def _reset_sims(self, indices: np.ndarray) -> None:
+        restored = self.__dict__.get("_restored_position")
+        if restored is not None:  # a reset simulator starts from its new state's position
+            restored[0][indices] = False
         spec, scale = self.robot, self.robot.reset_noise_scale
         qpos = np.empty((len(indices), self.physics.model.nq))
         qvel = np.empty((len(indices), self.physics.model.nv))
@@ -219,6 +222,31 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
 
     def _before_step(self) -> None:
         self._position_before[:] = self._position()
+        restored = self.__dict__.get("_restored_position")
+        if restored is not None:  # the first step after load_sim_state (see there)
+            rows, position = restored
+            self._position_before[rows] = position[rows]
+            self.__dict__["_restored_position"] = None
+
+    # ------------------------------------------------------------------ snapshots
+    def sim_state(self) -> dict:
+        """:meth:`SafeEnv.sim_state` and the position the next step's velocity starts from.
+
+        For the Ant (torso ``xpos``) and the Humanoid (``xipos``) that position is a quantity MuJoCo
+        derives from ``qpos`` at the start of its last substep, one substep behind the state; loading
+        the state recomputes it from the current ``qpos``, so without it a copy's first reward
+        (``x_velocity``, ``y_velocity``) would differ from the original's.
+        """
+        return {**super().sim_state(), "position": self._position().copy()}
+
+    def load_sim_state(self, state: dict) -> None:
+        """Restore :meth:`sim_state` output (the next step starts from the saved position)."""
+        super().load_sim_state(state)
+        # Joint qpos positions are state, restored exactly (and step_one's own path reads them
+        # directly); snapshots taken before the position was saved lack it.
+        if "position" in state and self.robot.position_source != "qpos":
+            # Set in __dict__: an EnvBase (nn.Module) attribute assignment costs microseconds.
+            self.__dict__["_restored_position"] = (np.ones(self.num_envs, dtype=bool), np.array(state["position"]))
 
     def _advance(self, action: np.ndarray) -> None:
         self.physics.step(action, self.frame_skip)

@@ -13,6 +13,10 @@
 :class:`SafeUnsqueeze`                  a leading batch dimension of 1 on every output
 :class:`SafeRescaleAction`              actions in ``[min_action, max_action]`` mapped to the bounds
 ======================================  ==========================================================
+
+Like gymnasium 0.28's wrappers (and unlike 1.x's), each forwards the read of a public attribute it
+does not have to the env inside (``env.obs_rms`` through ``SafeUnsqueeze``), and records its
+arguments, so ``gymnasium.make(env.spec)`` can rebuild it (:mod:`.base`).
 """
 
 from __future__ import annotations

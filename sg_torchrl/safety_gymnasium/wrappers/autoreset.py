@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium
+from sg_torchrl.safety_gymnasium.wrappers.base import SafeWrapper
 
 __all__ = ["SafeAutoResetWrapper"]
 
 
-class SafeAutoResetWrapper(gymnasium.Wrapper):
+class SafeAutoResetWrapper(SafeWrapper):
     """Reset the env inside the ``step`` that ends an episode (terminated or truncated).
 
     That step returns the **new** episode's first observation and the reset's info, together with

@@ -9,10 +9,12 @@ from gymnasium import logger
 from gymnasium.utils.passive_env_checker import check_obs
 from gymnasium.wrappers import PassiveEnvChecker
 
+from sg_torchrl.safety_gymnasium.wrappers.base import ForwardingWrapper
+
 __all__ = ["SafePassiveEnvChecker", "env_step_passive_checker"]
 
 
-class SafePassiveEnvChecker(PassiveEnvChecker):
+class SafePassiveEnvChecker(ForwardingWrapper, PassiveEnvChecker):
     """Check the spaces at construction, the first ``reset`` and ``render`` (gymnasium's checks) and
     the first ``step`` as a 6-tuple (:func:`env_step_passive_checker`): warnings for doubtful values,
     errors for a malformed result. Later calls pass through unchecked."""

@@ -6,23 +6,27 @@ from typing import Any
 
 import gymnasium
 
+from sg_torchrl.envs.info import numpy_scalar_info
+from sg_torchrl.safety_gymnasium.wrappers.base import SafeWrapper
+
 __all__ = ["Gymnasium2SafetyGymnasium", "SafetyGymnasium2Gymnasium", "make_gymnasium_environment"]
 
 
-class SafetyGymnasium2Gymnasium(gymnasium.Wrapper):
+class SafetyGymnasium2Gymnasium(SafeWrapper):
     """A 6-tuple env seen as a gymnasium env: ``step`` returns ``(obs, reward, terminated, truncated,
     info)`` with the cost in ``info["cost"]`` (a warning if the info already held one), so gymnasium's
-    own wrappers and vector envs can be used on it."""
+    own wrappers and vector envs can be used on it. The info's Python numbers become numpy scalars
+    (:func:`sg_torchrl.envs.info.numpy_scalar_info`), which TorchRL's info readers accept."""
 
     def step(self, action: Any) -> tuple:
         obs, reward, cost, terminated, truncated, info = self.env.step(action)
         if "cost" in info:
             gymnasium.logger.warn("the info dict already holds a 'cost': SafetyGymnasium2Gymnasium overwrites it")
         info["cost"] = cost
-        return obs, reward, terminated, truncated, info
+        return obs, reward, terminated, truncated, numpy_scalar_info(info)
 
 
-class Gymnasium2SafetyGymnasium(gymnasium.Wrapper):
+class Gymnasium2SafetyGymnasium(SafeWrapper):
     """A gymnasium env whose info carries ``"cost"`` seen as a Safety-Gymnasium env (6-tuple ``step``).
 
     Raises:

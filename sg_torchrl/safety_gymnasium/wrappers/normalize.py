@@ -21,6 +21,8 @@ import gymnasium
 import numpy as np
 from gymnasium.wrappers.utils import RunningMeanStd
 
+from sg_torchrl.safety_gymnasium.wrappers.base import SafeWrapper
+
 __all__ = ["SafeNormalizeCost", "SafeNormalizeObservation", "SafeNormalizeReward"]
 
 
@@ -29,12 +31,11 @@ def _num_envs(env: gymnasium.Env) -> tuple[bool, int]:
     return vector, int(getattr(env, "num_envs", 1)) if vector else 1
 
 
-class SafeNormalizeObservation(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+class SafeNormalizeObservation(SafeWrapper):
     """Normalise observations with running statistics (module docstring); ``obs_rms`` holds them."""
 
     def __init__(self, env: gymnasium.Env, epsilon: float = 1e-8) -> None:
-        gymnasium.utils.RecordConstructorArgs.__init__(self, epsilon=epsilon)
-        gymnasium.Wrapper.__init__(self, env)
+        super().__init__(env, epsilon=epsilon)
         self.is_vector_env, self.num_envs = _num_envs(env)
         space = env.single_observation_space if self.is_vector_env else env.observation_space
         if not isinstance(space, gymnasium.spaces.Box):
@@ -74,14 +75,13 @@ class SafeNormalizeObservation(gymnasium.Wrapper, gymnasium.utils.RecordConstruc
         return self._batch(obs), info
 
 
-class _ReturnNormalizer(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+class _ReturnNormalizer(SafeWrapper):
     """Divides one output of ``step`` (index :attr:`_position`) by the std of its discounted return."""
 
     _position: int
 
     def __init__(self, env: gymnasium.Env, gamma: float = 0.99, epsilon: float = 1e-8) -> None:
-        gymnasium.utils.RecordConstructorArgs.__init__(self, gamma=gamma, epsilon=epsilon)
-        gymnasium.Wrapper.__init__(self, env)
+        super().__init__(env, gamma=gamma, epsilon=epsilon)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         self.is_vector_env, self.num_envs = _num_envs(env)

@@ -7,10 +7,12 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from sg_torchrl.safety_gymnasium.wrappers.base import ForwardingWrapper
+
 __all__ = ["SafeRescaleAction"]
 
 
-class SafeRescaleAction(gymnasium.ActionWrapper, gymnasium.utils.RecordConstructorArgs):
+class SafeRescaleAction(ForwardingWrapper, gymnasium.ActionWrapper, gymnasium.utils.RecordConstructorArgs):
     """Take actions in ``[min_action, max_action]`` (scalars or arrays of the action's shape) and map
     them affinely onto the env's ``Box`` action bounds.
 

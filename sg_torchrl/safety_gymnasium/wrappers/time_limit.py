@@ -7,10 +7,12 @@ from typing import Any
 from gymnasium.error import ResetNeeded
 from gymnasium.wrappers import TimeLimit
 
+from sg_torchrl.safety_gymnasium.wrappers.base import ForwardingWrapper
+
 __all__ = ["SafeTimeLimit"]
 
 
-class SafeTimeLimit(TimeLimit):
+class SafeTimeLimit(ForwardingWrapper, TimeLimit):
     """Truncate the episode after ``max_episode_steps`` steps (``truncated=True`` on that step).
 
     A subclass of gymnasium's ``TimeLimit``, so ``env.spec.max_episode_steps`` reports the limit

@@ -7,6 +7,8 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from sg_torchrl.safety_gymnasium.wrappers.base import SafeWrapper
+
 __all__ = ["SafeUnsqueeze"]
 
 
@@ -17,7 +19,7 @@ def _unsqueeze_arrays(info: dict) -> dict:
     return info
 
 
-class SafeUnsqueeze(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+class SafeUnsqueeze(SafeWrapper):
     """Give one env's outputs a leading dimension of 1: the observation ``(1, ...)``, the reward,
     cost and flags ``(1,)`` arrays, and every numpy array in the info (e.g. ``final_observation``).
     The spaces are unchanged.
@@ -27,8 +29,7 @@ class SafeUnsqueeze(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
     """
 
     def __init__(self, env: gymnasium.Env) -> None:
-        gymnasium.utils.RecordConstructorArgs.__init__(self)
-        gymnasium.Wrapper.__init__(self, env)
+        super().__init__(env)
         if getattr(env, "is_vector_env", False):
             raise ValueError("SafeUnsqueeze is for a single env; a vector env already has a batch dimension")
         self.is_vector_env = False
