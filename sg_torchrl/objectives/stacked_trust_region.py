@@ -147,7 +147,10 @@ class SeedSurrogates:
                               self.kl_action_reduction)
 
     def __call__(self, model: StackedActor) -> tuple[Tensor, Tensor, Tensor]:
-        loc, scale = model.dist_params(self.observation)
+        return self.evaluate(*model.dist_params(self.observation))
+
+    def evaluate(self, loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The three quantities for policies of ``loc`` ``(S, N, A)`` and ``scale`` (broadcastable)."""
         ratio = (gaussian_log_prob(self.action, loc, scale) - self.log_prob).exp()
         reward = (ratio * self.advantage).mean(1)
         cost = torch.zeros_like(reward) if self.cost_advantage is None else (ratio * self.cost_advantage).mean(1)

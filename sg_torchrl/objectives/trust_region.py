@@ -18,8 +18,8 @@ with :math:`g` and :math:`b` the gradients of the reward and cost surrogates
 This module is the one-actor front of the package's single trust-region implementation:
 
 * :class:`TrustRegionLoss`, a TorchRL :class:`~torchrl.objectives.LossModule` that computes the two
-  surrogates and the mean KL of a TorchRL actor in one pass (for users; the steps below evaluate the
-  same quantities through :class:`~sg_torchrl.objectives.stacked_trust_region.SeedSurrogates`);
+  surrogates and the mean KL of a TorchRL actor in one pass, by the steps' own evaluation
+  (:meth:`~sg_torchrl.objectives.stacked_trust_region.SeedSurrogates.evaluate` on one seed);
 * the pure step computations :func:`cpo_direction` and :func:`pcpo_direction` over
   :func:`~sg_torchrl.objectives.second_order.linearise` (functions of :math:`g, b, H, c, \\delta`,
   unit-tested against an independent QP solver), with each method's proposal and settings as a rule
@@ -70,7 +70,6 @@ from tensordict.utils import NestedKey
 from torch import Tensor, distributions as D
 from torchrl.objectives import LossModule
 
-from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.second_order import flat_params, set_flat_params
 from sg_torchrl.objectives.stacked_trust_region import (
     SeedSurrogates,
@@ -119,6 +118,15 @@ def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
     """Where the collector stored the behaviour log-prob: the actor's own ``log_prob_key``, else ``"action_log_prob"``."""
     key = getattr(actor, "log_prob_key", None)
     return key if isinstance(key, (str, tuple)) else "action_log_prob"
+
+
+def _gaussian_params(dist: D.Distribution) -> tuple[Tensor, Tensor]:
+    """``(loc, scale)`` of a diagonal Gaussian (``Normal`` or ``Independent(Normal)``, e.g. ``IndependentNormal``)."""
+    base = dist.base_dist if isinstance(dist, D.Independent) else dist
+    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
+        raise TypeError(f"trust-region steps need a diagonal-Gaussian policy (e.g. IndependentNormal); the actor's "
+                        f"distribution is {type(dist).__name__}.")
+    return dist.mean, dist.stddev
 
 
 # ============================================================================ loss module
@@ -208,9 +216,7 @@ class TrustRegionLoss(LossModule):
         """Computes ``loss_objective``, ``loss_cost`` (if the cost advantage is given) and ``kl``."""
         tk = self.tensor_keys
         dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys))
-        log_prob = dist.log_prob(tensordict.get(tk.action))
-        old_log_prob = _per_sample(tensordict.get(tk.sample_log_prob), log_prob.shape, "action_log_prob")
-        ratio = (log_prob - old_log_prob).exp()
+        loc, scale = _gaussian_params(dist)
         advantage = tensordict.get(tk.advantage, None)
         if advantage is None:
             raise KeyError(
@@ -219,29 +225,32 @@ class TrustRegionLoss(LossModule):
                 f"whole batch first (PPOLagLoss.estimate_advantages, or make_gae / make_cost_gae and "
                 f"normalize_advantages), or remap the key with loss.set_keys(...)."
             )
-        advantage = _per_sample(advantage, log_prob.shape, "advantage")
-        out = {"loss_objective": -(ratio * advantage).mean()}
+        # the trust-region step's own evaluation (one seed, the samples flattened)
+        shape = loc.shape[:-1]
+        rows = (1, shape.numel())
+
+        def per_sample(value: Tensor, name: str) -> Tensor:
+            return _per_sample(value, shape, name).reshape(rows)
+
+        def per_action(value: Tensor) -> Tensor:
+            return value.expand_as(loc).reshape(*rows, loc.shape[-1])
+
         cost_advantage = tensordict.get(tk.cost_advantage, None)
+        surrogates = SeedSurrogates(
+            None, per_action(tensordict.get(tk.action)),
+            per_sample(tensordict.get(tk.sample_log_prob), "action_log_prob"), per_sample(advantage, "advantage"),
+            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+            per_action(tensordict.get(tk.loc)), per_action(tensordict.get(tk.scale)), self.kl_action_reduction,
+        )
+        reward, cost, kl = surrogates.evaluate(per_action(loc), per_action(scale))
+        out = {"loss_objective": -reward[0]}
         if cost_advantage is not None:
-            cost_advantage = _per_sample(cost_advantage, log_prob.shape, "cost_advantage")
-            out["loss_cost"] = (ratio * cost_advantage).mean()
-        kl = gaussian_kl(tensordict.get(tk.loc), tensordict.get(tk.scale), dist.mean, dist.stddev)
-        if self.kl_action_reduction == "mean":
-            kl = kl / dist.mean.shape[-1]
-        out["kl"] = kl.mean()
+            out["loss_cost"] = cost[0]
+        out["kl"] = kl[0]
         return TensorDict(out, batch_size=[])
 
 
 # ============================================================================ one actor as one seed
-def _gaussian_params(dist: D.Distribution) -> tuple[Tensor, Tensor]:
-    """``(loc, scale)`` of a diagonal Gaussian (``Normal`` or ``Independent(Normal)``, e.g. ``IndependentNormal``)."""
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
-        raise TypeError(f"trust-region steps need a diagonal-Gaussian policy (e.g. IndependentNormal); the actor's "
-                        f"distribution is {type(dist).__name__}.")
-    return dist.mean, dist.stddev
-
-
 class OneSeedActor:
     """One TorchRL Gaussian actor seen as a one-seed :class:`~sg_torchrl.objectives.stacked_trust_region.StackedActor`.
 
