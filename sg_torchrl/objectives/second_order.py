@@ -164,7 +164,9 @@ class SeedFisherVectorProduct:
 
 
 class FisherVectorProduct:
-    """One policy's :math:`v \\mapsto (\\nabla^2_\\theta \\overline{\\mathrm{KL}} + \\beta I)\\, v`: :class:`SeedFisherVectorProduct` for S = 1.
+    """One policy's damped Fisher-vector product :math:`v \\mapsto (H + \\beta I)\\, v`.
+
+    :class:`SeedFisherVectorProduct` for S = 1 (``kl`` a scalar, ``v`` a vector).
 
     Args:
         kl (Tensor): scalar mean KL with a graph to ``params`` (first argument detached).

@@ -115,7 +115,7 @@ __all__ = [
 
 
 def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
-    """Where the collector stored the behaviour log-prob: the actor's own ``log_prob_key``, else ``"action_log_prob"``."""
+    """Where the collector stored the behaviour log-prob: the actor's ``log_prob_key``, else ``"action_log_prob"``."""
     key = getattr(actor, "log_prob_key", None)
     return key if isinstance(key, (str, tuple)) else "action_log_prob"
 
