@@ -13,7 +13,7 @@ minibatch 128) for ``--epochs`` epochs per configuration, in one run and one aft
 * ``group S=k``: a seed group of seeds 0..k-1, eager, and with ``--compile true`` (the fused minibatch
   losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling). For
   a second-order algorithm only the critics' passes compile: the stacked trust-region step
-  (:mod:`sg_torchrl.train.stacked_trust_region`: conjugate gradient, double backward, line search)
+  (:mod:`sg_torchrl.objectives.stacked_trust_region`: conjugate gradient, double backward, line search)
   runs eagerly either way, and the table says so.
 
 Reported per env: CPU seconds (``time.process_time``, every thread of the process) per 1,000 env

@@ -3,12 +3,12 @@
 The second-order algorithms (NPG, TRPO, CPO, PCPO) move the actor once per epoch on the whole batch
 (SafePO: 20,000 samples on HalfCheetah): two gradients, about 2 x 16 Fisher-vector products (double
 backward through the actor) for conjugate gradient, then a few line-search evaluations.
-:mod:`sg_torchrl.train.stacked_trust_region` does this for S stacked seeds at once. This script
+:mod:`sg_torchrl.objectives.stacked_trust_region` does this for S stacked seeds at once. This script
 times, interleaved (one repeat of each configuration in turn, so both see the same machine load):
 
 * ``single x S``: the single-seed step classes (``TRPOStep``, ``CPOStep``, ...) run on each seed's
   actor and batch in turn, what S single-seed runs spend;
-* ``group``: the :class:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep` of the
+* ``group``: the :class:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep` of the
   same algorithm on the stacked seeds.
 
 The actors are reset to the same parameters before every repeat (not timed), so each repeat takes
@@ -40,7 +40,7 @@ from sg_torchrl.train.algorithms import TRUST_REGION_STEPS
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.train.models import make_actor_critics
 from sg_torchrl.train.stacked import StackedActorCritic
-from sg_torchrl.train.stacked_trust_region import STACKED_STEPS
+from sg_torchrl.objectives.trust_region import STACKED_STEPS
 
 #: The unconstrained second-order algorithms (NPG, TRPO, CPO, PCPO; the Lagrangian ones step the same classes)
 #: and their trust-region step classes, from the algorithm manifest.

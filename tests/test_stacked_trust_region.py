@@ -2,14 +2,16 @@
 
 For NPG, TRPO, CPO and PCPO, three seeds' networks (``make_actor_critics`` after
 ``torch.manual_seed(seed)``) are stacked (:class:`~sg_torchrl.train.stacked.StackedActorCritic`)
-and stepped together by :mod:`sg_torchrl.train.stacked_trust_region`; each seed's new actor
+and stepped together by :mod:`sg_torchrl.objectives.stacked_trust_region`; each seed's new actor
 parameters and metrics are compared with those of the single-seed step class
 (``NaturalPolicyStep``, ``TRPOStep``, ``CPOStep``, ``PCPOStep``, built with the options
-:mod:`sg_torchrl.train.algorithms` gives them) applied to that seed's own actor and batch.
+:mod:`sg_torchrl.train.algorithms` gives them) applied to that seed's own actor and batch. Both run
+the same step code (the single-seed classes are its one-seed case); what differs is the actor's
+forward pass: the group's batched matmuls against each seed's ``nn.Linear`` layers.
 
 Tolerances: float32, rtol 1e-4 and atol 1e-6 on parameters and continuous metrics (the stacked
-pass sums in another order than the single-seed one, and conjugate gradient amplifies those
-last-bit differences); float64, rtol 1e-10 and atol 1e-12. Discrete outcomes (the accepted
+forward pass sums in another order than the single-seed one, and conjugate gradient amplifies
+those last-bit differences); float64, rtol 1e-10 and atol 1e-12. Discrete outcomes (the accepted
 line-search trial, the CPO case) must be equal.
 
 Timing (not asserted; ``benchmarks/trust_region_group.py``; provisional: one run on a shared 2-core
@@ -36,20 +38,18 @@ from tensordict import TensorDict  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
 from sg_torchrl.objectives import CPOStep, NaturalPolicyStep, PCPOStep, TRPOStep  # noqa: E402
-from sg_torchrl.objectives.second_order import conjugate_gradient  # noqa: E402
-from sg_torchrl.train.config import ALGORITHM_DEFAULTS  # noqa: E402
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
-from sg_torchrl.train.stacked_trust_region import (  # noqa: E402
-    STACKED_STEPS,
+from sg_torchrl.objectives.second_order import (  # noqa: E402
     SeedFisherVectorProduct,
-    SeedSurrogates,
-    StackedCPOStep,
-    StackedTRPOStep,
+    conjugate_gradient,
     seed_conjugate_gradient,
     seed_flat_grad,
     seed_linearise,
 )
+from sg_torchrl.objectives.stacked_trust_region import SeedSurrogates, StackedCPOStep, StackedTRPOStep  # noqa: E402
+from sg_torchrl.objectives.trust_region import STACKED_STEPS  # noqa: E402
+from sg_torchrl.train.config import ALGORITHM_DEFAULTS  # noqa: E402
+from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 4, 2, [16, 16], 256
 SEEDS = (3, 11, 42)
@@ -327,3 +327,10 @@ def test_inputs_are_checked():
     # (S, N) advantages work as well as (S, N, 1); without a cost advantage TRPO's cost surrogate is 0
     metrics = StackedTRPOStep(model).step(data, adv.squeeze(-1), None, torch.zeros(3))
     assert (metrics["Misc/AcceptanceStep"] >= 1).all()
+
+
+def test_the_old_module_path_names_the_same_objects():
+    from sg_torchrl.train import stacked_trust_region as old
+
+    assert old.STACKED_STEPS is STACKED_STEPS and old.StackedCPOStep is StackedCPOStep
+    assert old.seed_conjugate_gradient is seed_conjugate_gradient and old.SeedSurrogates is SeedSurrogates

@@ -15,7 +15,7 @@ from scipy.optimize import minimize  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule  # noqa: E402
 from torch import nn  # noqa: E402
-from torchrl.modules import IndependentNormal, MLP, ProbabilisticActor  # noqa: E402
+from torchrl.modules import IndependentNormal, MLP, ProbabilisticActor, TanhNormal  # noqa: E402
 
 from sg_torchrl.objectives import (  # noqa: E402
     cpo_direction,
@@ -368,8 +368,8 @@ class TestSteps:
 
     def test_rejected_step_leaves_the_actor_unchanged(self):
         class Never(TRPOStep):
-            def _acceptable(self, after, before, proposal):
-                return False
+            def acceptable(self, reward, cost, kl, before_reward, before_cost, proposals):
+                return torch.zeros_like(kl, dtype=torch.bool)
 
         actor = make_actor()
         data, adv, cost_adv = synthetic_batch(actor)
@@ -377,6 +377,25 @@ class TestSteps:
         metrics = Never(actor, line_search_steps=4).step(data, adv, cost_adv, 0.0)
         assert torch.equal(flat_params(list(actor.parameters())), theta)
         assert (metrics["Misc/AcceptanceStep"], metrics["Misc/FinalStepNorm"], metrics["Train/KL"]) == (0.0, 0.0, 0.0)
+
+    def test_the_actor_keeps_its_parameter_objects(self):
+        # the one-seed view writes values into the actor's own parameters (MACPO's agents share
+        # them with the team's policy, the trainer's modules with its checkpoints)
+        actor = make_actor()
+        params = list(actor.parameters())
+        data, adv, cost_adv = synthetic_batch(actor)
+        theta = flat_params(params)
+        CPOStep(actor).step(data, adv, cost_adv, 0.02)
+        assert all(a is b for a, b in zip(params, actor.parameters()))
+        assert not torch.equal(flat_params(params), theta)
+
+    def test_a_non_gaussian_policy_is_refused(self):
+        actor = make_actor()
+        tanh = ProbabilisticActor(actor.module[0], in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                                  return_log_prob=True)
+        data, adv, cost_adv = synthetic_batch(actor)
+        with pytest.raises(TypeError, match="diagonal-Gaussian"):
+            TRPOStep(tanh).step(data, adv, cost_adv, 0.0)
 
     def test_defaults_and_validation(self):
         actor = make_actor()

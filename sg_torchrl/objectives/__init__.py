@@ -16,8 +16,11 @@
   loop that the single-agent trainer and the multi-agent rounds share
   (:mod:`sg_torchrl.objectives.passes`).
 * :class:`NaturalPolicyStep`, :class:`TRPOStep`, :class:`CPOStep`, :class:`PCPOStep`: trust-region
-  policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) over :class:`TrustRegionLoss` and the
-  second-order tools of :mod:`sg_torchrl.objectives.second_order`.
+  policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) of one TorchRL actor, the one-seed case of
+  the seed-batched step (:mod:`sg_torchrl.objectives.stacked_trust_region`) and of the second-order
+  tools (:mod:`sg_torchrl.objectives.second_order`: Fisher-vector products, conjugate gradient, line
+  search, each written once for a leading seed dimension); :class:`TrustRegionLoss` gives the same
+  surrogates and KL as a TorchRL loss.
 """
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multipliers import (

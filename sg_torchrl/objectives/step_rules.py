@@ -2,7 +2,7 @@
 
 Split out of :mod:`sg_torchrl.objectives.trust_region` so that one definition serves the single-seed
 steps (:class:`~sg_torchrl.objectives.TRPOStep`, :class:`~sg_torchrl.objectives.CPOStep`, ...) and the
-seed group's stacked steps (:mod:`sg_torchrl.train.stacked_trust_region`):
+seed group's stacked steps (:mod:`sg_torchrl.objectives.stacked_trust_region`):
 
 * :func:`cpo_direction` / :func:`pcpo_direction`: the CPO QP's solution and PCPO's projected step
   (functions of :math:`g, b, H, c, \\delta`, unit-tested against an independent QP solver);
@@ -198,7 +198,7 @@ def natural_proposal(lin: Linearisation, cost_violation: float, delta: float) ->
     """The natural step :math:`\\sqrt{2\\delta/q}\\, x` with TRPO's tests (NPG applies it without any).
 
     The per-step proposal of :class:`NaturalPolicyStep` and :class:`TRPOStep` as a function of the
-    linearisation, so that seed-group steps (:mod:`sg_torchrl.train.stacked_trust_region`) apply it
+    linearisation, so that seed-group steps (:mod:`sg_torchrl.objectives.stacked_trust_region`) apply it
     seed by seed; ``cost_violation`` is unused.
     """
     return Proposal(direction=natural_step_size(lin.q, delta) * lin.x)

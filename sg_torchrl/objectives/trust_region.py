@@ -15,17 +15,22 @@ with :math:`g` and :math:`b` the gradients of the reward and cost surrogates
 (:math:`r_\\theta = \\pi_\\theta(a|s) / \\pi_{\\text{behaviour}}(a|s)`) and
 :math:`c = J_c - d` the constraint violation.
 
-This module splits the work in three layers so that each can be checked alone:
+This module is the one-actor front of the package's single trust-region implementation:
 
 * :class:`TrustRegionLoss`, a TorchRL :class:`~torchrl.objectives.LossModule` that computes the two
-  surrogates and the mean KL in one actor pass (reused by the multi-agent MACPO);
+  surrogates and the mean KL of a TorchRL actor in one pass, by the steps' own evaluation
+  (:meth:`~sg_torchrl.objectives.stacked_trust_region.SeedSurrogates.evaluate` on one seed);
 * the pure step computations :func:`cpo_direction` and :func:`pcpo_direction` over
   :func:`~sg_torchrl.objectives.second_order.linearise` (functions of :math:`g, b, H, c, \\delta`,
   unit-tested against an independent QP solver), with each method's proposal and settings as a rule
-  mixin, in :mod:`sg_torchrl.objectives.step_rules` (shared with the seed groups' stacked steps);
-* the step strategies the trainer calls once per epoch, one small class each (a rule over the common
+  mixin, in :mod:`sg_torchrl.objectives.step_rules`;
+* the step strategies the trainer calls once per epoch, one small class each (a rule over
   :class:`TrustRegionStep`): :class:`NaturalPolicyStep` (Kakade 2002), :class:`TRPOStep` (Schulman et
-  al. 2015), :class:`CPOStep` (Achiam et al. 2017) and :class:`PCPOStep` (Yang et al. 2020).
+  al. 2015), :class:`CPOStep` (Achiam et al. 2017) and :class:`PCPOStep` (Yang et al. 2020). Each is
+  the seed-batched step of :mod:`sg_torchrl.objectives.stacked_trust_region` with S = 1: the actor is
+  put into a one-seed view (:class:`OneSeedActor`), stepped, and its parameters written back, so a
+  single actor and a seed group move by the same code (:data:`STACKED_STEPS` names the group class
+  of each).
 
 Lagrangian variants are not separate classes: TRPO-Lag is :class:`TRPOStep` fed the Lagrangian
 advantage :math:`(A_r - \\lambda A_c)/(1 + \\lambda)` (``multiplier.combine``), and RCPO as SafePO
@@ -55,8 +60,6 @@ region ``action_dim`` times tighter. We keep SafePO's convention by default beca
 """
 from __future__ import annotations
 
-import abc
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -64,20 +67,19 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
-from torch import Tensor
+from torch import Tensor, distributions as D
 from torchrl.objectives import LossModule
 
-from sg_torchrl.objectives.kl import gaussian_kl
-from sg_torchrl.objectives.second_order import (
-    backtracking_line_search,
-    FisherVectorProduct,
-    flat_grad,
-    flat_params,
-    linearise,
-    Linearisation,
-    LineSearchResult,
-    natural_step_size,
-    set_flat_params,
+from sg_torchrl.objectives.second_order import flat_params, set_flat_params
+from sg_torchrl.objectives.stacked_trust_region import (
+    SeedSurrogates,
+    StackedCPOStep,
+    StackedNaturalPolicyStep,
+    StackedPCPOStep,
+    StackedTRPOStep,
+    StackedTrustRegionStep,
+    TrustRegionEngine,
+    _per_sample,  # value reshaped to the per-sample shape, refusing silent broadcasting
 )
 from sg_torchrl.objectives.step_rules import (  # re-exported: the step rules' home
     CPODirection,
@@ -86,7 +88,6 @@ from sg_torchrl.objectives.step_rules import (  # re-exported: the step rules' h
     PCPORule,
     Proposal,
     TRPORule,
-    TrustRegionOptions,
     cpo_direction,
     cpo_proposal,
     natural_proposal,
@@ -95,9 +96,11 @@ from sg_torchrl.objectives.step_rules import (  # re-exported: the step rules' h
 )
 
 __all__ = [
+    "STACKED_STEPS",
     "CPODirection",
     "CPOStep",
     "NaturalPolicyStep",
+    "OneSeedActor",
     "PCPOStep",
     "TRPOStep",
     "TrustRegionLoss",
@@ -111,16 +114,19 @@ __all__ = [
 
 
 
-def _per_sample(value: Tensor, shape: torch.Size, name: str) -> Tensor:
-    """``value`` reshaped to the per-sample ``shape`` (drops one trailing singleton dim)."""
-    if value.shape == shape:
-        return value
-    if value.shape == (*shape, 1):
-        return value.squeeze(-1)
-    raise ValueError(
-        f"{name} has shape {tuple(value.shape)}; expected {tuple(shape)} or {(*shape, 1)} "
-        f"(one value per sample, no silent broadcasting)."
-    )
+def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
+    """Where the collector stored the behaviour log-prob: the actor's ``log_prob_key``, else ``"action_log_prob"``."""
+    key = getattr(actor, "log_prob_key", None)
+    return key if isinstance(key, (str, tuple)) else "action_log_prob"
+
+
+def _gaussian_params(dist: D.Distribution) -> tuple[Tensor, Tensor]:
+    """``(loc, scale)`` of a diagonal Gaussian (``Normal`` or ``Independent(Normal)``, e.g. ``IndependentNormal``)."""
+    base = dist.base_dist if isinstance(dist, D.Independent) else dist
+    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
+        raise TypeError(f"trust-region steps need a diagonal-Gaussian policy (e.g. IndependentNormal); the actor's "
+                        f"distribution is {type(dist).__name__}.")
+    return dist.mean, dist.stddev
 
 
 # ============================================================================ loss module
@@ -187,8 +193,8 @@ class TrustRegionLoss(LossModule):
         super().__init__()
         self.actor_network = actor_network
         self.kl_action_reduction = kl_action_reduction
-        log_prob_key = getattr(actor_network, "log_prob_key", None)
-        if isinstance(log_prob_key, (str, tuple)):
+        log_prob_key = _log_prob_key(actor_network)
+        if log_prob_key != self.tensor_keys.sample_log_prob:
             self.set_keys(sample_log_prob=log_prob_key)
         self._set_in_keys()
         self.out_keys = ["loss_objective", "loss_cost", "kl"]
@@ -210,9 +216,7 @@ class TrustRegionLoss(LossModule):
         """Computes ``loss_objective``, ``loss_cost`` (if the cost advantage is given) and ``kl``."""
         tk = self.tensor_keys
         dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys))
-        log_prob = dist.log_prob(tensordict.get(tk.action))
-        old_log_prob = _per_sample(tensordict.get(tk.sample_log_prob), log_prob.shape, "action_log_prob")
-        ratio = (log_prob - old_log_prob).exp()
+        loc, scale = _gaussian_params(dist)
         advantage = tensordict.get(tk.advantage, None)
         if advantage is None:
             raise KeyError(
@@ -221,62 +225,94 @@ class TrustRegionLoss(LossModule):
                 f"whole batch first (PPOLagLoss.estimate_advantages, or make_gae / make_cost_gae and "
                 f"normalize_advantages), or remap the key with loss.set_keys(...)."
             )
-        advantage = _per_sample(advantage, log_prob.shape, "advantage")
-        out = {"loss_objective": -(ratio * advantage).mean()}
+        # the trust-region step's own evaluation (one seed, the samples flattened)
+        shape = loc.shape[:-1]
+        rows = (1, shape.numel())
+
+        def per_sample(value: Tensor, name: str) -> Tensor:
+            return _per_sample(value, shape, name).reshape(rows)
+
+        def per_action(value: Tensor) -> Tensor:
+            return value.expand_as(loc).reshape(*rows, loc.shape[-1])
+
         cost_advantage = tensordict.get(tk.cost_advantage, None)
+        surrogates = SeedSurrogates(
+            None, per_action(tensordict.get(tk.action)),
+            per_sample(tensordict.get(tk.sample_log_prob), "action_log_prob"), per_sample(advantage, "advantage"),
+            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+            per_action(tensordict.get(tk.loc)), per_action(tensordict.get(tk.scale)), self.kl_action_reduction,
+        )
+        reward, cost, kl = surrogates.evaluate(per_action(loc), per_action(scale))
+        out = {"loss_objective": -reward[0]}
         if cost_advantage is not None:
-            cost_advantage = _per_sample(cost_advantage, log_prob.shape, "cost_advantage")
-            out["loss_cost"] = (ratio * cost_advantage).mean()
-        kl = gaussian_kl(tensordict.get(tk.loc), tensordict.get(tk.scale), dist.mean, dist.stddev)
-        if self.kl_action_reduction == "mean":
-            kl = kl / dist.mean.shape[-1]
-        out["kl"] = kl.mean()
+            out["loss_cost"] = cost[0]
+        out["kl"] = kl[0]
         return TensorDict(out, batch_size=[])
 
 
-# ============================================================================ pure step maths
-@dataclass(frozen=True)
-class _Evaluation:
-    """Reward surrogate, cost surrogate and mean KL of the policy as it currently is."""
+# ============================================================================ one actor as one seed
+class OneSeedActor:
+    """One TorchRL Gaussian actor seen as a one-seed :class:`~sg_torchrl.objectives.stacked_trust_region.StackedActor`.
 
-    reward: float
-    cost: float
-    kl: float
-
-    @classmethod
-    def of(cls, losses: TensorDictBase) -> _Evaluation:
-        cost = losses.get("loss_cost", None)
-        return cls(
-            reward=-float(losses.get("loss_objective")),
-            cost=float(cost) if cost is not None else 0.0,
-            kl=float(losses.get("kl")),
-        )
-
-    def finite(self) -> bool:
-        return all(math.isfinite(v) for v in (self.reward, self.cost, self.kl))
-
-
-class TrustRegionStep(TrustRegionOptions, abc.ABC):
-    """Common body of the trust-region policy steps; subclasses only propose a direction.
-
-    :meth:`step` (called by the trainer once per epoch on the whole flattened batch):
-
-    1. anchors :math:`\\pi_{\\text{old}}` at the actor as it is (detached ``loc`` / ``scale``; for
-       on-policy data this equals the behaviour policy the collector stored, and it keeps
-       :math:`H` exactly the Fisher matrix at :math:`\\theta_k`);
-    2. evaluates :class:`TrustRegionLoss` once with gradients: :math:`g`, optionally :math:`b`, and
-       the damped Fisher-vector product of its KL
-       (:class:`~sg_torchrl.objectives.second_order.FisherVectorProduct`);
-    3. :func:`~sg_torchrl.objectives.second_order.linearise`: :math:`x = H^{-1}g` (and :math:`p = H^{-1}b`) by conjugate gradient;
-    4. :meth:`_propose` (the subclass): the step direction and its acceptance tests;
-    5. applies the direction directly (``line_search_steps=0``) or backtracks
-       (:func:`~sg_torchrl.objectives.second_order.backtracking_line_search`), accepting a candidate
-       when its surrogates and KL are finite, :math:`\\mathrm{KL} \\le \\delta`, and the proposal's
-       improvement / cost tests pass; if none passes the actor is left unchanged.
+    The trust-region step moves rows of a flat ``(S, P)`` buffer and evaluates the policy through
+    ``dist_params``. For a single actor this view holds a ``(1, P)`` copy of its trainable parameters
+    (in :func:`~sg_torchrl.objectives.second_order.flat_params` order) and writes it into them before
+    every evaluation, so gradients, Fisher-vector products and line-search candidates are the actor's
+    own, whatever its network (MLP, CNN, a multi-agent policy's agent): the actor's parameter objects
+    are never replaced, so optimisers and modules sharing them keep working. :meth:`load` copies
+    the actor in (before a step), :meth:`store` writes the row back (after one).
 
     Args:
-        actor (ProbabilisticTensorDictSequential): the Gaussian policy; its parameters are changed
-            in place (under :func:`torch.no_grad`).
+        actor: a policy whose ``get_dist`` is a diagonal Gaussian; observations are TensorDicts of
+            its ``in_keys`` with batch ``[1, N]``.
+    """
+
+    num_seeds = 1
+
+    def __init__(self, actor: ProbabilisticTensorDictSequential) -> None:
+        self.actor = actor
+        self.params = [p for p in actor.parameters() if p.requires_grad]
+        self.load()
+
+    def load(self) -> None:
+        """Take the actor's current parameters as the row."""
+        self.flat_actor = flat_params(self.params).unsqueeze(0)
+
+    def store(self) -> None:
+        """Write the row into the actor's parameters."""
+        set_flat_params(self.params, self.flat_actor[0])
+
+    def actor_parameters(self) -> list[Tensor]:
+        return self.params
+
+    def dist_params(self, obs: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """``(loc, scale)`` of the policy with the row's parameters, ``(1, N, A)`` each."""
+        self.store()
+        loc, scale = _gaussian_params(self.actor.get_dist(obs[0]))
+        return loc.unsqueeze(0), scale.unsqueeze(0)
+
+    def actor_rows(self, rows: Tensor) -> OneSeedActor:
+        if rows.tolist() != [0]:
+            raise IndexError(f"a one-seed actor has row 0 only, asked for {rows.tolist()}.")
+        return self
+
+
+class TrustRegionStep(TrustRegionEngine):
+    """The trust-region step of one TorchRL actor: the seed-batched engine with S = 1.
+
+    :meth:`step` (called by the trainer once per epoch on the whole flattened batch) anchors
+    :math:`\\pi_{\\text{old}}` at the actor as it is (for on-policy data the behaviour policy the
+    collector stored; it keeps :math:`H` exactly the Fisher matrix at :math:`\\theta_k`), puts the
+    actor into a one-seed view (:class:`OneSeedActor`) and runs
+    :meth:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine.step_seeds`: surrogates and
+    Fisher-vector product, conjugate gradient, the subclass's proposal (:meth:`_propose`), then the
+    direction applied directly (``line_search_steps=0``) or backtracked, a candidate accepted when its
+    surrogates and KL are finite, :math:`\\mathrm{KL} \\le \\delta` and the proposal's improvement /
+    cost tests pass (:meth:`acceptable`); if none passes the actor is left unchanged.
+
+    Args:
+        actor (ProbabilisticTensorDictSequential): the diagonal-Gaussian policy (e.g. with
+            :class:`~torchrl.modules.IndependentNormal`); its parameters are changed in place.
 
     Keyword Args:
         **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (``target_kl`` 0.01,
@@ -284,115 +320,57 @@ class TrustRegionStep(TrustRegionOptions, abc.ABC):
             ``step_fraction`` 0.8, ``cg_residual_tol``, ``cg_eps``, ``kl_action_reduction`` ``"mean"``, see
             the module docstring).
 
-    Returned metrics (SafePO's names): ``Misc/Alpha`` (:math:`\\sqrt{2\\delta/q}`),
-    ``Misc/FinalStepNorm`` (norm of the proposed direction, 0 when rejected; SafePO's definition,
-    before backtracking), ``Misc/xHx``, ``Misc/gradient_norm`` (:math:`\\|g\\|`), ``Misc/H_inv_g``
-    (:math:`\\|x\\|`), ``Misc/AcceptanceStep`` (accepted trial from 1, 0 when rejected),
-    ``Train/KL`` (KL after the step), ``Loss/Loss_actor`` (minus the surrogate before the step),
-    plus ``Misc/cost_gradient_norm`` for the constrained steps and subclass extras.
+    Returned metrics: those of :class:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine`
+    as Python floats (``Misc/Alpha``, ``Misc/FinalStepNorm``, ``Misc/xHx``, ``Misc/gradient_norm``,
+    ``Misc/H_inv_g``, ``Misc/AcceptanceStep``, ``Train/KL``, ``Loss/Loss_actor``, plus
+    ``Misc/cost_gradient_norm`` for the constrained steps and subclass extras).
     """
 
     def __init__(self, actor: ProbabilisticTensorDictSequential, **options) -> None:
         super().__init__(**options)
-        self.loss = TrustRegionLoss(actor, kl_action_reduction=self.kl_action_reduction)
-        self.params = [p for p in actor.parameters() if p.requires_grad]
+        self.model = OneSeedActor(actor)
+        self.action_key: NestedKey = "action"
+        self.log_prob_key: NestedKey = _log_prob_key(actor)
 
-    # ------------------------------------------------------------------ hook
-    @abc.abstractmethod
-    def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        """The step direction and its acceptance tests (the only algorithm-specific part)."""
-
-    # ------------------------------------------------------------------ body
-    def step(
-        self,
-        data: TensorDictBase,
-        advantage: Tensor,
-        cost_advantage: Tensor,
-        cost_violation: float,
-    ) -> dict[str, float]:
+    def step(self, data: TensorDictBase, advantage: Tensor, cost_advantage: Tensor | None,
+             cost_violation: float) -> dict[str, float]:
         """One trust-region update of the actor on the whole batch.
 
         Args:
-            data (TensorDictBase): flattened batch ``[B]`` with ``"observation"``, ``"action"`` and
-                ``"action_log_prob"`` (behaviour log-prob). Its ``"loc"`` / ``"scale"`` are replaced,
-                in a shallow copy, by the actor's current ones (see the class docstring).
-            advantage (Tensor): the (Lagrangian, normalised) reward advantage ``[B, 1]``.
-            cost_advantage (Tensor): the mean-centred cost advantage ``[B, 1]``.
+            data (TensorDictBase): batch ``[*B]`` with the actor's ``in_keys``, ``"action"`` and
+                ``"action_log_prob"`` (behaviour log-prob; the actor's own ``log_prob_key`` when it
+                has one). It is not modified.
+            advantage (Tensor): the (Lagrangian, normalised) reward advantage ``[*B]`` or ``[*B, 1]``.
+            cost_advantage (Tensor): the mean-centred cost advantage (same shape), or ``None`` for
+                NPG / TRPO.
             cost_violation (float): :math:`c = J_c - d` (unused by NPG / TRPO).
 
         Returns:
             The metrics listed in the class docstring, as Python floats.
         """
-        batch = self._batch(data, advantage, cost_advantage)
-        losses = self.loss(batch)
-        before = _Evaluation.of(losses.detach())
-        lin = self._linearise(losses)
-        proposal = self._propose(lin, float(cost_violation))
-        result, kl_after = self._apply(batch, proposal, before)
-        return self._metrics(lin, proposal, result, kl_after, before)
+        model, shape = self.model, data.batch_size
+        model.load()
+        rows = (1, data.numel())
+        observation = data.select(*model.actor.in_keys).reshape(rows)
+        action = data.get(self.action_key)
+        action = action.reshape(*rows, *action.shape[len(shape):])
 
-    def _batch(self, data: TensorDictBase, advantage: Tensor, cost_advantage: Tensor | None) -> TensorDictBase:
-        tk, actor = self.loss.tensor_keys, self.loss.actor_network
+        def per_sample(value: Tensor, name: str) -> Tensor:
+            return _per_sample(value.detach(), shape, name).reshape(rows)
+
         with torch.no_grad():
-            dist = actor.get_dist(data.select(*actor.in_keys))
-            loc, scale = dist.mean.detach(), dist.stddev.detach()
-        batch = data.copy()
-        batch.set(tk.loc, loc)
-        batch.set(tk.scale, scale)
-        batch.set(tk.advantage, advantage.detach())
-        if cost_advantage is not None:
-            batch.set(tk.cost_advantage, cost_advantage.detach())
-        return batch
-
-    def _linearise(self, losses: TensorDictBase) -> Linearisation:
-        fvp = FisherVectorProduct(losses.get("kl"), self.params, self.cg_damping)
-        g = -flat_grad(losses.get("loss_objective"), self.params, retain_graph=True)
-        b = flat_grad(losses.get("loss_cost"), self.params, retain_graph=True) if self.uses_cost else None
-        return linearise(fvp, g.detach(), None if b is None else b.detach(), cg_iters=self.cg_iters,
-                         residual_tol=self.cg_residual_tol, eps=self.cg_eps)
-
-    @torch.no_grad()
-    def _evaluate(self, batch: TensorDictBase) -> _Evaluation:
-        return _Evaluation.of(self.loss(batch))
-
-    def _acceptable(self, after: _Evaluation, before: _Evaluation, proposal: Proposal) -> bool:
-        if not after.finite() or after.kl > self.target_kl:
-            return False
-        if proposal.require_improvement and after.reward < before.reward:
-            return False
-        return proposal.cost_tolerance is None or after.cost - before.cost <= proposal.cost_tolerance
-
-    def _apply(self, batch: TensorDictBase, proposal: Proposal, before: _Evaluation) -> tuple[LineSearchResult, float]:
-        theta_old = flat_params(self.params)
-        if self.line_search_steps == 0:
-            set_flat_params(self.params, theta_old + proposal.direction)
-            return LineSearchResult(step_index=1, step_fraction=1.0), self._evaluate(batch).kl
-        trials: list[_Evaluation] = []
-
-        def accept() -> bool:
-            trials.append(self._evaluate(batch))
-            return self._acceptable(trials[-1], before, proposal)
-
-        result = backtracking_line_search(self.params, theta_old, proposal.direction, accept,
-                                          max_trials=self.line_search_steps, step_fraction=self.step_fraction)
-        return result, trials[-1].kl if result.accepted else 0.0
-
-    def _metrics(self, lin: Linearisation, proposal: Proposal, result: LineSearchResult, kl_after: float,
-                 before: _Evaluation) -> dict[str, float]:
-        metrics = {
-            "Misc/Alpha": natural_step_size(lin.q, self.target_kl),
-            "Misc/FinalStepNorm": float(proposal.direction.norm()) if result.accepted else 0.0,
-            "Misc/xHx": lin.q,
-            "Misc/gradient_norm": float(lin.g.norm()),
-            "Misc/H_inv_g": float(lin.x.norm()),
-            "Misc/AcceptanceStep": float(result.step_index),
-            "Train/KL": kl_after,
-            "Loss/Loss_actor": -before.reward,
-        }
-        if lin.b is not None:
-            metrics["Misc/cost_gradient_norm"] = float(lin.b.norm())
-        metrics.update(proposal.metrics)
-        return metrics
+            old_loc, old_scale = model.dist_params(observation)
+        surrogates = SeedSurrogates(
+            observation, action, per_sample(data.get(self.log_prob_key), "action_log_prob"),
+            per_sample(advantage, "advantage"),
+            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+            old_loc, old_scale, self.kl_action_reduction,
+        )
+        try:
+            metrics = self.step_seeds(surrogates, [float(cost_violation)])
+        finally:
+            model.store()
+        return {name: float(value[0]) for name, value in metrics.items()}
 
 
 class NaturalPolicyStep(NaturalRule, TrustRegionStep):
@@ -423,7 +401,8 @@ class CPOStep(CPORule, TrustRegionStep):
     ``Misc/Nu_star``.
 
     The direction solves the paper's QP; SafePO's dual has the sign of :math:`r` flipped
-    **[quirk]** (see :func:`_cpo_lambda`), available for comparison with ``safepo_dual=True``.
+    **[quirk]** (see :func:`~sg_torchrl.objectives.step_rules._cpo_lambda`), available for comparison
+    with ``safepo_dual=True``.
 
     Keyword Args:
         safepo_dual (bool): see :func:`cpo_direction`. Defaults to ``False``.
@@ -444,3 +423,11 @@ class PCPOStep(PCPORule, TrustRegionStep):
         **kwargs: see :class:`TrustRegionStep`.
     """
 
+
+#: The seed-group step of each one-actor step class (what an algorithm row names, e.g. ``TRPOStep``).
+STACKED_STEPS: dict[type[TrustRegionStep], type[StackedTrustRegionStep]] = {
+    NaturalPolicyStep: StackedNaturalPolicyStep,
+    TRPOStep: StackedTRPOStep,
+    CPOStep: StackedCPOStep,
+    PCPOStep: StackedPCPOStep,
+}

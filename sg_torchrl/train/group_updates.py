@@ -12,7 +12,7 @@ chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torch
 * :class:`TwoStageGroupUpdate` (CUP): that loop on the reward stage, then actor-only passes of the
   projection loss towards each seed's stage-one policy;
 * :class:`TrustRegionGroupUpdate` (NPG, TRPO, TRPO-Lag, RCPO, CPO, PCPO): the stacked trust-region
-  step of every seed's actor (:mod:`sg_torchrl.train.stacked_trust_region`), then critics-only passes.
+  step of every seed's actor (:mod:`sg_torchrl.objectives.stacked_trust_region`), then critics-only passes.
 
 All run :func:`seed_passes`, a group's minibatch passes through the package's one update loop
 (:func:`~sg_torchrl.objectives.passes.run_passes`, which the single-seed trainer and the multi-agent
@@ -49,7 +49,7 @@ from sg_torchrl.objectives.surrogates import SeedBatchedObjective, combine_advan
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
 from sg_torchrl.train.stacked import StackedActorCritic
-from sg_torchrl.train.stacked_trust_region import StackedTrustRegionStep
+from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
 
 __all__ = [
     "FirstOrderGroupUpdate", "GroupParts", "GroupResult", "GroupUpdate", "MaskedSeedStep", "PassesResult",
@@ -365,7 +365,7 @@ class TrustRegionGroupUpdate(GroupUpdate):
     """The second-order epoch (as :class:`~sg_torchrl.train.updates.TrustRegionUpdate`) for every seed.
 
     NPG, TRPO, TRPO-Lag, RCPO, CPO and PCPO: one trust-region step of the actors on the whole batch
-    (``policy_step``, a :class:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep`
+    (``policy_step``, a :class:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep`
     moving every live seed's row of ``model.flat_actor`` at once), then ``parts.passes`` passes of
     critics-only minibatch steps (``critic_spec``, the loss's objective with ``critics_only``: Adam's
     critic group only, no KL stop) through :func:`seed_passes`. Per seed, the step sees the advantage its single-seed
@@ -375,7 +375,7 @@ class TrustRegionGroupUpdate(GroupUpdate):
     float64, read by CPO and PCPO).
 
     **Frozen and diverged seeds.** When some seeds are frozen, the step runs on a copy of the live
-    seeds' rows only (:meth:`~sg_torchrl.train.stacked_trust_region.StackedTrustRegionStep.for_rows`)
+    seeds' rows only (:meth:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep.for_rows`)
     and their moved rows are copied back: a frozen seed's actor is never touched (nor computed on).
     A live seed whose actor row is not finite after the step takes no critic pass; it, and any seed
     whose critic passes turn non-finite, is flagged in :attr:`GroupResult.diverged` and put back to

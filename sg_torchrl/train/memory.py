@@ -1,6 +1,6 @@
 """Keep freed heap memory in the process (glibc on Linux), for the seed group's large per-epoch temporaries.
 
-The stacked trust-region step of a seed group (:mod:`sg_torchrl.train.stacked_trust_region`) allocates
+The stacked trust-region step of a seed group (:mod:`sg_torchrl.objectives.stacked_trust_region`) allocates
 and frees tensors of a few to tens of MB many times per call (S seeds' activations, their
 double-backward graphs, the line search's candidates). With glibc's defaults, blocks above the
 dynamic mmap threshold are mapped and unmapped on every allocation, and the top of the heap is

@@ -328,6 +328,19 @@ class StackedActorCritic(nn.Module):
         """``(loc, scale)`` of each seed's policy: ``loc`` ``(S, B, A)``, ``scale`` ``(S, 1, A)``."""
         return self.actor_mean(obs), self.scale()
 
+    def actor_rows(self, rows: Tensor) -> StackedActorCritic:
+        """A group of this one's shape holding copies of the actor rows ``rows`` (its critics are zeros).
+
+        What a trust-region step evaluates a subset of seeds in (its line search once some seeds
+        have stopped, a seed group's live seeds), with :meth:`dist_params`' own forward pass.
+        """
+        weight = self.flat_actor
+        part = StackedActorCritic(rows.numel(), self.obs_dim, self.action_dim, self.hidden_sizes,
+                                  scale_lb=self.scale_lb, device=weight.device, dtype=weight.dtype)
+        with torch.no_grad():
+            part.flat_actor.copy_(weight.index_select(0, rows))
+        return part
+
     def log_prob(self, obs: Tensor, action: Tensor) -> Tensor:
         """Log-probability of ``action`` ``(S, B, A)`` under each seed's policy, ``(S, B)``."""
         loc, scale = self.dist_params(obs)
