@@ -327,10 +327,3 @@ def test_inputs_are_checked():
     # (S, N) advantages work as well as (S, N, 1); without a cost advantage TRPO's cost surrogate is 0
     metrics = StackedTRPOStep(model).step(data, adv.squeeze(-1), None, torch.zeros(3))
     assert (metrics["Misc/AcceptanceStep"] >= 1).all()
-
-
-def test_the_old_module_path_names_the_same_objects():
-    from sg_torchrl.train import stacked_trust_region as old
-
-    assert old.STACKED_STEPS is STACKED_STEPS and old.StackedCPOStep is StackedCPOStep
-    assert old.seed_conjugate_gradient is seed_conjugate_gradient and old.SeedSurrogates is SeedSurrogates

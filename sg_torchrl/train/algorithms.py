@@ -22,7 +22,7 @@ A row's ``make_group_update`` is its update loop for a seed group (``sg-train --
 :mod:`sg_torchrl.train.group_updates`), built from the single-seed loss
 (the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_objective`, through
 :func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the second-order rows, from the
-row's single-seed step class through :data:`~sg_torchrl.train.stacked_trust_region.STACKED_STEPS`
+row's single-seed step class through :data:`~sg_torchrl.objectives.trust_region.STACKED_STEPS`
 with the options the single-seed update passes (:func:`_trust_region_options`), so both paths read
 the same hyper-parameters. Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
 names them, for the command line).
@@ -57,7 +57,7 @@ from sg_torchrl.train.group_updates import (
     TrustRegionGroupUpdate,
     TwoStageGroupUpdate,
 )
-from sg_torchrl.train.stacked_trust_region import STACKED_STEPS
+from sg_torchrl.objectives.trust_region import STACKED_STEPS
 from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
 __all__ = ["Algorithm", "ALGORITHMS", "TRUST_REGION_STEPS"]

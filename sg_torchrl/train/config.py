@@ -73,7 +73,7 @@ SECOND_ORDER = manifest.SECOND_ORDER
 #: The single-agent algorithms a seed group (``--seeds``) can train: the rows of
 #: ``sg_torchrl.train.algorithms.ALGORITHMS`` that have a ``make_group_update`` (``tests/test_seed_group.py``
 #: checks that the two agree): every single-agent algorithm, the second-order ones through
-#: ``sg_torchrl.train.stacked_trust_region``. Every multi-agent algorithm trains in groups as well, with
+#: ``sg_torchrl.objectives.stacked_trust_region``. Every multi-agent algorithm trains in groups as well, with
 #: one round per seed (``sg_torchrl.train.multi_agent_group``), so they are not listed here. Kept here,
 #: free of torch, so that the command line refuses the others in a second.
 SEED_GROUP_ALGORITHMS = frozenset(ALGORITHM_NAMES)
