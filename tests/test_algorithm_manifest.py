@@ -65,7 +65,7 @@ def test_rows_are_read_only():
 def test_the_config_views_derive_from_the_manifest():
     from sg_torchrl.train import config
 
-    assert config.ALGORITHM_NAMES == SINGLE and config.MULTI_AGENT_ALGORITHM_NAMES == MULTI
+    assert config.ALGORITHM_NAMES == SINGLE + BEYOND_THE_PAPER and config.MULTI_AGENT_ALGORITHM_NAMES == MULTI
     assert config.SECOND_ORDER == manifest.SECOND_ORDER and config.SEED_GROUP_ALGORITHMS == set(SINGLE)
     assert config.ALGORITHM_DEFAULTS == {entry.name: dict(entry.defaults) for entry in manifest.rows()}
 
@@ -98,4 +98,4 @@ def test_the_tables_hold_the_manifest_rows_in_order():
     from sg_torchrl.train.algorithms import ALGORITHMS
     from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS
 
-    assert tuple(ALGORITHMS) == SINGLE and tuple(MULTI_AGENT_ALGORITHMS) == MULTI
+    assert tuple(ALGORITHMS) == SINGLE + BEYOND_THE_PAPER and tuple(MULTI_AGENT_ALGORITHMS) == MULTI

@@ -215,3 +215,23 @@ def test_twin_ids_are_registered_when_gymnasium_is_probed_before_its_import():
         print("ok")
     """)
     assert result.returncode == 0 and "ok" in result.stdout, result.stderr
+
+
+@pytest.mark.parametrize("first_use", ["rollout", "spec"])
+def test_reward_sum_on_the_cost_says_to_use_episode_sum(first_use):
+    """TorchRL's RewardSum reads reward-spec keys only; asked for the cost it now names EpisodeSum
+    (before: a bare ``KeyError: 'cost'`` at reset, or a ValueError that said nothing of where the cost is)."""
+    from torchrl.envs import RewardSum, TransformedEnv
+    from torchrl.envs.utils import check_env_specs
+
+    import sg_torchrl
+    from sg_torchrl.envs import EpisodeSum
+
+    env = TransformedEnv(sg_torchrl.make("SafetyPointGoal1-v0", num_envs=2), RewardSum(in_keys=["cost"]))
+    with pytest.raises((KeyError, ValueError), match=r"sg_torchrl\.envs\.EpisodeSum\(in_keys=\['reward', 'cost'\]\)"):
+        env.rollout(3) if first_use == "rollout" else env.full_observation_spec
+    base = sg_torchrl.make("SafetyPointGoal1-v0", num_envs=2)
+    assert base.reward_key == "reward"  # the cost stays out of the reward keys
+    check_env_specs(base)
+    summed = TransformedEnv(base, EpisodeSum(in_keys=["reward", "cost"])).rollout(3)
+    assert summed["next", "episode_cost"].shape == (2, 3, 1)

@@ -47,6 +47,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from sg_torchrl.envs.transforms import RewardSpec
 from sg_torchrl.seeding import block_seeds, numpy_generators
 
 __all__ = ["SafeEnv", "CostMode", "block_seeds"]
@@ -172,7 +173,7 @@ class SafeEnv(EnvBase, abc.ABC):
             dtype=torch.float32,
             device=self.device,
         )
-        self.reward_spec = Unbounded(**scalar)
+        self.full_reward_spec = RewardSpec(reward=Unbounded(**scalar), shape=(n,), device=self.device)
         flag = dict(n=2, shape=(n, 1), dtype=torch.bool, device=self.device)
         self.full_done_spec = Composite(
             done=Categorical(**flag), terminated=Categorical(**flag), truncated=Categorical(**flag),

@@ -16,7 +16,36 @@ from torchrl.data import Composite
 from torchrl.envs.transforms import RewardSum
 from torchrl.envs.transforms.utils import _get_reset
 
-__all__ = ["EpisodeSum"]
+__all__ = ["EpisodeSum", "RewardSpec"]
+
+
+#: What a reward-spec lookup of a cost entry is told: where the cost is declared and which transform sums it.
+_COST_HINT = ("sg_torchrl declares 'cost' and 'cost_info' in the observation spec, so that env.reward_key stays "
+              "unique; sum them per episode with sg_torchrl.envs.EpisodeSum(in_keys=['reward', 'cost']), which "
+              "TorchRL's RewardSum (reward-spec keys only) cannot do")
+
+
+class RewardSpec(Composite):
+    """The env's full reward spec: a ``Composite`` that says where the cost is when asked for it.
+
+    TorchRL's ``RewardSum(in_keys=["cost"])`` looks ``cost`` up in the reward spec: at reset
+    (``full_reward_spec["cost"]``, a bare ``KeyError: 'cost'``) or when it builds its output spec
+    (``ValueError: ... not present in the reward spec <repr>``). Both now carry the answer: the
+    lookup's ``KeyError`` and this spec's ``repr`` name :class:`EpisodeSum`. Everything else is
+    ``Composite``'s own (clones keep the class).
+    """
+
+    def __getitem__(self, key):
+        try:
+            return super().__getitem__(key)
+        except KeyError:
+            first = key[0] if isinstance(key, tuple) and key else key
+            if first in ("cost", "cost_info"):
+                raise KeyError(f"{key!r} is not in the reward spec: {_COST_HINT}") from None
+            raise
+
+    def __repr__(self) -> str:
+        return f"{super().__repr__()}\n# {_COST_HINT}"
 
 
 class EpisodeSum(RewardSum):
