@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
-from sg_torchrl.objectives.surrogates import ClipSurrogate, per_seed
+from sg_torchrl.objectives.surrogates import ClipSurrogate, over_samples
 
 __all__ = ["PessimisticCostSurrogate", "PessimisticPPOLagLoss"]
 
@@ -38,7 +38,7 @@ class PessimisticCostSurrogate(ClipSurrogate):
              seed_dims=0):
         ratio = self.log_ratio(log_weight, log_is_weight).exp()
         clipped = log_weight.clamp(*self.bounds).exp()
-        lam = per_seed(lam, log_weight)
+        lam = over_samples(lam, log_weight)
         reward_term = torch.minimum(ratio * advantage, clipped * advantage)
         cost_term = torch.maximum(ratio * cost_advantage, clipped * cost_advantage)
         return (-reward_term + lam * cost_term) / (1 + lam)

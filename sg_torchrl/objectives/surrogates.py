@@ -39,7 +39,7 @@ from sg_torchrl.objectives.kl import gaussian_kl
 
 __all__ = [
     "ClipSurrogate", "CombineRule", "CUPProjectionSurrogate", "FOCOPSSurrogate", "PGSurrogate",
-    "SeedBatchedObjective", "Surrogate", "combine_advantages", "gaussian_log_prob", "per_seed", "sample_mean",
+    "SeedBatchedObjective", "Surrogate", "combine_advantages", "gaussian_log_prob", "over_samples", "sample_mean",
 ]
 
 CombineRule = Literal["sum_norm", "diff_norm", "plain"]
@@ -65,7 +65,7 @@ def sample_mean(value: Tensor, seed_dims: int = 0, *, keepdim: bool = False) -> 
     return value.mean(tuple(range(seed_dims, value.dim())), keepdim=keepdim)
 
 
-def per_seed(lam: Tensor, like: Tensor) -> Tensor:
+def over_samples(lam: Tensor, like: Tensor) -> Tensor:
     """``lam`` (0-d, or one value per seed ``(S,)``) detached, in ``like``'s dtype, shaped to broadcast over ``like``'s samples."""
     lam = lam.detach().to(device=like.device, dtype=like.dtype)
     return lam.view(-1, *([1] * (like.dim() - 1))) if lam.dim() else lam
@@ -79,7 +79,7 @@ def combine_advantages(advantage: Tensor, cost_advantage: Tensor, lam: Tensor, r
     ``lam`` is one value (0-d) or one per seed (``(S,)``, broadcast over the samples of
     ``(S, ...)`` advantages); it is cast to the advantages' dtype and carries no gradient.
     """
-    lam = per_seed(lam, advantage)
+    lam = over_samples(lam, advantage)
     if rule == "diff_norm":
         return (1 - lam) * advantage - lam * cost_advantage
     if rule == "sum_norm":
@@ -227,7 +227,7 @@ class CUPProjectionSurrogate(Surrogate):
 
     def loss(self, log_weight, advantage, *, cost_advantage=None, kl=None, lam=None, log_is_weight=None, seed_dims=0):
         ratio = self.log_ratio(log_weight, log_is_weight).exp()
-        return per_seed(lam, log_weight) * self.cost_coeff * ratio * advantage + kl
+        return over_samples(lam, log_weight) * self.cost_coeff * ratio * advantage + kl
 
     def diagnostics(self, log_weight, *, kl=None, seed_dims=0):
         return {"kl": sample_mean(kl.detach(), seed_dims)}
