@@ -41,8 +41,7 @@ from torchrl.data import Bounded
 from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss
 from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, multiplier_values
-from sg_torchrl.train.models import make_actor_critics
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics
 
 SHAPES = {"SafetyHalfCheetahVelocity-v1": (17, 6), "SafetyPointGoal1-v0": (60, 2)}
 HIDDEN = [64, 64]

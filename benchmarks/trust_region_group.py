@@ -38,8 +38,7 @@ from torchrl.data import Bounded
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.train.algorithms import TRUST_REGION_STEPS
 from sg_torchrl.train.memory import keep_freed_memory
-from sg_torchrl.train.models import make_actor_critics
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics
 from sg_torchrl.objectives.trust_region import STACKED_STEPS
 
 #: The unconstrained second-order algorithms (NPG, TRPO, CPO, PCPO; the Lagrangian ones step the same classes)

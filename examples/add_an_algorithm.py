@@ -17,7 +17,7 @@ import torch
 
 import sg_torchrl
 from sg_torchrl.objectives import LagrangeMultiplier, PessimisticPPOLagLoss, PPOLagLoss
-from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.modules import make_actor_critics
 
 
 def main() -> None:

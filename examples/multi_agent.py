@@ -27,12 +27,12 @@ import torch
 
 import sg_torchrl
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
+from sg_torchrl.modules import make_multi_agent_networks
 from sg_torchrl.objectives.multi_agent import (
     HAPPOUpdate,
     MACPOUpdate,
     make_multi_agent_cost_gae,
     make_multi_agent_gae,
-    make_multi_agent_networks,
     MAPPOLagUpdate,
     MAPPOUpdate,
 )

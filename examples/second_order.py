@@ -34,7 +34,7 @@ from sg_torchrl.objectives import (
     make_gae,
     normalize_advantages,
 )
-from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.modules import make_actor_critics
 
 STEPS = {"trpo_lag": TRPOStep, "cpo": CPOStep, "pcpo": PCPOStep}
 

@@ -11,8 +11,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import ValueOperator
 
-from sg_torchrl.modules import DirectTensorDictModule, DirectValueOperator
-from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.modules import DirectTensorDictModule, DirectValueOperator, make_actor_critics
 
 
 class TwoHeads(nn.Module):

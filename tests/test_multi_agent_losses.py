@@ -17,6 +17,7 @@ torch.set_num_threads(1)
 from tensordict import TensorDict  # noqa: E402
 from torch import distributions as D  # noqa: E402
 
+from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
 from sg_torchrl.objectives import gaussian_kl, NoMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     agent_view,
@@ -26,11 +27,9 @@ from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     MACPOUpdate,
     make_multi_agent_cost_gae,
     make_multi_agent_gae,
-    make_multi_agent_networks,
     MAPPOLagMultiplier,
     MAPPOLagUpdate,
     MAPPOUpdate,
-    MultiAgentNetworks,
     SequentialAgentUpdate,
 )
 

@@ -13,7 +13,7 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.collectors import RolloutCollector  # noqa: E402
 from sg_torchrl.envs.normalization import RunningObservationNorm  # noqa: E402
-from sg_torchrl.train.models import make_actor  # noqa: E402
+from sg_torchrl.modules import make_actor  # noqa: E402
 
 ENV_ID = "SafetyHalfCheetahVelocity-v1"
 

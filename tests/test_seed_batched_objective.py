@@ -37,8 +37,7 @@ from sg_torchrl.objectives.surrogates import (
     SeedBatchedObjective,
 )
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, multiplier_values, objective_of
-from sg_torchrl.train.models import make_actor_critics
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics
 
 OBS, ACT, N = 7, 3, 64
 SPEC = Bounded(-1.0, 1.0, shape=(ACT,))

@@ -48,9 +48,8 @@ from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.config import SEED_GROUP_ALGORITHMS  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler  # noqa: E402
 from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts  # noqa: E402
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_group import seed_entry  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
 from trainer_checks import flat_parameters, recording, tiny_config  # noqa: E402
 
 POINT, CHEETAH = "SafetyPointGoal1-v0", "SafetyHalfCheetahVelocity-v1"

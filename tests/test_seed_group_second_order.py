@@ -43,8 +43,7 @@ from torchrl.data import Bounded  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, GroupTrainer, TrainConfig  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values  # noqa: E402
 from sg_torchrl.train.group_updates import GroupParts  # noqa: E402
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics  # noqa: E402
 from sg_torchrl.train.updates import UpdateParts  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 5, 2, [16, 16], 300

@@ -2,7 +2,7 @@
 
 A seed group must train each seed exactly as its single-seed run would (DESIGN.md, "Many seeds in
 one process"). These tests compare, on synthetic rollout batches, the stacked networks
-(:mod:`sg_torchrl.train.stacked`), the fused losses and step (:mod:`sg_torchrl.train.fused`) and
+(:mod:`sg_torchrl.modules.stacked`), the fused losses and step (:mod:`sg_torchrl.train.fused`) and
 the masked Adam (:mod:`sg_torchrl.train.seed_adam`) with the modules, losses and optimiser the
 single-seed trainer uses (``make_actor_critics``, ``PPOLagLoss`` & co. with ``functional=False``,
 ``clip_grad_norm_``, ``torch.optim.Adam``), seed slice by seed slice.
@@ -43,9 +43,8 @@ from sg_torchrl.train.fused import (  # noqa: E402
     batch_kl,
     multiplier_values,
 )
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.modules import StackedActorCritic, StackedMLP, make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic, StackedMLP  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 17, 6, [64, 64], 96
 SEEDS = (3, 11, 42)

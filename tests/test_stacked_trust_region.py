@@ -1,7 +1,7 @@
 """The seed group's trust-region step moves every seed as the single-seed step moves it alone.
 
 For NPG, TRPO, CPO and PCPO, three seeds' networks (``make_actor_critics`` after
-``torch.manual_seed(seed)``) are stacked (:class:`~sg_torchrl.train.stacked.StackedActorCritic`)
+``torch.manual_seed(seed)``) are stacked (:class:`~sg_torchrl.modules.stacked.StackedActorCritic`)
 and stepped together by :mod:`sg_torchrl.objectives.stacked_trust_region`; each seed's new actor
 parameters and metrics are compared with those of the single-seed step class
 (``NaturalPolicyStep``, ``TRPOStep``, ``CPOStep``, ``PCPOStep``, built with the options
@@ -48,8 +48,7 @@ from sg_torchrl.objectives.second_order import (  # noqa: E402
 from sg_torchrl.objectives.stacked_trust_region import SeedSurrogates, StackedCPOStep, StackedTRPOStep  # noqa: E402
 from sg_torchrl.objectives.trust_region import STACKED_STEPS  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_DEFAULTS  # noqa: E402
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic  # noqa: E402
+from sg_torchrl.modules import StackedActorCritic, make_actor_critics  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 4, 2, [16, 16], 256
 SEEDS = (3, 11, 42)

@@ -34,7 +34,7 @@ from sg_torchrl.objectives import (  # noqa: E402
     PPOLagLoss,
     TrustRegionLoss,
 )
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.modules import make_actor_critics  # noqa: E402
 from sg_torchrl.train.updates import write_values  # noqa: E402
 
 ENV_ID = "SafetyHalfCheetahVelocity-v1"

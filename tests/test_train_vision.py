@@ -25,7 +25,7 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
-from sg_torchrl.train.models import (  # noqa: E402
+from sg_torchrl.modules import (  # noqa: E402
     DEFAULT_CNN,
     DEPTH_RANGE,
     EncodedMLP,

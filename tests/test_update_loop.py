@@ -174,7 +174,8 @@ class TestStep:
 
 
 def test_multi_agent_steps_clip_each_network_separately():
-    from sg_torchrl.objectives.multi_agent import MAPPOLagUpdate, make_multi_agent_networks
+    from sg_torchrl.modules import make_multi_agent_networks
+    from sg_torchrl.objectives.multi_agent import MAPPOLagUpdate
 
     torch.manual_seed(0)
     nets = make_multi_agent_networks(4, [2, 1], 5, hidden_sizes=(8,))
@@ -267,8 +268,7 @@ def synthetic_group(passes: int, target_kl: float):
     from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective
     from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler
     from sg_torchrl.train.group_updates import GroupParts
-    from sg_torchrl.train.models import make_actor_critics
-    from sg_torchrl.train.stacked import StackedActorCritic
+    from sg_torchrl.modules import StackedActorCritic, make_actor_critics
 
     seeds, obs_dim, size = (3, 11), 6, 128
     action_spec = sg_torchrl.make("SafetyHalfCheetahVelocity-v1").action_spec

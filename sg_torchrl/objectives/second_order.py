@@ -102,7 +102,7 @@ def seed_flat_grad(output: Tensor, params: Sequence[Tensor], num_seeds: int, *, 
     """Gradient of the scalar ``output`` w.r.t. seed-stacked ``params``, as ``(S, P)`` rows.
 
     ``params`` are the stacked parameters in flat-buffer order (each of shape ``(S, ...)``, e.g.
-    :meth:`~sg_torchrl.train.stacked.StackedActorCritic.actor_parameters`), so row ``s`` lines up
+    :meth:`~sg_torchrl.modules.stacked.StackedActorCritic.actor_parameters`), so row ``s`` lines up
     with row ``s`` of the flat buffer. With ``output`` a sum over seeds of per-seed terms, row ``s``
     is the gradient of seed ``s``'s term (seeds share no parameter). Unused parameters get zeros;
     ``.grad`` is not touched. With ``num_seeds=1`` any parameters qualify (one row of all of them).

@@ -3,7 +3,7 @@
 Every trust-region step of the package runs through :class:`TrustRegionEngine`, over a
 :class:`StackedActor`: S seeds' Gaussian policies whose trainable parameters are the rows of one
 ``(S, P)`` buffer. A seed group's networks
-(:class:`~sg_torchrl.train.stacked.StackedActorCritic`) are one, stepped by
+(:class:`~sg_torchrl.modules.stacked.StackedActorCritic`) are one, stepped by
 :class:`StackedTrustRegionStep`; a single TorchRL actor is the case S = 1, stepped by the classes of
 :mod:`sg_torchrl.objectives.trust_region` (``TRPOStep(actor)``, ``CPOStep(actor)``, ..., MACPO's per
 agent) through a one-seed view of the actor. Each seed moves as if stepped alone:
@@ -44,6 +44,7 @@ from typing import Any, Literal, Protocol
 import torch
 from torch import Tensor
 
+from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.second_order import (
     Linearisation,
@@ -55,7 +56,6 @@ from sg_torchrl.objectives.second_order import (
     seed_linearise,
 )
 from sg_torchrl.objectives.step_rules import CPORule, NaturalRule, PCPORule, Proposal, TRPORule, TrustRegionOptions
-from sg_torchrl.objectives.surrogates import gaussian_log_prob
 
 __all__ = [
     "SeedProposals",
@@ -338,7 +338,7 @@ class StackedTrustRegionStep(TrustRegionEngine):
 
     Args:
         model: the seed group's networks (a :class:`StackedActor`, e.g.
-            :class:`~sg_torchrl.train.stacked.StackedActorCritic`); rows of ``model.flat_actor`` are
+            :class:`~sg_torchrl.modules.stacked.StackedActorCritic`); rows of ``model.flat_actor`` are
             changed in place.
 
     Keyword Args:

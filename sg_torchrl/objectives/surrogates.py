@@ -18,7 +18,7 @@ function with the multiplier's own value and rule.
 A :class:`SeedBatchedObjective` is a loss in the form the engine trains: the surrogate, the
 advantage rule and the critics' L2 weight, evaluated on stacked networks (anything with
 ``dist_params(obs) -> (loc, scale)``, ``critic(obs)`` and ``cost_critic(obs)`` over ``(S, N, ...)``
-inputs, e.g. :class:`~sg_torchrl.train.stacked.StackedActorCritic`). Seed ``s`` of its losses is
+inputs, e.g. :class:`~sg_torchrl.modules.stacked.StackedActorCritic`). Seed ``s`` of its losses is
 exactly the LossModule's loss on seed ``s``'s minibatch.
 
 Adding a first-order algorithm is one :class:`Surrogate` subclass and a loss that returns it (see
@@ -27,7 +27,6 @@ the README's "Add an algorithm").
 from __future__ import annotations
 
 import abc
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
@@ -35,27 +34,16 @@ from typing import ClassVar, Literal
 import torch
 from torch import Tensor
 
+from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.objectives.kl import gaussian_kl
 
 __all__ = [
     "ClipSurrogate", "CombineRule", "CUPProjectionSurrogate", "FOCOPSSurrogate", "PGSurrogate",
-    "SeedBatchedObjective", "Surrogate", "combine_advantages", "gaussian_log_prob", "over_samples", "sample_mean",
+    "SeedBatchedObjective", "Surrogate", "combine_advantages", "over_samples", "sample_mean",
 ]
 
 CombineRule = Literal["sum_norm", "diff_norm", "plain"]
 _COMBINE_RULES = ("sum_norm", "diff_norm", "plain")
-_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def gaussian_log_prob(action: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
-    """Log-density of a diagonal Gaussian, summed over the last (action) dimension.
-
-    The same expression as ``torch.distributions.Normal.log_prob`` summed by ``Independent`` (the
-    actor's ``IndependentNormal``), so values agree with the LossModule's to the last bit where the
-    inputs do; ``scale`` may broadcast (e.g. ``(S, 1, A)`` against ``(S, B, A)``).
-    """
-    var = scale**2
-    return (-((action - loc) ** 2) / (2 * var) - scale.log() - _LOG_SQRT_2PI).sum(-1)
 
 
 def sample_mean(value: Tensor, seed_dims: int = 0, *, keepdim: bool = False) -> Tensor:

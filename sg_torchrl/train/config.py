@@ -341,7 +341,7 @@ class TrainConfig:
         if self.seeds:
             raise ValueError(f"config: seed groups (seeds) train on flat-vector observations only; {self.env_id} "
                              f"with obs_mode={obs_mode!r} emits images (run one seed per process with --seed)")
-        from sg_torchrl.train.cnn import DEFAULT_CNN
+        from sg_torchrl.modules.cnn import DEFAULT_CNN
 
         smallest = DEFAULT_CNN.min_image_size
         if isinstance(image_size, int) and not isinstance(image_size, bool) and 0 < image_size < smallest:

@@ -7,7 +7,7 @@ algorithm is not here: the loss object hands the engine its
 :class:`~sg_torchrl.objectives.surrogates.SeedBatchedObjective`
 (:meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_objective`), the same surrogate its own
 ``forward`` evaluates, and this module runs it on seed-stacked tensors
-(:class:`~sg_torchrl.train.stacked.StackedActorCritic`) with a few dozen ops:
+(:class:`~sg_torchrl.modules.stacked.StackedActorCritic`) with a few dozen ops:
 
 * :class:`FusedFirstOrderStep`: the objective's per-seed losses, backward of their **sum** over
   seeds (so seed ``s``'s gradient block is its single-seed gradient), the critics' L2 penalty
@@ -34,10 +34,10 @@ import torch
 from torch import Tensor
 
 from sg_torchrl import seeding
+from sg_torchrl.modules.stacked import StackedActorCritic, quiet_layout_warning
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective
 from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_
-from sg_torchrl.train.stacked import StackedActorCritic, quiet_layout_warning
 
 __all__ = [
     "FusedFirstOrderStep", "SeedBatch", "SeedMaskedAdam", "SeedShuffler", "batch_kl", "clip_grad_norm_per_seed_",

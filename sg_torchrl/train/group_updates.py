@@ -44,11 +44,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from sg_torchrl.modules.stacked import StackedActorCritic
 from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective, combine_advantages
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
-from sg_torchrl.train.stacked import StackedActorCritic
 from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
 
 __all__ = [

@@ -54,11 +54,10 @@ from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.algorithms.manifest import AlgorithmEntry
+from sg_torchrl.modules.multi_agent import make_multi_agent_networks, MultiAgentNetworks
 from sg_torchrl.objectives.multi_agent import (
     make_multi_agent_cost_gae,
     make_multi_agent_gae,
-    make_multi_agent_networks,
-    MultiAgentNetworks,
     MultiAgentUpdate,
 )
 from sg_torchrl.train.config import TrainConfig

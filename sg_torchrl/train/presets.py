@@ -35,7 +35,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     ),
     # PPO-Lag from pixels: SafetyPointGoal1Vision-v0 sees only its 64 x 64 RGB camera
     # (env_options; the id's default is the vector and a 256 x 256 image, 16 times the pixels to render
-    # and convolve) and trains CNN encoders (sg_torchrl.train.models). Sized for 10-15 minutes on a CPU
+    # and convolve) and trains CNN encoders (sg_torchrl.modules.mlp). Sized for 10-15 minutes on a CPU
     # (15.5 min with evaluation on the shared 2-core machine kind), not for the paper's budget: rendering
     # makes collection about 7x slower than the vector env, and three CNNs (actor, reward and cost
     # critics) cost about 1 ms of update per sample and pass. So 10,000-step epochs (every simulator

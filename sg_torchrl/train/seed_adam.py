@@ -10,7 +10,7 @@ an ``active`` mask ``(S,)`` under which an inactive seed's parameters, moments a
 not change at all while the others step. Its arithmetic is ``torch.optim.Adam``'s, so S = 1 tracks
 it to float rounding, and it updates each group with ``torch._foreach_*`` ops (about fifteen per
 group, whatever the group's size; on the flat buffers of
-:class:`~sg_torchrl.train.stacked.StackedActorCritic` a group is one tensor).
+:class:`~sg_torchrl.modules.stacked.StackedActorCritic` a group is one tensor).
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ class SeedMaskedAdam:
     """Adam over seed-stacked tensors, with per-seed step counts, gradient clip and an ``active`` mask.
 
     Each tensor of ``param_groups`` has a leading seed dimension S (e.g. the two flat buffers of a
-    :class:`~sg_torchrl.train.stacked.StackedActorCritic`, or stacked parameters), and gradients are
+    :class:`~sg_torchrl.modules.stacked.StackedActorCritic`, or stacked parameters), and gradients are
     read from their ``.grad``. Per group: ``lr`` (a float, or an ``(S,)`` tensor for per-seed rates;
     change ``param_groups[i]["lr"]`` to anneal) and per-seed step counts ``(S,)``. The arithmetic is
     ``torch.optim.Adam``'s (no weight decay, no AMSGrad): first moment by ``lerp``, second by

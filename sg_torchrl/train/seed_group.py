@@ -86,10 +86,10 @@ from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
 from sg_torchrl.train.memory import keep_freed_memory
-from sg_torchrl.train.models import ObservationLayout, make_actor_critics
+from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
 from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.modules.stacked import StackedActorCritic
 
 __all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
 

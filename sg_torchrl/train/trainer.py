@@ -84,7 +84,7 @@ from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.interrupt import StopRequests, TrainingInterrupted
 from sg_torchrl.train.logging import RunLogger
-from sg_torchrl.train.models import ObservationLayout, make_actor_critics
+from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
 from sg_torchrl.train.updates import UpdateParts, write_values
 from sg_torchrl.train.writes import make_dirs, write_atomic

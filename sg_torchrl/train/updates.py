@@ -91,7 +91,7 @@ class UpdateParts:
         rng: generator of the minibatch order (checkpointed by the trainer).
         passes, minibatch_size, target_kl, max_grad_norm: the config's values.
         chunk_size: samples per no-grad pass of the actor over the whole batch (``None``: all at
-            once; images: :data:`~sg_torchrl.train.models.IMAGE_CHUNK`).
+            once; images: :data:`~sg_torchrl.modules.mlp.IMAGE_CHUNK`).
         compile: run the minibatch losses through ``torch.compile`` (:meth:`loss_step`).
     """
 

@@ -6,7 +6,7 @@ emits, besides or instead of the flat ``observation`` vector:
 * ``"pixels"``: ``(*B, H, W, 3)`` ``uint8`` RGB, channels last: TorchRL's convention for raw
   pixels (its gym and DMControl wrappers emit the same), so stock transforms apply unchanged:
   ``ToTensorImage(in_keys=["pixels"])`` gives ``(*B, 3, H, W)`` floats in ``[0, 1]``, as ConvNets
-  take them (sg_torchrl's own CNN encoders, :mod:`sg_torchrl.train.models`, read the uint8 images
+  take them (sg_torchrl's own CNN encoders, :mod:`sg_torchrl.modules.mlp`, read the uint8 images
   and do that inside the network, so batches stay compact);
 * ``"depth"`` (RGB-D modes): ``(*B, H, W, 1)`` ``float32`` metres along the camera's optical axis
   (planar depth, as OpenGL's depth buffer measures it), in ``[near, far]`` of the model's clipping

@@ -3,9 +3,10 @@
 Over TorchRL's multi-agent layout (group ``("agents", ...)`` with batch ``[*B, n_agents]``, a
 global ``"state"`` for the centralised critics):
 
-* :func:`make_multi_agent_networks` / :class:`MultiAgentNetworks`: one actor, one reward critic and
-  one cost critic per agent (TorchRL :class:`~torchrl.modules.MultiAgentMLP` s without parameter
-  sharing, :class:`PerAgentMLP`), group-wise for collection and per agent for the updates;
+* the networks they train live in :mod:`sg_torchrl.modules.multi_agent`
+  (:func:`~sg_torchrl.modules.make_multi_agent_networks` / :class:`~sg_torchrl.modules.MultiAgentNetworks`:
+  one actor, one reward critic and one cost critic per agent, group-wise for collection and per agent
+  for the updates);
 * :func:`make_multi_agent_gae`, :func:`make_multi_agent_cost_gae`: per-agent reward and cost GAE
   (:func:`~sg_torchrl.objectives.make_gae` / :func:`~sg_torchrl.objectives.make_cost_gae` with TorchRL's
   :class:`~torchrl.objectives.value.MultiAgentGAE` over the group keys), standardised per agent;
@@ -31,14 +32,6 @@ from sg_torchrl.objectives.multi_agent.advantages import (
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
 from sg_torchrl.objectives.multi_agent.macpo import MACPOStep, MACPOUpdate
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
-from sg_torchrl.objectives.multi_agent.networks import (
-    AgentGaussianHead,
-    make_multi_agent_networks,
-    MultiAgentGaussianPolicy,
-    MultiAgentNetworks,
-    MultiAgentStateValue,
-    PerAgentMLP,
-)
 from sg_torchrl.objectives.multi_agent.sequential import AgentStage, SequentialAgentUpdate, SequentialResult
 from sg_torchrl.objectives.multi_agent.updates import (
     HAPPOUpdate,
@@ -50,7 +43,6 @@ from sg_torchrl.objectives.multi_agent.updates import (
 
 __all__ = [
     "AGENT_VIEW_KEYS",
-    "AgentGaussianHead",
     "AgentPPOLoss",
     "AgentStage",
     "HAPPOUpdate",
@@ -59,16 +51,11 @@ __all__ = [
     "MAPPOLagMultiplier",
     "MAPPOLagUpdate",
     "MAPPOUpdate",
-    "MultiAgentGaussianPolicy",
-    "MultiAgentNetworks",
     "MultiAgentPPOUpdate",
-    "MultiAgentStateValue",
     "MultiAgentUpdate",
-    "PerAgentMLP",
     "SequentialAgentUpdate",
     "SequentialResult",
     "agent_view",
     "make_multi_agent_cost_gae",
     "make_multi_agent_gae",
-    "make_multi_agent_networks",
 ]

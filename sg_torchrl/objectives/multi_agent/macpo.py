@@ -39,7 +39,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from torch import Tensor
 
-from sg_torchrl.objectives.multi_agent.networks import MultiAgentNetworks
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS, MultiAgentUpdate
 from sg_torchrl.objectives.passes import run_passes, shuffled_chunks
 from sg_torchrl.objectives.second_order import Linearisation

@@ -58,11 +58,11 @@ from torch import nn, Tensor
 from torchrl.modules import PopArtValueNorm
 
 from sg_torchrl import seeding
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.multi_agent.advantages import agent_view, AGENT_VIEW_KEYS
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
-from sg_torchrl.objectives.multi_agent.networks import MultiAgentNetworks
 from sg_torchrl.objectives.multi_agent.sequential import SequentialAgentUpdate, SequentialResult
 from sg_torchrl.objectives.multipliers import Multiplier, NoMultiplier
 from sg_torchrl.objectives.passes import ClipGroup, GradientStep, LossFn, run_passes, shuffled_chunks

@@ -119,7 +119,7 @@ def check_adapter(run_dir: Path, config: dict[str, Any], probes: dict[str, torch
     entry = checkpoint["seeds"][0] if "seeds" in checkpoint else checkpoint
     with torch.no_grad():
         if trained.multi_agent:
-            from sg_torchrl.objectives.multi_agent import make_multi_agent_networks
+            from sg_torchrl.modules import make_multi_agent_networks
 
             obs, state = probes["agents_observation"], probes["state"]
             nets = make_multi_agent_networks(obs.shape[-1], [3, 3], state.shape[-1])
@@ -135,7 +135,7 @@ def check_adapter(run_dir: Path, config: dict[str, Any], probes: dict[str, torch
                      (nets.reward_value(state_n), trained.critics["reward"](state_n)),
                      (nets.cost_value(state_n), trained.critics["cost"](state_n))]
         else:
-            from sg_torchrl.train.models import make_actor_critics
+            from sg_torchrl.modules import make_actor_critics
             from torchrl.data import Bounded
 
             obs = probes["observation"]

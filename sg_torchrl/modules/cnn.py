@@ -1,6 +1,6 @@
 """The convolutional stack of the pixel networks, as plain data (no torch import).
 
-It lives apart from :mod:`sg_torchrl.train.models` so that ``sg-train`` can check an ``image_size``
+It lives apart from :mod:`sg_torchrl.modules.mlp` so that ``sg-train`` can check an ``image_size``
 against :data:`DEFAULT_CNN` while it validates the command line, before torch is loaded.
 """
 

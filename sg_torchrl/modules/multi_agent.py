@@ -43,7 +43,7 @@ from tensordict.utils import NestedKey
 from torch import nn, Tensor
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 
-from sg_torchrl.modules import DirectTensorDictModule
+from sg_torchrl.modules.direct import DirectTensorDictModule
 
 __all__ = [
     "AgentGaussianHead",
@@ -415,7 +415,7 @@ def make_multi_agent_networks(
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from sg_torchrl.objectives.multi_agent import make_multi_agent_networks
+        >>> from sg_torchrl.modules import make_multi_agent_networks
         >>> nets = make_multi_agent_networks(observation_size=10, action_sizes=[3, 2], state_size=17)
         >>> td = TensorDict({"agents": {"observation": torch.randn(4, 2, 10)}, "state": torch.randn(4, 17)}, [4])
         >>> td = nets.actor(td); td = nets.reward_critic(td)

@@ -28,11 +28,11 @@ from torch import nn
 from torchrl.data import Composite, TensorSpec
 from torchrl.modules import MLP, ConvNet, IndependentNormal, ProbabilisticActor
 
-from sg_torchrl.modules import DirectTensorDictModule, DirectValueOperator
-from sg_torchrl.train.cnn import DEFAULT_CNN, CNNArchitecture
+from sg_torchrl.modules.cnn import DEFAULT_CNN, CNNArchitecture
+from sg_torchrl.modules.direct import DirectTensorDictModule, DirectValueOperator
 
 __all__ = [
-    "CNNArchitecture", "DEFAULT_CNN", "DEPTH_RANGE", "EncodedMLP", "ObservationEncoder", "ObservationLayout",
+    "DEPTH_RANGE", "IMAGE_CHUNK", "EncodedMLP", "ObservationEncoder", "ObservationLayout",
     "make_actor", "make_actor_critics", "make_network", "make_value",
 ]
 

@@ -1,14 +1,14 @@
 """Seed-stacked networks: S independent copies of SafePO's actor and critics, run as one.
 
 A *seed group* trains S independent runs in one process (DESIGN.md, "Many seeds in one process").
-SafePO's networks (:mod:`sg_torchrl.train.models`: tanh MLPs of [64, 64], a Gaussian actor with a
+SafePO's networks (:mod:`sg_torchrl.modules.mlp`: tanh MLPs of [64, 64], a Gaussian actor with a
 state-independent log-std, separate reward and cost critics) are so small that a gradient step is
 per-operator overhead; stacking the S copies of each weight along a leading seed dimension turns S
 steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one.
 
 Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
 ``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
-:func:`~sg_torchrl.train.models.make_actor_critics` builds after ``torch.manual_seed(seed)`` (the
+:func:`~sg_torchrl.modules.mlp.make_actor_critics` builds after ``torch.manual_seed(seed)`` (the
 ``init`` stream, :func:`sg_torchrl.seeding.seed_torch`), so a seed starts from the same
 initialisation as in the single-seed trainer, and
 :meth:`StackedActorCritic.export_seed` / :meth:`StackedActorCritic.copy_seed_to` give a seed back as
@@ -38,8 +38,8 @@ from torch import Tensor, nn
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP
 
-from sg_torchrl.objectives.surrogates import gaussian_log_prob
-from sg_torchrl.train.models import make_actor_critics
+from sg_torchrl.modules.gaussian import gaussian_log_prob
+from sg_torchrl.modules.mlp import make_actor_critics
 
 __all__ = ["StackedActorCritic", "StackedMLP", "quiet_layout_warning"]
 
