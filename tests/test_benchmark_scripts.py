@@ -37,3 +37,13 @@ def test_group_step_device_cpu_rows(tmp_path):
         assert row["ms_per_step"] > 0
         assert row["ms_per_seed"] == pytest.approx(row["ms_per_step"] / row["seeds"])
     assert "| SafetyHalfCheetahVelocity-v1 | cpu | 2 |" in result.stdout
+
+
+def test_revision_speed_compares_a_revision_with_this_tree():
+    """Against HEAD itself: one row, both trees trained in their own process, a ratio printed."""
+    result = _run("revision_speed.py", "--base", "HEAD", "--rows", "ppo_lag:1:eager", "--steps-per-epoch", "400",
+                  "--num-envs", "2", "--epochs", "2")
+    assert result.returncode == 0, result.stderr[-2000:]
+    row = next(line for line in result.stdout.splitlines() if line.startswith("| ppo_lag S=1 eager |"))
+    base, this, ratio = (float(cell) for cell in row.strip("|").split("|")[1:])
+    assert base > 0 and this > 0 and ratio == pytest.approx(this / base, rel=1e-2)
