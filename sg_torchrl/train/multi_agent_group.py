@@ -97,7 +97,8 @@ class SeedBlockPolicy(TensorDictModuleBase):
     :class:`SeedStreams`), and writes every block's ``(group, "loc" | "scale" | "action" |
     "action_log_prob")`` back in order. Seeds in :attr:`frozen` act with zeros (``loc`` 0, ``scale``
     1, log-probability 0) and their actors are not called: a diverged seed's actions may not be
-    finite, which the env refuses.
+    finite, which the env refuses. One seed acting alone (``--seed s``) runs on the whole batch, its one
+    block, without the split and the concatenation (the same numbers, less copying per step).
     """
 
     def __init__(self, actors: Sequence[TensorDictModuleBase], streams: SeedStreams, num_envs: int,
@@ -115,6 +116,12 @@ class SeedBlockPolicy(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         inputs = tensordict.select(*self.in_keys)
+        if len(self._actors) == 1 and self.frozen is None:  # one seed acting (--seed s): its block is the batch
+            with self.streams.use(0):
+                outputs_td = self._actors[0](inputs)
+            for key in self.out_keys:
+                tensordict.set(key, outputs_td.get(key))
+            return tensordict
         outputs: list[list[Tensor]] = [[] for _ in self.out_keys]
         for index, actor in enumerate(self._actors):
             block = inputs[index * self.num_envs:(index + 1) * self.num_envs]
@@ -165,8 +172,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
                                         **cfg.env_options)
         self.obs_norms = observation_norms(self.base_env, groups=groups) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
-        self.runs = [SeedRun(seed, self._seed_config(seed), stats=EpisodeStats(reward_key=("next", GROUP, "reward"),
-                                                                          agent_dim=-2))
+        self.runs = [SeedRun(seed, self._seed_config(seed),
+                             stats=EpisodeStats(reward_key=("next", GROUP, "reward"), agent_dim=-2))
                      for seed in self.seeds]
         self.teams: list[MultiAgentTeam] = []
         states = []
