@@ -33,9 +33,12 @@ and MuJoCo included), reported whole and per seed.
     python benchmarks/seed_group_throughput.py --quick              # a smoke test: small epochs, S = 1, 3
     python benchmarks/seed_group_throughput.py --multi-agent        # MAPPO-Lag on Safety2x3HalfCheetahVelocity-v0
 
-Multi-agent rows (``--multi-agent``) compare ``MultiAgentTrainer`` with multi-agent seed groups
-(:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: simulators and collection batched
-over the seeds, each seed's round run after the others'), eager, at the paper's multi-agent settings.
+Multi-agent rows (``--multi-agent``) compare the single-seed run (``sg-train --seed 0``:
+:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, the multi-agent engine with
+S = 1 in the single-seed layout, so the ``group S=1`` row is the same code writing the group layout) with
+multi-agent seed groups (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: simulators
+and collection batched over the seeds, each seed's round run after the others'), eager, at the paper's
+multi-agent settings.
 """
 
 from __future__ import annotations
@@ -104,7 +107,8 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
         steps = settings.get("steps_per_epoch", TrainConfig(algo=algo, env_id=env_id).steps_per_epoch)
         common = dict(algo=algo, env_id=env_id, total_steps=epochs * steps, wandb="disabled", eval_episodes=0,
                       progress=False, output_dir=tmp, compile=compile, **settings)
-        if seeds is None:  # the baseline: Trainer, the LossModule engine (sg-train's default for one seed is fused)
+        if seeds is None:  # the baseline: single agent the Trainer (LossModule engine; sg-train's default for
+            # one seed is fused), multi agent sg-train --seed 0's trainer (the multi-agent engine with S = 1)
             engine = None if manifest.get(algo).multi_agent else "loss-module"
             cfg = TrainConfig(seed=0, engine=engine, **common)
             trainer, count = trainer_class(cfg)(cfg), 1

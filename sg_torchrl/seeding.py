@@ -16,9 +16,10 @@ purpose         rule                                          consumers
 ``init``        ``torch.manual_seed(s)``, the global torch    the networks' initialisation (every trainer;
                 RNG (:func:`seed_torch`), before the networks a group seeds it once per seed before that
                 are built; an unstacked run's action noise    seed's networks); the action noise of
-                goes on drawing from the same global stream   ``Trainer`` and ``MultiAgentTrainer`` (and of
-                                                              each seed of a multi-agent group, whose state
-                                                              is kept per seed after its team is built)
+                goes on drawing from the same global stream   ``Trainer`` and of each seed of the
+                                                              multi-agent engine (a group's or ``--seed``'s,
+                                                              whose state is kept per seed after its team
+                                                              is built)
 ``actions``     ``Generator().manual_seed(a)``,               a single-agent seed group's per-seed action
                 ``a = SeedSequence([s, 1])``'s first uint64   noise (``GroupTrainer``, ``StackedPolicy``)
                 (:func:`action_seed`)

@@ -8,8 +8,9 @@ config again on the code as it is now and compares.
 
 **What runs.** One small run per algorithm, seed 0, on the engine ``sg-train --seed 0`` uses (the fused
 engine, ``SingleSeedGroupTrainer``, for the twelve single-agent algorithms on
-``SafetyHalfCheetahVelocity-v1``; ``MultiAgentTrainer`` for MAPPO, HAPPO, MAPPO-Lag and MACPO on
-``Safety2x3HalfCheetahVelocity-v0``), and a seed group ``--seeds 0 1`` of PPO-Lag, CPO and MAPPO-Lag:
+``SafetyHalfCheetahVelocity-v1``; the multi-agent engine with one seed, ``SingleSeedMultiAgentTrainer``,
+for MAPPO, HAPPO, MAPPO-Lag and MACPO on ``Safety2x3HalfCheetahVelocity-v0``: recorded from the single-seed
+multi-agent trainer it replaced), and a seed group ``--seeds 0 1`` of PPO-Lag, CPO and MAPPO-Lag:
 2 simulators, 2 epochs of 1,000 steps, 100-step episodes and a 0.5 m/s speed limit (so episodes end and
 cost accrues in epoch 1: epoch 2's multiplier update and the actor learning-rate annealing act), a cost
 limit of 20, a few minibatch steps per epoch (first order: a KL early stop that acts in epoch 1), 2
@@ -78,7 +79,7 @@ from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 GOLDEN_DIR = Path(__file__).parent / "data" / "golden"
 #: The recorded runs: the single-agent algorithms (fused engine, seed 0).
 SINGLE_AGENT = ("pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
-#: The multi-agent algorithms (MultiAgentTrainer, seed 0).
+#: The multi-agent algorithms (SingleSeedMultiAgentTrainer, seed 0).
 MULTI_AGENT = ("mappo", "happo", "mappo_lag", "macpo")
 #: Seed groups (``--seeds 0 1``) recorded.
 GROUPS = ("ppo_lag", "cpo", "mappo_lag")

@@ -10,7 +10,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import EpochTrainer, MultiAgentTrainer, Trainer, TrainingInterrupted, main  # noqa: E402
+from sg_torchrl.train import EpochTrainer, SingleSeedMultiAgentTrainer, Trainer, TrainingInterrupted, main  # noqa: E402
 from sg_torchrl.train.interrupt import StopRequests  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
@@ -60,12 +60,12 @@ def test_a_signal_stops_after_the_epoch_and_resuming_is_exact(tmp_path, signum):
 def test_multi_agent_runs_stop_the_same_way(tmp_path):
     cfg = tiny_config(tmp_path, algo="mappo_lag", env_id="Safety2x3HalfCheetahVelocity-v0", num_envs=1,
                       steps_per_epoch=1000, total_steps=2000, hidden_sizes=[32, 32])
-    trainer = MultiAgentTrainer(cfg)
+    trainer = SingleSeedMultiAgentTrainer(cfg)
     signal_during_epoch(trainer, 1, signal.SIGTERM)
     with pytest.raises(TrainingInterrupted) as stop:
         trainer.run()
     assert stop.value.epoch == 1
-    assert MultiAgentTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
+    assert SingleSeedMultiAgentTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sg_torchrl.train import EpochTrainer, MultiAgentTrainer, TrainConfig, Trainer
+from sg_torchrl.train import EpochTrainer, SingleSeedMultiAgentTrainer, TrainConfig, Trainer
 
 torch.set_num_threads(1)
 
@@ -81,4 +81,4 @@ def test_mappo_lag_brings_team_cost_under_the_limit(tmp_path):
         algo="mappo_lag", env_id="Safety2x3HalfCheetahVelocity-v0", env_options={"velocity_threshold": 0.5},
         seed=0, total_steps=400_000, eval_episodes=0, wandb="disabled", progress=False, output_dir=str(tmp_path),
     )
-    assert_cost_comes_under_the_limit(MultiAgentTrainer(cfg), initial_violation=4, label="mappo_lag")
+    assert_cost_comes_under_the_limit(SingleSeedMultiAgentTrainer(cfg), initial_violation=4, label="mappo_lag")

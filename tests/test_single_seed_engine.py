@@ -35,8 +35,8 @@ torch.set_num_threads(1)
 
 from sg_torchrl.train import (  # noqa: E402
     GroupTrainer,
-    MultiAgentTrainer,
     SingleSeedGroupTrainer,
+    SingleSeedMultiAgentTrainer,
     TrainConfig,
     Trainer,
     main,
@@ -115,7 +115,7 @@ def test_the_engine_is_filled_in_and_picks_the_trainer():
     assert pixels.engine == "loss-module" and trainer_class(pixels) is Trainer
     assert TrainConfig(seeds=[0, 1]).engine == "fused" and trainer_class(TrainConfig(seeds=[0, 1])) is GroupTrainer
     multi = TrainConfig(algo="mappo_lag")
-    assert multi.engine is None and trainer_class(multi) is MultiAgentTrainer
+    assert multi.engine is None and trainer_class(multi) is SingleSeedMultiAgentTrainer
     assert parse_args(["--engine", "loss-module"]).engine == "loss-module"
 
 
@@ -126,7 +126,7 @@ def test_the_engine_is_filled_in_and_picks_the_trainer():
         (["--seeds", "0", "1", "--engine", "loss-module"], {"seeds": [0, 1], "engine": "loss-module"},
          "seed groups (seeds) train on the fused engine"),
         (["--algo", "mappo_lag", "--engine", "fused"], {"algo": "mappo_lag", "engine": "fused"},
-         "multi-agent algorithm with its own trainer"),
+         "multi-agent algorithm with its own engine"),
         (["--env-id", VISION, "--engine", "fused"], {"env_id": VISION, "engine": "fused"},
          "engine 'fused' trains on flat-vector observations"),
     ],

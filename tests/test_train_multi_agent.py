@@ -1,13 +1,19 @@
 """sg-train with the multi-agent algorithms: config rows, one epoch each, heterogeneous agents, exact resume, CLI, recipe.
 
+``--seed s`` runs the multi-agent engine with one seed (``SingleSeedMultiAgentTrainer``) in the single-seed
+layout; a checkpoint of the single-seed trainer it replaced still resumes, bit for bit
+(``tests/data/multi_agent_trainer_run/checkpoint.pt``: MAPPO-Lag after epoch 1 of 2, written by that trainer).
+
 Tiny settings (one or two simulators, small networks) on Safety2x3HalfCheetahVelocity-v0; an epoch
 of 1000 steps on one simulator finishes one episode, so the episode metrics are defined.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,12 +23,15 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import MultiAgentTrainer, TrainConfig, main, trainer_class  # noqa: E402
+from sg_torchrl.train import SingleSeedMultiAgentTrainer, TrainConfig, main, trainer_class  # noqa: E402
+from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES, parse_args  # noqa: E402
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, num_minibatches  # noqa: E402
 
 ENV_ID = "Safety2x3HalfCheetahVelocity-v0"
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "multi_agent.py"
+#: A run directory holding a checkpoint of the single-seed multi-agent trainer this engine replaced.
+OLD_RUN = Path(__file__).resolve().parent / "data" / "multi_agent_trainer_run"
 
 
 def tiny_config(tmp_path, **overrides) -> TrainConfig:
@@ -72,17 +81,19 @@ class TestConfig:
         assert "multi-agent algorithm" in err and "SafetyAntVelocity-v1" in err
 
     def test_dispatch(self, tmp_path):
-        assert trainer_class(tiny_config(tmp_path)) is MultiAgentTrainer
+        assert trainer_class(tiny_config(tmp_path)) is SingleSeedMultiAgentTrainer
         with pytest.raises(ValueError, match="multi-agent algorithms"):
-            MultiAgentTrainer(TrainConfig(algo="ppo_lag"))
+            SingleSeedMultiAgentTrainer(TrainConfig(algo="ppo_lag"))
+        with pytest.raises(ValueError, match="MultiAgentGroupTrainer's"):
+            SingleSeedMultiAgentTrainer(tiny_config(tmp_path, seeds=[0, 1], run_name=None))
 
 
 class TestTraining:
     @pytest.mark.parametrize("algo", MULTI_AGENT_ALGORITHM_NAMES)
     def test_every_algorithm_trains_one_epoch(self, tmp_path, algo):
         # Cost limit 0 with a cost-free random policy: J_c - d = 0, the constraint is active at the boundary.
-        trainer = MultiAgentTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0))
-        nets = trainer.networks
+        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0))
+        nets = trainer.teams[0].networks
         actors, critics = flat([nets.policy]), flat([nets.reward_value, nets.cost_value])
         metrics = trainer.train_epoch()
         assert all(math.isfinite(value) for value in metrics.values()), metrics
@@ -99,36 +110,38 @@ class TestTraining:
 
     def test_heterogeneous_agents_train_one_epoch(self, tmp_path):
         # HalfCheetah 6x1: six one-joint agents whose observations differ in size (padded to the largest).
-        trainer = MultiAgentTrainer(tiny_config(tmp_path, algo="happo", env_id="Safety6x1HalfCheetahVelocity-v0",
-                                                steps_per_epoch=500, total_steps=500))
-        assert trainer.networks.n_agents == 6 and len(set(trainer.base_env.observation_sizes)) > 1
+        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo="happo", steps_per_epoch=500,
+                                                          env_id="Safety6x1HalfCheetahVelocity-v0", total_steps=500))
+        assert trainer.teams[0].networks.n_agents == 6 and len(set(trainer.base_env.observation_sizes)) > 1
         metrics = trainer.train_epoch()
         assert all(math.isfinite(metrics[f"Loss/Loss_actor/agent{i}"]) for i in range(6))
         assert sorted(int(metrics[f"Train/AgentOrder/agent{i}"]) for i in range(6)) == list(range(6))
 
     def test_observation_normalisation(self, tmp_path):
-        trainer = MultiAgentTrainer(tiny_config(tmp_path, algo="mappo", steps_per_epoch=100, total_steps=100))
+        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo="mappo", steps_per_epoch=100,
+                                                          total_steps=100))
         trainer.train_epoch()
-        observation, state = trainer.obs_norms
-        assert observation.mean.shape == (2, trainer.base_env.observation_dim) and state.mean.shape == (17,)
+        observation, state = trainer.obs_norms  # one row of statistics: the one seed's
+        assert observation.mean.shape == (1, 2, trainer.base_env.observation_dim) and state.mean.shape == (1, 17)
         assert observation.count.item() == state.count.item() == pytest.approx(100, abs=1e-3)
-        raw = MultiAgentTrainer(tiny_config(tmp_path / "raw", algo="mappo", normalize_obs=False))
+        raw = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "raw", algo="mappo", normalize_obs=False))
         assert raw.obs_norms == [] and raw.env is raw.base_env
 
     def test_resume_continues_exactly(self, tmp_path):
         options = dict(algo="mappo_lag", num_envs=2, steps_per_epoch=200, total_steps=600, cost_limit=0.0)
-        uninterrupted = MultiAgentTrainer(tiny_config(tmp_path / "a", **options))
+        uninterrupted = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "a", **options))
         uninterrupted.run()
 
-        first_half = MultiAgentTrainer(tiny_config(tmp_path / "b", **options))
+        first_half = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "b", **options))
         first_half.run(max_epochs=2)
-        checkpoint = MultiAgentTrainer.load_checkpoint(first_half.checkpoint_path.parent)
-        resumed = MultiAgentTrainer(tiny_config(tmp_path / "b", **options), checkpoint)
+        checkpoint = SingleSeedMultiAgentTrainer.load_checkpoint(first_half.checkpoint_path.parent)
+        resumed = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "b", **options), checkpoint)
         assert resumed.epoch == 2
         resumed.run()
 
-        assert torch.equal(flat([uninterrupted.networks]), flat([resumed.networks]))
-        for a, b in zip(uninterrupted.policy_update.multipliers, resumed.policy_update.multipliers, strict=True):
+        team, resumed_team = uninterrupted.teams[0], resumed.teams[0]
+        assert torch.equal(flat([team.networks]), flat([resumed_team.networks]))
+        for a, b in zip(team.policy_update.multipliers, resumed_team.policy_update.multipliers, strict=True):
             assert torch.equal(a.value, b.value)
         assert torch.equal(uninterrupted.obs_norms[0].mean, resumed.obs_norms[0].mean)
         rows_a = (tmp_path / "a" / "run" / "progress.csv").read_text().splitlines()
@@ -144,15 +157,42 @@ class TestTraining:
                      "--wandb", "disabled", "--progress", "false", "--output-dir", str(tmp_path), "--run-name", "cli"])
         assert code == 0
         run = tmp_path / "cli"
-        for name in ("progress.csv", "checkpoint.pt", "curves.png", "config.json", "summary.json"):
+        for name in ("progress.csv", "checkpoint.pt", "curves.png", "config.json", "summary.json", "csv"):
             assert (run / name).exists(), name
+        assert not list(run.glob("seed-*"))  # the single-seed layout: no seed-XXX/ level
         header = (run / "progress.csv").read_text().splitlines()[0].split(",")
         for metric in ("Metrics/EpRet", "Metrics/EpCost", "Train/LagrangeMultiplier", "Misc/CPOCase",
                        "Misc/CPOCase/agent0", "Loss/Loss_cost_critic/agent1", "Time/FPS"):
             assert metric in header, metric
         summary = json.loads((run / "summary.json").read_text())
         assert summary["Metrics/EvalEpLen"] == 1000.0 and math.isfinite(summary["Metrics/EvalEpRet"])
-        assert "MACPO on Safety2x3HalfCheetahVelocity-v0" in capsys.readouterr().out
+        assert "seeds" not in summary and "mean" not in summary  # a run's summary, not a group's
+        assert json.loads((run / "config.json").read_text())["seeds"] == []
+        assert "MACPO on Safety2x3HalfCheetahVelocity-v0, seed 0: 1000 env steps" in capsys.readouterr().out
+
+    def test_a_checkpoint_of_the_replaced_single_seed_trainer_resumes_bit_for_bit(self, tmp_path):
+        old = tmp_path / "old"
+        shutil.copytree(OLD_RUN, old)
+        saved = load_checkpoint(old)
+        assert "networks" in saved and "seeds" not in saved and saved["epoch"] == 1  # the replaced trainer's layout
+        assert main(["--resume", str(old), "--progress", "false"]) == 0
+        options = {name: saved["config"][name] for name in (
+            "algo", "env_id", "env_options", "num_envs", "steps_per_epoch", "total_steps", "update_iters",
+            "hidden_sizes", "cost_limit", "eval_episodes", "seed")}
+        fresh = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "new", **options))
+        fresh.run()
+
+        def rows(run_dir):  # as numbers: epoch 1's row came from the checkpoint here ("1.0" for "1")
+            with (run_dir / "progress.csv").open() as handle:
+                return [{k: float(v) if v else None for k, v in row.items() if not k.startswith("Time/")}
+                        for row in csv.DictReader(handle)]
+
+        assert len(rows(old)) == 3 and rows(old) == rows(fresh.cfg.run_dir)  # two epochs and the evaluation
+        resumed, reference = load_checkpoint(old)["seeds"][0], load_checkpoint(fresh.cfg.run_dir)["seeds"][0]
+        for part in ("networks", "update"):
+            for name, value in reference[part].items():
+                assert not isinstance(value, torch.Tensor) or torch.equal(resumed[part][name], value), (part, name)
+        assert torch.equal(resumed["torch_rng"], reference["torch_rng"])
 
 
 @pytest.mark.timeout(120)

@@ -9,8 +9,9 @@ Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every opt
   step; 1.6-1.7x less CPU per env step), writing the single-seed layout; ``loss-module`` (the default on
   pixel observations, which the fused engine does not read) is :class:`Trainer`, which steps TorchRL
   ``LossModule`` s (``PPOLagLoss``, ...): the reference path users compose in their own code;
-* the four multi-agent algorithms (``--algo mappo``, ``happo``, ``mappo_lag``, ``macpo`` on a multi-agent
-  env id) in :class:`MultiAgentTrainer`;
+* one seed of the four multi-agent algorithms (``--algo mappo``, ``happo``, ``mappo_lag``, ``macpo`` on a
+  multi-agent env id) on the multi-agent seed-group engine with that one seed,
+  :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, writing the single-seed layout;
 * a seed group (``--seeds 0 1 2``: several seeds of one algorithm side by side in one process) in
   :class:`~sg_torchrl.train.seed_group.GroupTrainer` (single agent) or
   :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` (multi agent).
@@ -45,11 +46,11 @@ if TYPE_CHECKING:
 _HEAVY = {
     "ALGORITHMS": "sg_torchrl.train.algorithms",
     "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
-    "MultiAgentTrainer": "sg_torchrl.train.multi_agent",
     "EpochTrainer": "sg_torchrl.train.trainer",
     "GroupTrainer": "sg_torchrl.train.seed_group",
     "MultiAgentGroupTrainer": "sg_torchrl.train.multi_agent_group",
     "SingleSeedGroupTrainer": "sg_torchrl.train.seed_group",
+    "SingleSeedMultiAgentTrainer": "sg_torchrl.train.multi_agent_group",
     "Trainer": "sg_torchrl.train.trainer",
 }
 
@@ -63,14 +64,14 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentGroupTrainer",
-    "MultiAgentTrainer", "SingleSeedGroupTrainer", "TrainConfig", "Trainer",
+    "SingleSeedGroupTrainer", "SingleSeedMultiAgentTrainer", "TrainConfig", "Trainer",
     "TrainingInterrupted", "algorithm_title", "checkpoint_engine", "main", "train", "trainer_class",
 ]
 
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
     """The trainer of ``cfg``: for a seed group :class:`MultiAgentGroupTrainer` (multi-agent algorithms) or
-    :class:`GroupTrainer`; for one seed :class:`MultiAgentTrainer` (multi-agent algorithms), else by
+    :class:`GroupTrainer`; for one seed :class:`SingleSeedMultiAgentTrainer` (multi-agent algorithms), else by
     ``cfg.engine``: :class:`SingleSeedGroupTrainer` (``"fused"``) or :class:`Trainer` (``"loss-module"``)."""
     if cfg.group and cfg.multi_agent:
         from sg_torchrl.train.multi_agent_group import MultiAgentGroupTrainer
@@ -81,9 +82,9 @@ def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
 
         return GroupTrainer
     if cfg.multi_agent:
-        from sg_torchrl.train.multi_agent import MultiAgentTrainer
+        from sg_torchrl.train.multi_agent_group import SingleSeedMultiAgentTrainer
 
-        return MultiAgentTrainer
+        return SingleSeedMultiAgentTrainer
     if cfg.engine == "loss-module":
         from sg_torchrl.train.trainer import Trainer
 

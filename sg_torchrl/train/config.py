@@ -6,7 +6,7 @@ cost, critic L2 1e-3, gradient-norm clip 40, Lagrange init 0.001 / lr 0.035, PID
 0.01, cost limit 25. Fields whose paper value depends on the algorithm family default to ``None``
 and are filled from :data:`ALGORITHM_DEFAULTS` when the config is built: the rows' defaults of the
 algorithm manifest (:mod:`sg_torchrl.algorithms.manifest`, which lists them per family), the one place
-that names the algorithms. Multi-agent runs (:mod:`sg_torchrl.train.multi_agent`) use MLP [128, 128]
+that names the algorithms. Multi-agent runs (:mod:`sg_torchrl.train.multi_agent_group`) use MLP [128, 128]
 and normalise observations (running mean / std per agent and feature, and of the state): SafePO feeds
 raw observations to networks that start with a LayerNorm of their input, ours (TorchRL's
 ``MultiAgentMLP``) have none, and on raw Humanoid observations their initial action means reach tens
@@ -33,7 +33,9 @@ observations are refused here, before anything is built.
 ``"loss-module"``, the :class:`~sg_torchrl.train.trainer.Trainer` that steps TorchRL ``LossModule`` s, the
 reference path. Unset, it is filled when the config is built: fused on flat-vector observations,
 loss-module on pixel observations (which the fused engine does not read); so ``config.json`` and the
-checkpoint say which engine ran. Multi-agent algorithms leave it unset (``None``).
+checkpoint say which engine ran. Multi-agent algorithms leave it unset (``None``): they have one engine,
+the multi-agent seed-group engine, which runs one seed as a group of one
+(:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, the single-seed layout).
 
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
@@ -352,14 +354,14 @@ class TrainConfig:
             )
 
     def _validate_engine(self) -> None:
-        """``engine``, when given: a single-agent choice (multi-agent algorithms have their own trainers), fused
+        """``engine``, when given: a single-agent choice (multi-agent algorithms have one engine), fused
         for a seed group (the group engine is the fused one), and not fused on pixel observations (its stacked
         networks read a flat vector). Unset, :meth:`__post_init__` picks the engine that fits."""
         if self.engine is None:
             return
         if self.multi_agent:
             raise ValueError(f"config: engine chooses how a single-agent algorithm trains; {self.algo!r} is a "
-                             f"multi-agent algorithm with its own trainer: leave engine unset")
+                             f"multi-agent algorithm with its own engine: leave engine unset")
         if self.seeds and self.engine != "fused":
             raise ValueError(f"config: seed groups (seeds) train on the fused engine; engine {self.engine!r} "
                              f"(Trainer) runs one seed per process: give --seed instead of --seeds")

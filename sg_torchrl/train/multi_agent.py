@@ -1,7 +1,7 @@
-"""The multi-agent training loop behind ``sg-train --algo mappo|happo|mappo_lag|macpo``.
+"""The multi-agent algorithms behind ``sg-train --algo mappo|happo|mappo_lag|macpo``, and one run's team.
 
 The Safety-Gymnasium paper's safe multi-agent benchmark (SafePO's ``multi_agent`` scripts) on
-TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). One epoch:
+TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). One epoch of a run:
 
 1. collect ``steps_per_epoch`` team transitions from ``num_envs`` batched simulators with every
    agent's actor in one vmapped call (:class:`~sg_torchrl.collectors.RolloutCollector`, which takes
@@ -16,24 +16,20 @@ TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). 
 4. log team metrics under SafePO's names (means over agents) and the same per agent
    (``Loss/Loss_actor/agent0``, ``Train/LagrangeMultiplier/agent1``, ...), checkpoint.
 
-One run's networks, GAEs and round are a :class:`MultiAgentTeam`, built and updated by the same code
-for a single-seed run and for each seed of a seed group (``--seeds``,
-:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: one team and one round per seed,
-the rounds run one after another, simulation and collection batched).
+Steps 2 and 3 are one run's :class:`MultiAgentTeam` (its networks, GAEs and round). The engine that
+runs the epochs is :mod:`sg_torchrl.train.multi_agent_group`: one team and one round per seed, S >= 1
+(``--seeds``: :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`; ``--seed s``: the
+same engine with S = 1, :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`).
 
 Episode statistics are the team's: the return of the shared reward and the team cost (the root
 ``"cost"``; on the velocity tasks every agent pays the same indicator).
 
 Observations are normalised by default (``normalize_obs=True``): running mean / std of each agent's
-observation (per agent and feature) and of the global state. SafePO's multi-agent scripts feed raw
-observations, but to networks whose first layer is a LayerNorm of the input; our per-agent MLPs
-(TorchRL's ``MultiAgentMLP``) have no such layer, and on raw observations their outputs follow the
-observations' scale (Safety9|8HumanoidVelocity-v0: initial action means up to about 40, so the
-control cost swamps the reward). ``--normalize-obs false`` feeds raw observations. Checkpoints hold the networks, the round's optimisers, multipliers, value
-normalisers and generator, the observation normalisers, the simulators, the collector's carry,
-the episode statistics and the torch RNG, so ``--resume`` continues bit-identically; they are
-written and verified by :class:`~sg_torchrl.train.trainer.EpochTrainer` in the weights-only format of
-:mod:`sg_torchrl.train.checkpoint`, on the same schedule as single-agent runs.
+observation (per agent and feature) and of the global state (:func:`observation_norms`). SafePO's
+multi-agent scripts feed raw observations, but to networks whose first layer is a LayerNorm of the
+input; our per-agent MLPs (TorchRL's ``MultiAgentMLP``) have no such layer, and on raw observations
+their outputs follow the observations' scale (Safety9|8HumanoidVelocity-v0: initial action means up to
+about 40, so the control cost swamps the reward). ``--normalize-obs false`` feeds raw observations.
 """
 
 from __future__ import annotations
@@ -45,11 +41,9 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.envs import EnvBase
 
-import sg_torchrl
 from sg_torchrl import seeding
-from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.algorithms import manifest
@@ -61,13 +55,8 @@ from sg_torchrl.objectives.multi_agent import (
     MultiAgentUpdate,
 )
 from sg_torchrl.train.config import TrainConfig
-from sg_torchrl.train.evaluate import evaluate_policy
-from sg_torchrl.train.trainer import EpochTrainer
 
-__all__ = [
-    "MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "MultiAgentTrainer", "num_minibatches",
-    "observation_norms",
-]
+__all__ = ["MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "num_minibatches", "observation_norms"]
 
 MakeUpdate = Callable[[MultiAgentNetworks, TrainConfig, torch.Generator], MultiAgentUpdate]
 
@@ -153,9 +142,9 @@ def observation_norms(env: EnvBase, group: str = GROUP, *, groups: int | None = 
 class MultiAgentTeam:
     """One multi-agent run's learning parts: the team's networks, both GAEs and the algorithm's round.
 
-    Built by :meth:`build` for the single-seed :class:`MultiAgentTrainer` and for each seed of a
-    seed group (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`) alike, so a
-    seed's team is its single-seed run's. :meth:`learn` is one epoch's update of the team.
+    Built by :meth:`build` for each seed of the multi-agent engine
+    (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`; one seed for ``--seed s``), so a
+    seed's team in a group is its single-seed run's. :meth:`learn` is one epoch's update of the team.
     """
 
     networks: MultiAgentNetworks
@@ -190,61 +179,3 @@ class MultiAgentTeam:
             self.cost_gae(batch)
         info = self.policy_update(batch, mean_episode_cost)
         return {"Train/LagrangeMultiplier": info.pop("Train/LagrangeMultiplier"), "Train/LR": actor_lr, **info}
-
-
-class MultiAgentTrainer(EpochTrainer):
-    """Build everything a multi-agent run needs from a :class:`TrainConfig` and run its epochs.
-
-    Attributes: ``team`` (:class:`MultiAgentTeam`) and its parts ``networks``
-    (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentNetworks`: one actor, reward critic and cost
-    critic per agent), ``policy_update`` (the algorithm's round), ``reward_gae`` / ``cost_gae``;
-    ``env`` / ``base_env``, ``obs_norms``, ``collector``, ``stats``.
-
-    Args:
-        cfg: the experiment (a multi-agent ``algo`` and env id).
-        checkpoint: a checkpoint dict (from :meth:`load_checkpoint`) to continue from.
-    """
-
-    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
-        if not cfg.multi_agent:
-            raise ValueError(f"MultiAgentTrainer runs the multi-agent algorithms, not {cfg.algo!r} (use Trainer)")
-        super().__init__(cfg)
-        self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
-        self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs,
-                                        seed=seeding.env_seed(cfg.seed, seeding.Purpose.SIMULATORS), **cfg.env_options)
-        self.obs_norms = observation_norms(self.base_env) if cfg.normalize_obs else []
-        self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
-
-        team = MultiAgentTeam.build(self.base_env, cfg)
-        self.networks, self.reward_gae, self.cost_gae = team.networks, team.reward_gae, team.cost_gae
-        self.update_rng, self.policy_update = team.update_rng, team.policy_update
-        self.team = team
-        self.collector = RolloutCollector(self.env, self.networks.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
-        self.stats = EpisodeStats(reward_key=("next", GROUP, "reward"), agent_dim=-2)
-        self._start(checkpoint)
-
-    # ------------------------------------------------------------------ epochs
-    def _learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """Per-agent GAEs on the ``(N, T)`` batch, then the algorithm's round (:meth:`MultiAgentTeam.learn`)."""
-        return self.team.learn(batch, self._last_mean_cost, self.cfg.actor_lr)
-
-    def _evaluate(self) -> dict[str, float]:
-        cfg = self.cfg
-        return evaluate_policy(cfg.env_id, self.networks.actor, cfg.eval_episodes,
-                               seed=seeding.env_seed(cfg.seed, seeding.Purpose.EVALUATION),
-                               obs_norm=self.obs_norms, env_options=cfg.env_options)
-
-    # ------------------------------------------------------------------ checkpoints
-    def _algorithm_state(self) -> dict[str, Any]:
-        return {
-            "networks": self.networks.state_dict(),
-            "update": self.policy_update.state_dict(),
-            "obs_norms": [norm.state_dict() for norm in self.obs_norms],
-        }
-
-    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
-        self.networks.load_state_dict(state["networks"])
-        self.policy_update.load_state_dict(state["update"])
-        for norm, norm_state in zip(self.obs_norms, state["obs_norms"], strict=True):
-            norm.load_state_dict(norm_state)

@@ -1,24 +1,25 @@
-"""A seed group of a multi-agent algorithm: S runs of MAPPO, HAPPO, MAPPO-Lag or MACPO in one process.
+"""The multi-agent training engine: S runs of MAPPO, HAPPO, MAPPO-Lag or MACPO in one process, S >= 1.
 
-``sg-train --algo mappo_lag --seeds 0 1 2`` trains S seeds side by side, each exactly as its
-single-seed :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer` run with that seed (``--seed s``):
+``sg-train --algo mappo_lag --seeds 0 1 2`` trains S seeds side by side (:class:`MultiAgentGroupTrainer`),
+each exactly as the group of that seed alone, which is its single-seed run: ``sg-train --algo mappo_lag
+--seed s`` is this engine with S = 1 (:class:`SingleSeedMultiAgentTrainer`) in the single-seed layout
+(:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`). Per seed:
 
 * **simulators**: one batched env of ``S * num_envs`` simulators, seed ``s``'s the ``s``-th block of
   ``num_envs``, seeded as a ``num_envs``-simulator env with seed ``s`` (``sg_torchrl.make(...,
   seed=[s0, s1, ...])``), collected at once by one :class:`~sg_torchrl.collectors.RolloutCollector`;
 * **team**: per seed its own :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` (networks, both
   GAEs, the algorithm's round with its optimisers, multipliers, value normalisers and generator),
-  built by the code the single-seed run builds its team with, after ``torch.manual_seed(s)``
-  (:func:`~sg_torchrl.seeding.seed_torch`) as that
-  run's :class:`~sg_torchrl.train.trainer.EpochTrainer` seeds torch;
+  built by :meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.build` after ``torch.manual_seed(s)``
+  (:func:`~sg_torchrl.seeding.seed_torch`);
 * **observation normalisers**: one row of running statistics per seed for ``("agents",
   "observation")`` (per agent and feature) and ``"state"`` (``RunningObservationNorm(groups=S)``);
-* **global torch RNG**: the single-seed run draws its action noise from the global torch RNG (the
-  networks' initialisation too, which is why ``manual_seed(s)`` comes first). The group keeps one
-  torch RNG state per seed (:class:`SeedStreams`) and swaps it in around everything of that seed's that
-  could draw from the global RNG: its actor's call in collection (:class:`SeedBlockPolicy`), its
-  update and its evaluation. Nothing else in a multi-agent run draws from it (the simulators and the
-  rounds use generators of their own);
+* **action noise**: the team's actors draw from the global torch RNG (the networks' initialisation
+  too, which is why ``manual_seed(s)`` comes first). The engine keeps one torch RNG state per seed
+  (:class:`SeedStreams`) and swaps it in around everything of that seed's that could draw from the
+  global RNG: its actor's call in collection (:class:`SeedBlockPolicy`), its update and its
+  evaluation. Nothing else in a multi-agent run draws from it (the simulators and the rounds use
+  generators of their own);
 * **update**: per live seed, its GAEs on its block of the batch and its round,
   ``round(block, mean_episode_cost)`` (:meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.learn`).
 
@@ -26,7 +27,7 @@ Unlike the single-agent group (:mod:`sg_torchrl.train.seed_group`), the seeds' n
 stacked: **the per-seed rounds run one after another**, while simulation and collection are
 batched. (A round updates one agent at a time in a random order with a line search or KL stop per
 agent, which does not stack as the single-agent minibatch step does.) So a seed's trajectories,
-metrics and parameters are bit for bit those of its single-seed run, for every epoch.
+metrics and parameters are bit for bit those of its single-seed run (S = 1), for every epoch.
 
 Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
 update turn non-finite is put back to its parameters before that update and frozen; its simulators
@@ -34,7 +35,8 @@ idle with zero actions; the others go on) are those of every seed group
 (:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`). A seed's checkpoint entry under ``"seeds"``
 (:func:`~sg_torchrl.train.seed_runs.seed_entry`) holds its single-seed run's algorithm entries under the
 same names (``"networks"``, ``"update"``, ``"obs_norms"`` as ungrouped normalisers' state dicts,
-``"torch_rng"``) and its own record.
+``"torch_rng"``) and its own record. A single-seed checkpoint of the trainer this engine replaced (those
+entries at its top level, no ``"seeds"``) is read as the one-seed group's (:func:`team_checkpoint_as_group`).
 """
 
 from __future__ import annotations
@@ -57,9 +59,12 @@ from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTeam, observation_norms
-from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun
+from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout
 
-__all__ = ["MultiAgentGroupTrainer", "SeedBlockPolicy", "SeedStreams"]
+__all__ = [
+    "MultiAgentGroupTrainer", "SeedBlockPolicy", "SeedStreams", "SingleSeedMultiAgentTrainer",
+    "team_checkpoint_as_group",
+]
 
 
 class SeedStreams:
@@ -92,7 +97,8 @@ class SeedBlockPolicy(TensorDictModuleBase):
     :class:`SeedStreams`), and writes every block's ``(group, "loc" | "scale" | "action" |
     "action_log_prob")`` back in order. Seeds in :attr:`frozen` act with zeros (``loc`` 0, ``scale``
     1, log-probability 0) and their actors are not called: a diverged seed's actions may not be
-    finite, which the env refuses.
+    finite, which the env refuses. One seed acting alone (``--seed s``) runs on the whole batch, its one
+    block, without the split and the concatenation (the same numbers, less copying per step).
     """
 
     def __init__(self, actors: Sequence[TensorDictModuleBase], streams: SeedStreams, num_envs: int,
@@ -110,6 +116,12 @@ class SeedBlockPolicy(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         inputs = tensordict.select(*self.in_keys)
+        if len(self._actors) == 1 and self.frozen is None:  # one seed acting (--seed s): its block is the batch
+            with self.streams.use(0):
+                outputs_td = self._actors[0](inputs)
+            for key in self.out_keys:
+                tensordict.set(key, outputs_td.get(key))
+            return tensordict
         outputs: list[list[Tensor]] = [[] for _ in self.out_keys]
         for index, actor in enumerate(self._actors):
             block = inputs[index * self.num_envs:(index + 1) * self.num_envs]
@@ -149,8 +161,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
         if not cfg.multi_agent:
-            raise ValueError(f"MultiAgentGroupTrainer trains the multi-agent algorithms, not {cfg.algo!r} "
-                             f"(use GroupTrainer)")
+            raise ValueError(f"{type(self).__name__} trains the multi-agent algorithms, not {cfg.algo!r} "
+                             f"(trainer_class(cfg) picks the trainer of a config)")
         super().__init__(cfg)
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
@@ -160,12 +172,12 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
                                         **cfg.env_options)
         self.obs_norms = observation_norms(self.base_env, groups=groups) if cfg.normalize_obs else []
         self.env: EnvBase = TransformedEnv(self.base_env, Compose(*self.obs_norms)) if self.obs_norms else self.base_env
-        self.runs = [SeedRun(seed, cfg.for_seed(seed), stats=EpisodeStats(reward_key=("next", GROUP, "reward"),
-                                                                          agent_dim=-2))
+        self.runs = [SeedRun(seed, self._seed_config(seed),
+                             stats=EpisodeStats(reward_key=("next", GROUP, "reward"), agent_dim=-2))
                      for seed in self.seeds]
         self.teams: list[MultiAgentTeam] = []
         states = []
-        for run in self.runs:  # each seed's team as its single-seed run builds it, from torch.manual_seed(seed)
+        for run in self.runs:  # each seed's team from torch.manual_seed(seed), as the group of that seed alone
             seeding.seed_torch(run.seed)
             self.teams.append(MultiAgentTeam.build(self.base_env, run.cfg))
             states.append(torch.get_rng_state())  # where that run's action noise starts
@@ -232,6 +244,50 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         for norm, state in zip(self.obs_norms, entry["obs_norms"], strict=True):
             norm.load_group_state_dict(index, state)
         self.streams.states[index] = entry["torch_rng"].clone()
+
+
+class SingleSeedMultiAgentTrainer(SingleSeedLayout, MultiAgentGroupTrainer):
+    """One run (``cfg.seed``; no ``cfg.seeds``) of a multi-agent algorithm: ``sg-train --algo mappo --seed s``.
+
+    The multi-agent engine with S = 1 in the single-seed layout
+    (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`): seed ``s`` of ``--seeds s`` bit for bit, its
+    files in ``cfg.run_dir`` itself. Its one team is ``teams[0]``.
+
+    Args:
+        cfg: a multi-agent, single-seed config.
+        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`), or of the single-seed trainer this
+            engine replaced (read as this trainer's, :func:`team_checkpoint_as_group`), to continue from.
+
+    Raises:
+        ValueError: ``cfg`` is a seed group (:class:`MultiAgentGroupTrainer` trains those) or not a
+            multi-agent algorithm.
+    """
+
+    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
+        super().__init__(cfg, None if checkpoint is None else team_checkpoint_as_group(checkpoint))
+
+
+#: Entries of a single team's checkpoint (the replaced single-seed trainer's) that belong to its seed.
+_TEAM_ENTRIES = ("networks", "update", "obs_norms", "stats", "last_mean_cost", "progress_row")
+
+
+def team_checkpoint_as_group(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """A single-seed multi-agent checkpoint in the one-seed group's form; a group's is returned as it is.
+
+    The single-seed trainer this engine replaced kept one team's entries at the top level (``networks``,
+    ``update``, ``obs_norms`` as ungrouped normalisers' state dicts, ``stats``, ``last_mean_cost``,
+    ``progress_row``) and drew its action noise from the global torch RNG (``torch_rng``). The group keeps
+    the same entries under ``"seeds"`` (one per seed, with the seed's ``torch_rng`` stream) and says so
+    with ``"seed_group"``; the simulators, the collector's carry and the counters are the same. So the
+    mapping moves those entries into the one seed's entry, and a resumed run continues bit for bit.
+    """
+    if "seeds" in checkpoint or "networks" not in checkpoint:
+        return checkpoint
+    seed = checkpoint["config"]["seed"]
+    entry = {"seed": seed, **{name: checkpoint[name] for name in _TEAM_ENTRIES},
+             "torch_rng": checkpoint["torch_rng"], "diverged": None}
+    rest = {name: value for name, value in checkpoint.items() if name not in _TEAM_ENTRIES}
+    return {**rest, "seeds": [entry], "seed_group": {"seeds": [seed]}}
 
 
 def _team_state(team: MultiAgentTeam, copy_: bool = True) -> dict[str, Any]:

@@ -87,7 +87,7 @@ from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
-from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
+from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout, seed_entry
 from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
 from sg_torchrl.modules.stacked import StackedActorCritic
 
@@ -306,22 +306,16 @@ class GroupTrainer(SeedGroupTrainer):
         self.action_generators[index].set_state(entry["action_rng"])
 
 
-class SingleSeedGroupTrainer(GroupTrainer):
+class SingleSeedGroupTrainer(SingleSeedLayout, GroupTrainer):
     """One run (``cfg.seed``; no ``cfg.seeds``) on the fused engine, in the single-seed layout: ``sg-train --seed s``.
 
     The seed-group engine with S = 1 (stacked networks, the fused minibatch step, the seed's own action-noise
-    and minibatch generators), so the run is seed ``s`` of ``--seeds s`` exactly: the same progress rows
-    but their ``Time/*`` columns, the same parameters and checkpoint entry. It is the
-    :class:`~sg_torchrl.train.trainer.Trainer`'s run statistically, not bit for bit: the same initial
-    networks, algorithm and hyper-parameters, drawn from other random streams and rounded by other kernels.
-
-    Only where things are written differs from a group of one: ``cfg.run_dir`` itself is the run's
-    directory and holds what a Trainer run writes there (``config.json``, ``progress.csv``, ``csv/``,
-    ``wandb/``, ``summary.json``, ``curves.png``, ``checkpoint.pt``), with the same metric names; there is
-    no ``seed-XXX/`` level and no group summary or group figure. The checkpoint is a group's with one
-    entry under ``"seeds"`` (:func:`seed_entry` reads it); its ``"seed_group"`` entry is how ``--resume``
-    tells it from a Trainer checkpoint and continues it on this engine. A diverged run (its parameters or
-    update turned non-finite) ends early, reported on stderr and in ``summary.json`` (``Diverged``).
+    and minibatch generators) in the single-seed layout (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`):
+    seed ``s`` of ``--seeds s`` exactly, writing what a :class:`~sg_torchrl.train.trainer.Trainer` run writes,
+    where it writes it. It is the Trainer's run statistically, not bit for bit: the same initial networks,
+    algorithm and hyper-parameters, drawn from other random streams and rounded by other kernels. Its
+    checkpoint's ``"seed_group"`` entry is how ``--resume`` tells it from a Trainer checkpoint and continues
+    it on this engine.
 
     Args:
         cfg: a single-agent, single-seed config on flat-vector observations (``engine`` ``"fused"``).
@@ -331,18 +325,3 @@ class SingleSeedGroupTrainer(GroupTrainer):
         ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those), a multi-agent algorithm, or
             observations that are not a flat vector.
     """
-
-    def _run_seeds(self, cfg: TrainConfig) -> list[int]:
-        if cfg.group:
-            raise ValueError(f"SingleSeedGroupTrainer trains one seed (cfg.seed); the seed group {cfg.seeds} is "
-                             f"GroupTrainer's")
-        return [cfg.seed]
-
-    def _seed_config(self, seed: int) -> TrainConfig:
-        return self.cfg  # the run's directory is the trainer's: no seed-XXX/ level
-
-    def finish(self) -> dict[str, float]:
-        """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
-        :meth:`Trainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
-        ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
-        return self._finish_seed(0)

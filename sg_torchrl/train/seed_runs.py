@@ -20,8 +20,10 @@ statistics, :math:`J_c`, the last row, divergence; the seed list is checked on l
 
 Where the runs write is a layout decided by two hooks, :meth:`~SeedGroupTrainer._run_seeds` and
 :meth:`~SeedGroupTrainer._seed_config` (default: the group's ``seed-XXX/`` directories), and :meth:`finish`:
-:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer` overrides them to run one seed in the
-single-seed layout (``sg-train --seed s`` on the fused engine).
+:class:`SingleSeedLayout` overrides them to run one seed in the single-seed layout. ``sg-train --seed s``
+is that layout over either family's group engine:
+:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer` (single agent, fused engine) and
+:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer` (multi agent).
 
 A subclass builds its env, :attr:`~SeedGroupTrainer.policy` (with a ``frozen`` attribute: ``None``
 or an ``(S,)`` bool of the seeds acting with zeros), :attr:`~SeedGroupTrainer.collector` and
@@ -50,7 +52,7 @@ from sg_torchrl.train.plot import plot_group_curves
 from sg_torchrl.train.trainer import EpochTrainer, epoch_row, finished_episode_cost, open_run_logger, write_run_summary
 from sg_torchrl.train.writes import make_dirs, write_atomic
 
-__all__ = ["SeedGroupTrainer", "SeedRun", "mean_row", "seed_entry"]
+__all__ = ["SeedGroupTrainer", "SeedRun", "SingleSeedLayout", "mean_row", "seed_entry"]
 
 
 @dataclass
@@ -280,6 +282,43 @@ class SeedGroupTrainer(EpochTrainer):
             raise ValueError("not a seed group's checkpoint (no 'seed_group' entry)")
 
 
+class SingleSeedLayout:
+    """One run (``cfg.seed``; no ``cfg.seeds``) of a seed-group engine, in the single-seed layout: ``sg-train --seed s``.
+
+    Mixed in before a :class:`SeedGroupTrainer` subclass (``class SingleSeedGroupTrainer(SingleSeedLayout,
+    GroupTrainer)``), it runs that engine with S = 1, so the run is seed ``s`` of ``--seeds s`` exactly (the
+    same progress rows but their ``Time/*`` columns, the same parameters and checkpoint entry). Only where
+    things are written differs from a group of one: ``cfg.run_dir`` itself is the run's directory and holds
+    what a single run writes there (``config.json``, ``progress.csv``, ``csv/``, ``wandb/``, ``summary.json``,
+    ``curves.png``, ``checkpoint.pt``), with the same metric names; there is no ``seed-XXX/`` level and no
+    group summary or group figure. The checkpoint is a group's with one entry under ``"seeds"``
+    (:func:`seed_entry` reads it). A diverged run (its parameters or update turned non-finite) ends early,
+    reported on stderr and in ``summary.json`` (``Diverged``).
+
+    Raises:
+        ValueError: ``cfg`` is a seed group (the group trainer trains those).
+    """
+
+    cfg: TrainConfig
+
+    def _run_seeds(self, cfg: TrainConfig) -> list[int]:
+        if cfg.group:
+            group = next(c for c in type(self).__mro__
+                         if issubclass(c, SeedGroupTrainer) and not issubclass(c, SingleSeedLayout))
+            raise ValueError(f"{type(self).__name__} trains one seed (cfg.seed); the seed group {cfg.seeds} is "
+                             f"{group.__name__}'s")
+        return [cfg.seed]
+
+    def _seed_config(self, seed: int) -> TrainConfig:
+        return self.cfg  # the run's directory is the trainer's: no seed-XXX/ level
+
+    def finish(self) -> dict[str, float]:
+        """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
+        :meth:`EpochTrainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
+        ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
+        return self._finish_seed(0)
+
+
 def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
     """The mean over ``rows`` of each numeric entry they all hold (an empty dict for none)."""
     if not rows:
@@ -290,7 +329,7 @@ def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     """Seed ``seed``'s entry of a group checkpoint (``EpochTrainer.load_checkpoint(path)``), with its config;
-    also of a fused single-seed run's (:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`: one entry).
+    also of a single-seed run's on a group engine (:class:`SingleSeedLayout`: one entry).
 
     The entry holds what that seed's run needs to be used alone: ``"config"`` (its single-seed config
     as a dict), its episode statistics, ``"last_mean_cost"``, ``"progress_row"`` and ``"diverged"``, and
@@ -299,8 +338,8 @@ def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     ``make_actor_critics`` builds), ``"obs_norm"`` (an ungrouped ``RunningObservationNorm`` state dict,
     or ``None``), ``"multiplier"``, ``"optimizer"`` (its Adam rows of the flat actor and critic buffers)
     and its generators' states. Multi agent
-    (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`): the single-seed run's
-    ``"networks"``, ``"update"`` (the round's state dict), ``"obs_norms"`` and ``"torch_rng"``.
+    (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`): ``"networks"`` (the team's),
+    ``"update"`` (the round's state dict), ``"obs_norms"`` and ``"torch_rng"`` (its action-noise stream).
 
     Raises:
         KeyError: the checkpoint is not a group's, or does not hold ``seed``.
@@ -309,6 +348,6 @@ def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     for entry in entries:
         if entry["seed"] == seed:
             cfg = TrainConfig(**checkpoint["config"])
-            cfg = cfg.for_seed(seed) if cfg.group else cfg  # a fused single-seed run's config is its seed's
+            cfg = cfg.for_seed(seed) if cfg.group else cfg  # a single-seed run's config is its seed's
             return {**entry, "config": cfg.to_dict()}
     raise KeyError(f"seed {seed} is not in this checkpoint (seeds: {[entry['seed'] for entry in entries]})")

@@ -49,10 +49,10 @@ A new run refuses a run directory that already holds a run (a checkpoint, ``prog
 re-running a command never deletes results silently.
 
 :class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
-metrics, the progress bar, logging, checkpoint files, the final summary and plot);
-:class:`Trainer` (single agent) and :class:`~sg_torchrl.train.multi_agent.MultiAgentTrainer`
-supply the networks, the update and the evaluation. A seed group
-(:class:`~sg_torchrl.train.seed_group.GroupTrainer`) runs S runs in one loop: it keeps the loop and
+metrics, the progress bar, logging, checkpoint files, the final summary and plot); :class:`Trainer`
+supplies the networks, the update and the evaluation. A seed-group engine
+(:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`: single agent, multi agent, and their one-seed
+runs) runs S runs in one loop: it keeps the loop and
 the checkpoint schedule, and hands each seed's row, logger and summary to the same helpers
 (:func:`finished_episode_cost`, :func:`epoch_row`, :func:`open_run_logger`, :func:`write_run_summary`).
 """
