@@ -15,7 +15,7 @@ raw observations to networks that start with a LayerNorm of their input, ours (T
 Pixel observations (a ``...Vision-v0`` id, or ``env_options`` ``obs_mode=rgb|rgbd|vector+rgb|
 vector+rgbd``) need no option: the single-agent networks read whatever the env's observation spec
 holds, with a CNN encoder before ``hidden_sizes`` when there are images
-(:mod:`sg_torchrl.train.models`), and ``normalize_obs`` applies to the flat vector only. The
+(:mod:`sg_torchrl.modules.mlp`), and ``normalize_obs`` applies to the flat vector only. The
 ``vision`` preset is PPO-Lag on ``SafetyPointGoal1Vision-v0`` sized for a CPU: pixels only, 64 x 64
 (``env_options``; the Vision ids default to the vector and a 256 x 256 image, Safety-Gymnasium's layout).
 
@@ -331,7 +331,7 @@ class TrainConfig:
 
     def _validate_observation_mode(self) -> None:
         """Pixel observations (a Vision id, or ``obs_mode`` with ``rgb`` / ``rgbd``) train through CNN
-        encoders (:mod:`sg_torchrl.train.models`), whose convolutions need images of at least
+        encoders (:mod:`sg_torchrl.modules.mlp`), whose convolutions need images of at least
         ``DEFAULT_CNN.min_image_size`` (36) pixels a side; say so here rather than deep in the first
         forward pass. ``obs_mode`` and ``image_size`` are valid values here (:meth:`_validate_env_options`)."""
         from sg_torchrl.envs.registry import registry_entry

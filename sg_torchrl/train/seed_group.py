@@ -19,7 +19,7 @@ run in every respect that is not float rounding:
 * **networks**: ``torch.manual_seed(s)`` (:func:`~sg_torchrl.seeding.seed_torch`) then
   ``make_actor_critics``, as the single-seed :class:`~sg_torchrl.train.trainer.Trainer` initialises
   them, stacked in a
-  :class:`~sg_torchrl.train.stacked.StackedActorCritic`;
+  :class:`~sg_torchrl.modules.stacked.StackedActorCritic`;
 * **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``);
 * **random streams** (:mod:`sg_torchrl.seeding`): action noise from one ``torch.Generator`` per seed
   (the ``actions`` purpose, :func:`~sg_torchrl.seeding.action_seed`), minibatch order from another
@@ -103,7 +103,7 @@ class StackedPolicy(TensorDictModuleBase):
     Reads ``observation`` ``(S * N, obs_dim)``, views it as ``(S, N, obs_dim)`` (seed ``s``'s
     simulators are block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
     as the single-seed actor does, seed ``s``'s noise drawn from ``generators[s]``
-    (:meth:`~sg_torchrl.train.stacked.StackedActorCritic.sample`). Under a deterministic exploration
+    (:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.sample`). Under a deterministic exploration
     type it returns the means. Seeds in :attr:`frozen` act with zeros (a diverged seed's actions may
     not be finite, which the env refuses).
     """
