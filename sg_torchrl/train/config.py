@@ -196,7 +196,7 @@ class TrainConfig:
             self.seed = seeds[0] if isinstance(seeds, list) and seeds and type(seeds[0]) is int else 0
         self.validate()
         if self.engine is None and not self.multi_agent:  # the choice is written down (config.json, checkpoints)
-            self.engine = "fused" if self.observation_mode == "vector" else "loss-module"
+            self.engine = "fused"
 
     @property
     def second_order(self) -> bool:
@@ -338,9 +338,9 @@ class TrainConfig:
                                                        **self.env_options}.get("image_size")
         if obs_mode == "vector":  # every other mode holds images
             return
-        if self.seeds:
-            raise ValueError(f"config: seed groups (seeds) train on flat-vector observations only; {self.env_id} "
-                             f"with obs_mode={obs_mode!r} emits images (run one seed per process with --seed)")
+        if self.multi_agent:
+            raise ValueError(f"config: the multi-agent algorithms train on flat-vector observations only; "
+                             f"{self.env_id} with obs_mode={obs_mode!r} emits images")
         from sg_torchrl.train.cnn import DEFAULT_CNN
 
         smallest = DEFAULT_CNN.min_image_size
@@ -363,10 +363,6 @@ class TrainConfig:
         if self.seeds and self.engine != "fused":
             raise ValueError(f"config: seed groups (seeds) train on the fused engine; engine {self.engine!r} "
                              f"(Trainer) runs one seed per process: give --seed instead of --seeds")
-        if self.engine == "fused" and self.observation_mode != "vector":
-            raise ValueError(f"config: engine 'fused' trains on flat-vector observations; {self.env_id} with "
-                             f"obs_mode={self.observation_mode!r} emits images: give engine loss-module, or leave "
-                             f"engine unset (pixel observations then train on loss-module)")
 
     @property
     def observation_mode(self) -> str:

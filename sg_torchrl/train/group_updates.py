@@ -42,13 +42,14 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
 
 from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective, combine_advantages
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.train.stacked import StackedActorCritic, in_chunks
 from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
 
 __all__ = [
@@ -267,8 +268,8 @@ def seed_passes(
         raise ValueError(f"the passes of {spec.surrogate!r} stop on the KL to a reference policy: give reference")
     batch = SeedBatch.pack({name: data[name] for name in spec.fields})
     observation = data["observation"]
-    means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), observation.device)
-    kl = (lambda: batch_kl(model, observation, *reference)) if spec.kl_stop else None
+    means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), data["advantage"].device)
+    kl = (lambda: batch_kl(model, observation, *reference, chunk_size=model.chunk_size)) if spec.kl_stop else None
     stops = SeedStops(model, means, active, kl, parts.target_kl)
 
     def order(size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
@@ -349,8 +350,8 @@ class TwoStageGroupUpdate(GroupUpdate):
         first = seed_passes(self.parts, self.reward_step, data, torch.zeros_like(lam), active,
                             (data["loc"], data["scale"]))
         with torch.no_grad():
-            loc, scale = model.dist_params(data["observation"])
-            scale = scale.expand_as(loc)
+            loc, = in_chunks(lambda obs: model.dist_params(obs)[:1], data["observation"], model.chunk_size)
+            scale = model.scale().expand_as(loc)
         stage_two = {**data, "stage1_loc": loc, "stage1_scale": scale}
         second = seed_passes(self.parts, self.projection_step, stage_two, lam, active & ~first.diverged, (loc, scale))
         diverged = first.diverged | second.diverged
@@ -423,8 +424,8 @@ class TrustRegionGroupUpdate(GroupUpdate):
             return {}
         step = self.policy_step.for_rows(rows)
 
-        def pick(value: Tensor) -> Tensor:
-            return value.index_select(0, rows)
+        def pick(value: Tensor | TensorDictBase) -> Tensor | TensorDictBase:
+            return value.index_select(0, rows) if isinstance(value, Tensor) else value[rows]
 
         batch = {name: pick(data[name]) for name in ("observation", "action", "action_log_prob")}
         moved = step.step(batch, pick(advantage), pick(data["cost_advantage"]), violation[active.to(violation.device)])

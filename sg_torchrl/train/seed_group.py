@@ -89,7 +89,7 @@ from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, seed_entry
 from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
-from sg_torchrl.train.stacked import StackedActorCritic
+from sg_torchrl.train.stacked import StackedActorCritic, in_chunks
 
 __all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
 
@@ -100,8 +100,9 @@ _COUNTS = ("Train/StopIter", "Train/ProjectionStopIter")
 class StackedPolicy(TensorDictModuleBase):
     """A seed group's actors as one TensorDict policy of its batched env (what :class:`RolloutCollector` calls).
 
-    Reads ``observation`` ``(S * N, obs_dim)``, views it as ``(S, N, obs_dim)`` (seed ``s``'s
-    simulators are block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
+    Reads ``observation`` ``(S * N, obs_dim)`` (or the images the networks read), views it per seed
+    (:meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation`: seed ``s``'s simulators are
+    block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
     as the single-seed actor does, seed ``s``'s noise drawn from ``generators[s]``
     (:meth:`~sg_torchrl.train.stacked.StackedActorCritic.sample`). Under a deterministic exploration
     type it returns the means. Seeds in :attr:`frozen` act with zeros (a diverged seed's actions may
@@ -119,12 +120,11 @@ class StackedPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get("observation")
-        seeds, rows = self.model.num_seeds, obs.shape[0]
+        obs = self.model.read_observation(tensordict)
+        rows = obs.shape[0] * obs.shape[1]
         deterministic = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE,
                                                ExplorationType.MEAN)
-        action, log_prob, loc, scale = self.model.sample(obs.reshape(seeds, -1, obs.shape[-1]), self.generators,
-                                                         deterministic=deterministic)
+        action, log_prob, loc, scale = self.model.sample(obs, self.generators, deterministic=deterministic)
         if self.frozen is not None:
             action = torch.where(self.frozen.view(-1, 1, 1), torch.zeros_like(action), action)
         tensordict.set("loc", loc.reshape(rows, -1))
@@ -164,17 +164,18 @@ class GroupTrainer(SeedGroupTrainer):
         self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs,
                                         seed=[seeding.env_seed(s, seeding.Purpose.SIMULATORS) for s in self.seeds],
                                         **cfg.env_options)
+        # What the networks read (flat vector, pixels, depth) comes from the env's observation spec; the
+        # running normaliser applies to the flat vector only (images are scaled in the networks).
         layout = ObservationLayout.from_spec(self.base_env.observation_spec)
-        if layout.images or layout.vector_dim is None:
-            raise ValueError(f"seed groups train on flat-vector observations; {cfg.env_id} emits {layout.in_keys}")
-        self.obs_norm = RunningObservationNorm((layout.vector_dim,), groups=groups) if cfg.normalize_obs else None
+        normalize = cfg.normalize_obs and layout.vector_dim is not None
+        self.obs_norm = RunningObservationNorm((layout.vector_dim,), groups=groups) if normalize else None
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
 
         singles = []
         for seed in self.seeds:  # each seed's networks as its single-seed Trainer initialises them
             seeding.seed_torch(seed)
             singles.append(make_actor_critics(layout, self.base_env.action_spec, cfg.network_sizes))
-        self.model = StackedActorCritic.from_single(singles)
+        self.model = StackedActorCritic.from_single(singles, layout=layout)
         self.multipliers = [self.algorithm.make_multiplier(cfg) for _ in self.seeds]
         # One seed's single-seed loss names the objective and its hyper-parameters for the group update.
         loss = self.algorithm.make_loss(*singles[0], self.multipliers[0], cfg)
@@ -245,13 +246,15 @@ class GroupTrainer(SeedGroupTrainer):
         def per_seed(value: Tensor) -> Tensor:
             return value.reshape(groups, -1, *value.shape[len(shape):])
 
-        for prefix in ((), ("next",)):
-            value, cost_value = self.model.values(per_seed(batch.get((*prefix, "observation"))))
+        model = self.model
+        for prefix in ((), ("next",)):  # with images in chunks: an epoch's frames are never all float at once
+            value, cost_value = in_chunks(model.values, model.read_observation(batch, prefix), model.chunk_size)
             batch.set((*prefix, "state_value"), value.reshape(*shape, 1))
             batch.set((*prefix, "cost_value"), cost_value.reshape(*shape, 1))
         self.reward_gae(batch)
         self.cost_gae(batch)
-        data = {name: per_seed(batch.get(name)) for name in FIELDS}
+        data = {name: per_seed(batch.get(name)) for name in FIELDS if name != "observation"}
+        data["observation"] = model.read_observation(batch)
         data["action_log_prob"] = data["action_log_prob"].unsqueeze(-1)
         advantage, cost_advantage = data["advantage"], data["cost_advantage"]
         raw = torch.stack((advantage.mean((1, 2)), cost_advantage.mean((1, 2))))
