@@ -6,13 +6,13 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from sg_torchrl.train import TrainConfig, Trainer
+from sg_torchrl.train import GroupTrainer, TrainConfig
 
 
-def flat_parameters(trainer: Trainer) -> torch.Tensor:
-    """Every parameter of the actor and both critics, flattened into one vector (for exact-equality checks)."""
-    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
-    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
+def flat_parameters(trainer: GroupTrainer) -> torch.Tensor:
+    """Every parameter of every seed's actor and critics, flattened into one vector (for exact-equality checks)."""
+    model = trainer.model
+    return torch.cat([model.flat_actor.detach().reshape(-1), model.flat_critics.detach().reshape(-1)]).clone()
 
 
 def tiny_config(tmp_path, **overrides) -> TrainConfig:

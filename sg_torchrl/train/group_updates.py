@@ -1,6 +1,6 @@
 """How one epoch's batch moves a seed group's networks: the update loops of SafePO for S seeds at once.
 
-The seed-group counterpart of :mod:`sg_torchrl.train.updates`. The group trainer
+Every single-agent run trains through these (``--seed`` is a group of one). The group trainer
 (:mod:`sg_torchrl.train.seed_group`) computes every seed's advantages (normalised per seed) and
 hands the algorithm's :class:`GroupUpdate` the epoch's samples as ``(S, n, k)`` tensors, seed ``s``'s
 on row ``s``: ``observation``, ``action``, ``action_log_prob``, ``loc`` and ``scale`` (the rollout
@@ -15,8 +15,8 @@ chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torch
   step of every seed's actor (:mod:`sg_torchrl.objectives.stacked_trust_region`), then critics-only passes.
 
 All run :func:`seed_passes`, a group's minibatch passes through the package's one update loop
-(:func:`~sg_torchrl.objectives.passes.run_passes`, which the single-seed trainer and the multi-agent
-rounds also run). Each seed follows its single-seed run:
+(:func:`~sg_torchrl.objectives.passes.run_passes`, which the multi-agent rounds also run). Each seed
+follows its single-seed run (SafePO's loop on its own):
 its own minibatch order (:class:`~sg_torchrl.train.fused.SeedShuffler`), its own KL early stop (after
 every pass, KL(reference || current) over the seed's batch against ``target_kl``; none for the
 critics-only passes). A seed that
@@ -325,7 +325,7 @@ class FirstOrderGroupUpdate(GroupUpdate):
 
 
 class TwoStageGroupUpdate(GroupUpdate):
-    """CUP's epoch (as :class:`~sg_torchrl.train.updates.TwoStageUpdate`) for every seed.
+    """CUP's epoch for every seed.
 
     Stage one runs :func:`seed_passes` on ``reward_spec`` (PPO on the reward advantage, both critics,
     no multiplier); each seed's stage-one policy is then evaluated on its batch (``stage1_loc`` /
@@ -363,7 +363,7 @@ class TwoStageGroupUpdate(GroupUpdate):
 
 
 class TrustRegionGroupUpdate(GroupUpdate):
-    """The second-order epoch (as :class:`~sg_torchrl.train.updates.TrustRegionUpdate`) for every seed.
+    """The second-order epoch for every seed.
 
     NPG, TRPO, TRPO-Lag, RCPO, CPO and PCPO: one trust-region step of the actors on the whole batch
     (``policy_step``, a :class:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep`

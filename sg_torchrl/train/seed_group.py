@@ -17,10 +17,10 @@ run in every respect that is not float rounding:
   ``num_envs``, seeded exactly as a ``num_envs``-simulator env with seed ``s``
   (``sg_torchrl.make(..., seed=[s0, s1, ...])``);
 * **networks**: ``torch.manual_seed(s)`` (:func:`~sg_torchrl.seeding.seed_torch`) then
-  ``make_actor_critics``, as the single-seed :class:`~sg_torchrl.train.trainer.Trainer` initialises
-  them, stacked in a
-  :class:`~sg_torchrl.train.stacked.StackedActorCritic`;
-* **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``);
+  ``make_actor_critics`` (the TorchRL modules users build; with CNN encoders on pixel observations),
+  stacked in a :class:`~sg_torchrl.train.stacked.StackedActorCritic`;
+* **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``),
+  over the flat vector only (images are scaled in the networks and stay ``uint8`` in the batch);
 * **random streams** (:mod:`sg_torchrl.seeding`): action noise from one ``torch.Generator`` per seed
   (the ``actions`` purpose, :func:`~sg_torchrl.seeding.action_seed`), minibatch order from another
   (:class:`~sg_torchrl.train.fused.SeedShuffler`, seeded with ``s`` as the single-seed trainer seeds
@@ -57,11 +57,10 @@ non-finite, is frozen (no more updates, multiplier or logs; its simulators idle 
 and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
 when none is left the run ends early.
 
-**One seed** (``sg-train --seed s``, ``engine="fused"``, the default on flat-vector observations):
-:class:`SingleSeedGroupTrainer` is this engine with the one seed, in the single-seed layout. It trains
-exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1: progress rows but their timings,
-parameters, the seed's checkpoint entry) and writes what a :class:`~sg_torchrl.train.trainer.Trainer`
-run writes, where it writes it.
+**One seed** (``sg-train --seed s``): :class:`SingleSeedGroupTrainer` is this engine with the one seed,
+in the single-seed layout. It trains exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1:
+progress rows but their timings, parameters, the seed's checkpoint entry) and writes a single run's
+files in its run directory.
 """
 
 from __future__ import annotations
@@ -77,7 +76,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 import sg_torchrl
 from sg_torchrl import seeding
-from sg_torchrl.collectors import RolloutCollector
+from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae
 from sg_torchrl.train.algorithms import ALGORITHMS
@@ -144,7 +143,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     Raises:
         ValueError: a multi-agent algorithm (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`
-            trains those), an algorithm without a group update, or observations that are not a flat vector.
+            trains those), or an algorithm without a group update.
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
@@ -172,7 +171,7 @@ class GroupTrainer(SeedGroupTrainer):
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
 
         singles = []
-        for seed in self.seeds:  # each seed's networks as its single-seed Trainer initialises them
+        for seed in self.seeds:  # each seed's networks as make_actor_critics initialises them after seed_torch(seed)
             seeding.seed_torch(seed)
             singles.append(make_actor_critics(layout, self.base_env.action_spec, cfg.network_sizes))
         self.model = StackedActorCritic.from_single(singles, layout=layout)
@@ -181,8 +180,8 @@ class GroupTrainer(SeedGroupTrainer):
         loss = self.algorithm.make_loss(*singles[0], self.multipliers[0], cfg)
         self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
-        # Second order has no actor learning rate (the single-seed Trainer's Adam holds the critics
-        # alone): the actor's group is kept at lr 0 and never stepped, its trust-region step moves it.
+        # Second order has no actor learning rate (SafePO's Adam holds the critics alone): the actor's
+        # group is kept at lr 0 and never stepped, its trust-region step moves it.
         actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
         self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
@@ -310,29 +309,27 @@ class GroupTrainer(SeedGroupTrainer):
 
 
 class SingleSeedGroupTrainer(GroupTrainer):
-    """One run (``cfg.seed``; no ``cfg.seeds``) on the fused engine, in the single-seed layout: ``sg-train --seed s``.
+    """One run (``cfg.seed``; no ``cfg.seeds``) on the seed-group engine, in the single-seed layout: ``sg-train --seed s``.
 
     The seed-group engine with S = 1 (stacked networks, the fused minibatch step, the seed's own action-noise
     and minibatch generators), so the run is seed ``s`` of ``--seeds s`` exactly: the same progress rows
-    but their ``Time/*`` columns, the same parameters and checkpoint entry. It is the
-    :class:`~sg_torchrl.train.trainer.Trainer`'s run statistically, not bit for bit: the same initial
-    networks, algorithm and hyper-parameters, drawn from other random streams and rounded by other kernels.
+    but their ``Time/*`` columns, the same parameters and checkpoint entry.
 
     Only where things are written differs from a group of one: ``cfg.run_dir`` itself is the run's
-    directory and holds what a Trainer run writes there (``config.json``, ``progress.csv``, ``csv/``,
-    ``wandb/``, ``summary.json``, ``curves.png``, ``checkpoint.pt``), with the same metric names; there is
-    no ``seed-XXX/`` level and no group summary or group figure. The checkpoint is a group's with one
-    entry under ``"seeds"`` (:func:`seed_entry` reads it); its ``"seed_group"`` entry is how ``--resume``
-    tells it from a Trainer checkpoint and continues it on this engine. A diverged run (its parameters or
-    update turned non-finite) ends early, reported on stderr and in ``summary.json`` (``Diverged``).
+    directory and holds a single run's files (``config.json``, ``progress.csv``, ``csv/``, ``wandb/``,
+    ``summary.json``, ``curves.png``, ``checkpoint.pt``), with the same metric names; there is no
+    ``seed-XXX/`` level and no group summary or group figure. The checkpoint is a group's with one entry
+    under ``"seeds"`` (:func:`seed_entry` reads it) and a ``"seed_group"`` entry (what tells it from a
+    checkpoint of the retired ``LossModule`` trainer, which ``--resume`` refuses). A diverged run (its
+    parameters or update turned non-finite) ends early, reported on stderr and in ``summary.json``
+    (``Diverged``).
 
     Args:
-        cfg: a single-agent, single-seed config on flat-vector observations (``engine`` ``"fused"``).
+        cfg: a single-agent, single-seed config.
         checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from.
 
     Raises:
-        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those), a multi-agent algorithm, or
-            observations that are not a flat vector.
+        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those) or a multi-agent algorithm.
     """
 
     def _run_seeds(self, cfg: TrainConfig) -> list[int]:
@@ -344,8 +341,13 @@ class SingleSeedGroupTrainer(GroupTrainer):
     def _seed_config(self, seed: int) -> TrainConfig:
         return self.cfg  # the run's directory is the trainer's: no seed-XXX/ level
 
+    @property
+    def stats(self) -> EpisodeStats:
+        """The run's episode statistics (its one seed's record)."""
+        return self.runs[0].stats
+
     def finish(self) -> dict[str, float]:
         """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
-        :meth:`Trainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
+        :meth:`EpochTrainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
         ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
         return self._finish_seed(0)

@@ -21,7 +21,7 @@ statistics, :math:`J_c`, the last row, divergence; the seed list is checked on l
 Where the runs write is a layout decided by two hooks, :meth:`~SeedGroupTrainer._run_seeds` and
 :meth:`~SeedGroupTrainer._seed_config` (default: the group's ``seed-XXX/`` directories), and :meth:`finish`:
 :class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer` overrides them to run one seed in the
-single-seed layout (``sg-train --seed s`` on the fused engine).
+single-seed layout (``sg-train --seed s``).
 
 A subclass builds its env, :attr:`~SeedGroupTrainer.policy` (with a ``frozen`` attribute: ``None``
 or an ``(S,)`` bool of the seeds acting with zeros), :attr:`~SeedGroupTrainer.collector` and
@@ -308,7 +308,7 @@ def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     entries = checkpoint.get("seeds") or []
     for entry in entries:
         if entry["seed"] == seed:
-            cfg = TrainConfig(**checkpoint["config"])
+            cfg = TrainConfig.from_saved(checkpoint["config"])
             cfg = cfg.for_seed(seed) if cfg.group else cfg  # a fused single-seed run's config is its seed's
             return {**entry, "config": cfg.to_dict()}
     raise KeyError(f"seed {seed} is not in this checkpoint (seeds: {[entry['seed'] for entry in entries]})")

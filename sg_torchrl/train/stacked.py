@@ -4,7 +4,8 @@ A *seed group* trains S independent runs in one process (DESIGN.md, "Many seeds 
 SafePO's networks (:mod:`sg_torchrl.train.models`: tanh MLPs of [64, 64], a Gaussian actor with a
 state-independent log-std, separate reward and cost critics) are so small that a gradient step is
 per-operator overhead; stacking the S copies of each weight along a leading seed dimension turns S
-steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one.
+steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one. The
+stacked layers (:class:`StackedMLP`, the CNN encoders) are in :mod:`sg_torchrl.train.stacked_layers`.
 
 Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
 ``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
@@ -24,7 +25,7 @@ parameters' strides therefore have a gap between seeds; build the module on its 
 (``.to()`` works, and rebuilds the buffers, which an optimiser over the old ones no longer sees).
 
 **Pixel observations.** With an image layout (:class:`~sg_torchrl.train.models.ObservationLayout`)
-each of the three networks is a :class:`~sg_torchrl.train.stacked_cnn.StackedEncodedMLP` (stacked CNN
+each of the three networks is a :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` (stacked CNN
 encoder, then the stacked MLP), whose convolution weights sit in the same flat groups; the networks
 then read a TensorDict of batch ``[S, B]`` (:meth:`StackedActorCritic.read_observation`) instead of a
 tensor, and passes over a whole epoch's batch go in chunks (:attr:`StackedActorCritic.chunk_size`,
@@ -38,136 +39,17 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale
 from torch import Tensor, nn
 from torchrl.data import TensorSpec
-from tensordict import TensorDict, TensorDictBase
 from torchrl.modules import MLP, ConvNet
 
 from sg_torchrl.objectives.surrogates import gaussian_log_prob
 from sg_torchrl.train.models import ObservationLayout, make_actor_critics
-from sg_torchrl.train.stacked_cnn import StackedEncodedMLP
+from sg_torchrl.train.stacked_layers import StackedEncodedMLP, StackedMLP, linear_layers
 
 __all__ = ["StackedActorCritic", "StackedMLP", "in_chunks", "quiet_layout_warning"]
-
-def _linear_layers(mlp: nn.Module) -> list[nn.Linear]:
-    """The ``Linear`` layers of a tanh MLP (``Linear``, ``Tanh``, ..., ``Linear``), checked."""
-    children = list(mlp.children()) if isinstance(mlp, nn.Sequential) else []
-    shapes_ok = len(children) % 2 == 1 and all(
-        isinstance(child, nn.Linear if i % 2 == 0 else nn.Tanh) for i, child in enumerate(children)
-    )
-    if not shapes_ok or not all(child.bias is not None for child in children[::2]):
-        raise TypeError(f"expected a tanh MLP (Linear, Tanh, ..., Linear, with biases), got {mlp}")
-    return children[::2]
-
-
-class StackedMLP(nn.Module):
-    """S independent tanh MLPs whose layers are stacked along a leading seed dimension.
-
-    Layer ``i`` is ``weights[i]`` of shape ``(S, in_i, out_i)`` (the transpose of ``nn.Linear``'s
-    ``(out, in)``, so the forward pass is ``baddbmm(bias, x, weight)`` without a transpose) and
-    ``biases[i]`` of shape ``(S, 1, out_i)``; tanh between layers, none after the last, as
-    torchrl's ``MLP(activation_class=nn.Tanh)``. Build it with :meth:`from_modules`; the
-    constructor leaves zeros.
-
-    Args:
-        num_seeds: S.
-        in_features, out_features: input and output sizes.
-        hidden_sizes: widths of the hidden layers.
-        device, dtype: where the parameters live.
-    """
-
-    def __init__(
-        self,
-        num_seeds: int,
-        in_features: int,
-        out_features: int,
-        hidden_sizes: Sequence[int],
-        *,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype | None = None,
-    ) -> None:
-        super().__init__()
-        if num_seeds < 1:
-            raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
-        sizes = [int(in_features), *map(int, hidden_sizes), int(out_features)]
-        options = dict(device=device, dtype=dtype)
-        self.weights = nn.ParameterList(
-            [nn.Parameter(torch.zeros(num_seeds, a, b, **options)) for a, b in zip(sizes[:-1], sizes[1:])]
-        )
-        self.biases = nn.ParameterList([nn.Parameter(torch.zeros(num_seeds, 1, b, **options)) for b in sizes[1:]])
-        self.num_seeds = int(num_seeds)
-        self.sizes = tuple(sizes)
-
-    @property
-    def hidden_sizes(self) -> tuple[int, ...]:
-        return self.sizes[1:-1]
-
-    def forward(self, x: Tensor) -> Tensor:
-        """``x`` of shape ``(S, B, in)`` to ``(S, B, out)``; seed ``s`` only sees its own weights."""
-        last = len(self.weights) - 1
-        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            x = torch.baddbmm(bias, x, weight)
-            if i < last:
-                x = torch.tanh(x)
-        return x
-
-    @classmethod
-    def from_modules(
-        cls, modules: Sequence[nn.Module], *, device: torch.device | str | None = None
-    ) -> StackedMLP:
-        """Stack S tanh MLPs of one shape (e.g. torchrl ``MLP``\\ s), copying each one's weights."""
-        if not modules:
-            raise ValueError("from_modules needs at least one module")
-        layers = [_linear_layers(module) for module in modules]
-        shapes = {tuple((lin.in_features, lin.out_features) for lin in seed) for seed in layers}
-        if len(shapes) != 1:
-            raise ValueError(f"the modules differ in shape: {sorted(shapes)}")
-        first = layers[0]
-        sizes = [first[0].in_features, *(lin.out_features for lin in first)]
-        weight = first[0].weight
-        stacked = cls(len(modules), sizes[0], sizes[-1], sizes[1:-1], device=device or weight.device,
-                      dtype=weight.dtype)
-        for seed, module in enumerate(modules):
-            stacked.load_seed(seed, module)
-        return stacked
-
-    @torch.no_grad()
-    def load_seed(self, seed: int, module: nn.Module) -> None:
-        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
-        layers = _linear_layers(module)
-        if len(layers) != len(self.weights):
-            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
-            weight[seed].copy_(linear.weight.detach().T)
-            bias[seed, 0].copy_(linear.bias.detach())
-
-    @torch.no_grad()
-    def copy_seed_to(self, seed: int, module: nn.Module) -> nn.Module:
-        """Write seed ``seed``'s weights into a single tanh MLP of this shape; returns it."""
-        layers = _linear_layers(module)
-        if len(layers) != len(self.weights):
-            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
-            linear.weight.copy_(weight[seed].T)
-            linear.bias.copy_(bias[seed, 0])
-        return module
-
-    def export(self, seed: int) -> MLP:
-        """Seed ``seed`` as a fresh torchrl ``MLP`` (what ``make_network`` builds), with its weights."""
-        weight = self.weights[0]
-        mlp = MLP(in_features=self.sizes[0], out_features=self.sizes[-1], num_cells=list(self.hidden_sizes),
-                  activation_class=nn.Tanh, device=weight.device)
-        return self.copy_seed_to(seed, mlp.to(weight.dtype))
-
-    def seed_state_dict(self, seed: int) -> dict[str, Tensor]:
-        """Seed ``seed``'s weights under the keys of a single torchrl ``MLP``'s ``state_dict``."""
-        return self.export(seed).state_dict()
-
-    def parameter_names(self) -> list[str]:
-        """Parameter names in flat-buffer order: layer by layer, weight then bias."""
-        return [f"{kind}.{i}" for i in range(len(self.weights)) for kind in ("weights", "biases")]
-
 
 def in_chunks(fn, obs: Tensor | TensorDictBase, chunk_size: int | None) -> tuple[Tensor, ...]:
     """``fn`` over the samples of ``obs`` (``(S, N, ...)``) ``chunk_size`` at a time, outputs joined on dim 1.
@@ -217,7 +99,7 @@ class StackedActorCritic(nn.Module):
     ``scale = exp(log_std).clamp_min(scale_lb)`` as torchrl's ``AddStateIndependentNormalScale``
     computes it; ``critic`` and ``cost_critic`` are :class:`StackedMLP`\\ s with one output. Inputs
     are seed-major: ``obs`` of shape ``(S, B, obs_dim)``; with an image layout every network is a
-    :class:`~sg_torchrl.train.stacked_cnn.StackedEncodedMLP` reading a TensorDict of batch ``[S, B]``.
+    :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` reading a TensorDict of batch ``[S, B]``.
 
     Args:
         num_seeds: S.
@@ -449,7 +331,7 @@ class StackedActorCritic(nn.Module):
         if not networks:
             raise ValueError("from_single needs at least one (actor, critic, cost_critic)")
         mean0, scale0 = _actor_parts(networks[0][0])
-        layers = _linear_layers(mean0)
+        layers = linear_layers(mean0)
         weight = layers[0].weight
         hidden = [lin.out_features for lin in layers[:-1]]
         encoded = any(isinstance(m, ConvNet) for m in networks[0][0].modules())

@@ -1,8 +1,8 @@
-"""Seed-stacked CNN encoders: S copies of :class:`~sg_torchrl.train.models.ObservationEncoder`, run as one.
+"""Seed-stacked networks: S copies of SafePO's tanh MLPs and of the pixel networks' CNN encoders, run as one.
 
+:class:`StackedMLP` stacks S tanh MLPs (one ``baddbmm`` per layer for all seeds).
 The pixel networks of :mod:`sg_torchrl.train.models` (a CNN encoder over the images, the flat
-vector appended, then SafePO's tanh MLP) stacked for a seed group, as
-:class:`~sg_torchrl.train.stacked.StackedMLP` stacks the MLPs. Layer ``i`` of S seeds' convolutional
+vector appended, then SafePO's tanh MLP) are stacked as :class:`StackedEncodedMLP`. Layer ``i`` of S seeds' convolutional
 stacks is one weight ``(S, out_i, in_i, k_i, k_i)`` and one bias ``(S, out_i)`` (so the convolutions
 sit in the group's flat parameter buffers like every other weight), and the forward pass runs one
 ``conv2d`` per seed on its slice: exactly the call its own :class:`~torchrl.modules.ConvNet` makes, so
@@ -31,7 +31,126 @@ from torchrl.modules import MLP, ConvNet
 from sg_torchrl.train.cnn import DEFAULT_CNN, CNNArchitecture
 from sg_torchrl.train.models import DEPTH_RANGE, ObservationLayout
 
-__all__ = ["StackedConvNet", "StackedEncodedMLP", "StackedEncoder", "conv_layers"]
+__all__ = ["StackedConvNet", "StackedEncodedMLP", "StackedEncoder", "StackedMLP", "conv_layers", "linear_layers"]
+
+
+def linear_layers(mlp: nn.Module) -> list[nn.Linear]:
+    """The ``Linear`` layers of a tanh MLP (``Linear``, ``Tanh``, ..., ``Linear``), checked."""
+    children = list(mlp.children()) if isinstance(mlp, nn.Sequential) else []
+    shapes_ok = len(children) % 2 == 1 and all(
+        isinstance(child, nn.Linear if i % 2 == 0 else nn.Tanh) for i, child in enumerate(children)
+    )
+    if not shapes_ok or not all(child.bias is not None for child in children[::2]):
+        raise TypeError(f"expected a tanh MLP (Linear, Tanh, ..., Linear, with biases), got {mlp}")
+    return children[::2]
+
+
+class StackedMLP(nn.Module):
+    """S independent tanh MLPs whose layers are stacked along a leading seed dimension.
+
+    Layer ``i`` is ``weights[i]`` of shape ``(S, in_i, out_i)`` (the transpose of ``nn.Linear``'s
+    ``(out, in)``, so the forward pass is ``baddbmm(bias, x, weight)`` without a transpose) and
+    ``biases[i]`` of shape ``(S, 1, out_i)``; tanh between layers, none after the last, as
+    torchrl's ``MLP(activation_class=nn.Tanh)``. Build it with :meth:`from_modules`; the
+    constructor leaves zeros.
+
+    Args:
+        num_seeds: S.
+        in_features, out_features: input and output sizes.
+        hidden_sizes: widths of the hidden layers.
+        device, dtype: where the parameters live.
+    """
+
+    def __init__(
+        self,
+        num_seeds: int,
+        in_features: int,
+        out_features: int,
+        hidden_sizes: Sequence[int],
+        *,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if num_seeds < 1:
+            raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
+        sizes = [int(in_features), *map(int, hidden_sizes), int(out_features)]
+        options = dict(device=device, dtype=dtype)
+        self.weights = nn.ParameterList(
+            [nn.Parameter(torch.zeros(num_seeds, a, b, **options)) for a, b in zip(sizes[:-1], sizes[1:])]
+        )
+        self.biases = nn.ParameterList([nn.Parameter(torch.zeros(num_seeds, 1, b, **options)) for b in sizes[1:]])
+        self.num_seeds = int(num_seeds)
+        self.sizes = tuple(sizes)
+
+    @property
+    def hidden_sizes(self) -> tuple[int, ...]:
+        return self.sizes[1:-1]
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``x`` of shape ``(S, B, in)`` to ``(S, B, out)``; seed ``s`` only sees its own weights."""
+        last = len(self.weights) - 1
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(bias, x, weight)
+            if i < last:
+                x = torch.tanh(x)
+        return x
+
+    @classmethod
+    def from_modules(
+        cls, modules: Sequence[nn.Module], *, device: torch.device | str | None = None
+    ) -> StackedMLP:
+        """Stack S tanh MLPs of one shape (e.g. torchrl ``MLP``\\ s), copying each one's weights."""
+        if not modules:
+            raise ValueError("from_modules needs at least one module")
+        layers = [linear_layers(module) for module in modules]
+        shapes = {tuple((lin.in_features, lin.out_features) for lin in seed) for seed in layers}
+        if len(shapes) != 1:
+            raise ValueError(f"the modules differ in shape: {sorted(shapes)}")
+        first = layers[0]
+        sizes = [first[0].in_features, *(lin.out_features for lin in first)]
+        weight = first[0].weight
+        stacked = cls(len(modules), sizes[0], sizes[-1], sizes[1:-1], device=device or weight.device,
+                      dtype=weight.dtype)
+        for seed, module in enumerate(modules):
+            stacked.load_seed(seed, module)
+        return stacked
+
+    @torch.no_grad()
+    def load_seed(self, seed: int, module: nn.Module) -> None:
+        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
+        layers = linear_layers(module)
+        if len(layers) != len(self.weights):
+            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
+        for linear, weight, bias in zip(layers, self.weights, self.biases):
+            weight[seed].copy_(linear.weight.detach().T)
+            bias[seed, 0].copy_(linear.bias.detach())
+
+    @torch.no_grad()
+    def copy_seed_to(self, seed: int, module: nn.Module) -> nn.Module:
+        """Write seed ``seed``'s weights into a single tanh MLP of this shape; returns it."""
+        layers = linear_layers(module)
+        if len(layers) != len(self.weights):
+            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
+        for linear, weight, bias in zip(layers, self.weights, self.biases):
+            linear.weight.copy_(weight[seed].T)
+            linear.bias.copy_(bias[seed, 0])
+        return module
+
+    def export(self, seed: int) -> MLP:
+        """Seed ``seed`` as a fresh torchrl ``MLP`` (what ``make_network`` builds), with its weights."""
+        weight = self.weights[0]
+        mlp = MLP(in_features=self.sizes[0], out_features=self.sizes[-1], num_cells=list(self.hidden_sizes),
+                  activation_class=nn.Tanh, device=weight.device)
+        return self.copy_seed_to(seed, mlp.to(weight.dtype))
+
+    def seed_state_dict(self, seed: int) -> dict[str, Tensor]:
+        """Seed ``seed``'s weights under the keys of a single torchrl ``MLP``'s ``state_dict``."""
+        return self.export(seed).state_dict()
+
+    def parameter_names(self) -> list[str]:
+        """Parameter names in flat-buffer order: layer by layer, weight then bias."""
+        return [f"{kind}.{i}" for i in range(len(self.weights)) for kind in ("weights", "biases")]
 
 
 def conv_layers(net: nn.Module) -> list[nn.Conv2d]:
@@ -141,8 +260,6 @@ class StackedEncodedMLP(nn.Module):
 
     def __init__(self, num_seeds: int, layout: ObservationLayout, out_features: int, hidden_sizes: Sequence[int], *,
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> None:
-        from sg_torchrl.train.stacked import StackedMLP  # stacked.py builds these: imported at use
-
         super().__init__()
         self.encoder = StackedEncoder(num_seeds, layout, device=device, dtype=dtype)
         self.head = StackedMLP(num_seeds, self.encoder.out_features, out_features, hidden_sizes,
