@@ -102,7 +102,7 @@ class TrainConfig:
     seeds: list[int] = _opt(
         (), "train a seed group: these seeds side by side in one process (e.g. 0 1 2), each exactly as its "
         "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
-        "group's directory; every algorithm, on flat observations")
+        "group's directory; every algorithm; single-agent ones on flat or pixel observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
     steps_per_epoch: int | None = _opt(

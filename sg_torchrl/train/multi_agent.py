@@ -208,7 +208,7 @@ class MultiAgentTrainer(EpochTrainer):
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
         if not cfg.multi_agent:
-            raise ValueError(f"MultiAgentTrainer runs the multi-agent algorithms, not {cfg.algo!r} (use Trainer)")
+            raise ValueError(f"MultiAgentTrainer runs the multi-agent algorithms, not {cfg.algo!r} (use SingleSeedGroupTrainer)")
         super().__init__(cfg)
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
