@@ -1,4 +1,4 @@
-"""CPU cost of training per seed: the single-seed ``Trainer`` against seed groups of S = 1, 3, 8.
+"""CPU cost of training per seed: seed groups of S = 1, 3, 8 against S = 1 of the group.
 
 A seed group (``sg-train --seeds``, :mod:`sg_torchrl.train.seed_group`) steps S seeds' simulators in
 one batched env and their networks as one stacked model, so what one seed costs should fall with S.
@@ -7,24 +7,26 @@ This script trains each algorithm of ``--algos`` (default PPO-Lag and CPO) at th
 passes of minibatch 64 with KL early stop 0.02, CPO one trust-region step then 10 critic passes of
 minibatch 128) for ``--epochs`` epochs per configuration, in one run and one after the other:
 
-* ``Trainer``: the single-seed ``LossModule`` engine (``sg-train --engine loss-module``), eager (the
-  baseline of the ratios) and with ``--compile true``; ``sg-train --seed s`` runs by default on the fused
-  engine, which is the ``group S=1`` row's code in the single-seed layout;
 * ``group S=k``: a seed group of seeds 0..k-1, eager, and with ``--compile true`` (the fused minibatch
   losses and the masked Adam through ``torch.compile``; its first epoch includes the compiling). For
   a second-order algorithm only the critics' passes compile: the stacked trust-region step
   (:mod:`sg_torchrl.objectives.stacked_trust_region`: conjugate gradient, double backward, line search)
   runs eagerly either way, and the table says so.
 
+The baseline of the ratios is the eager ``group S=1`` row: one seed on the seed-group engine, which is
+what every single-agent run trains on (``sg-train --seed s`` is that row's code in the single-seed
+layout), so the ratios say what stacking more seeds saves per seed. (Earlier versions measured against
+the retired single-seed ``LossModule`` trainer; ``benchmarks/RESULTS.md`` keeps those figures.)
+
 Reported per env: CPU seconds (``time.process_time``, every thread of the process) per 1,000 env
 steps *per seed*, over all epochs and over the epochs after the first (steady state: no compiling,
 warm caches), the ratio of the baseline's steady figure to each configuration's (> 1: cheaper per
-seed than the single-seed trainer), the share of wall time spent collecting, and the passes the KL
+seed than one seed alone), the share of wall time spent collecting, and the passes the KL
 stop allowed (the mean over seeds: configurations that stop at different passes do different work;
 second order: the critic passes, always all of them). Every configuration runs with one torch
 thread, as ``sg-train`` does, and with glibc told to keep freed memory
 (:func:`~sg_torchrl.train.memory.keep_freed_memory`, which every seed group applies at start-up), so
-the single-seed baseline runs under the same allocator settings as the groups. Each row runs in a
+every row runs under the same allocator settings. Each row runs in a
 fresh (spawned) process, which also gives its peak resident memory (``ru_maxrss``: interpreter, torch
 and MuJoCo included), reported whole and per seed.
 
@@ -52,8 +54,7 @@ from dataclasses import dataclass
 
 import torch
 
-from sg_torchrl.train import TrainConfig, Trainer, trainer_class
-from sg_torchrl.algorithms import manifest
+from sg_torchrl.train import TrainConfig, trainer_class
 from sg_torchrl.train.fused import FusedFirstOrderStep
 from sg_torchrl.train.memory import keep_freed_memory
 
@@ -94,7 +95,7 @@ def measure_in_child(*args) -> Row:
 
 
 def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: dict, epochs: int) -> Row:
-    """Train ``epochs`` epochs of ``algo``: its single-seed trainer (``seeds`` None) or a group of ``seeds``.
+    """Train ``epochs`` epochs of ``algo``: its single-seed trainer (``seeds`` None: multi-agent) or a group of ``seeds``.
 
     Compiled graphs of earlier rows are dropped first (``torch._dynamo.reset``), so each row compiles as
     a fresh ``sg-train`` process does: dynamo keys its cache on the loss function's code, and the rows'
@@ -107,10 +108,8 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
         steps = settings.get("steps_per_epoch", TrainConfig(algo=algo, env_id=env_id).steps_per_epoch)
         common = dict(algo=algo, env_id=env_id, total_steps=epochs * steps, wandb="disabled", eval_episodes=0,
                       progress=False, output_dir=tmp, compile=compile, **settings)
-        if seeds is None:  # the baseline: single agent the Trainer (LossModule engine; sg-train's default for
-            # one seed is fused), multi agent sg-train --seed 0's trainer (the multi-agent engine with S = 1)
-            engine = None if manifest.get(algo).multi_agent else "loss-module"
-            cfg = TrainConfig(seed=0, engine=engine, **common)
+        if seeds is None:  # the multi-agent baseline: sg-train --seed 0's trainer (the engine with S = 1)
+            cfg = TrainConfig(seed=0, **common)
             trainer, count = trainer_class(cfg)(cfg), 1
             label = f"{type(trainer).__name__} (single seed)" + (" compiled" if compile else "")
         else:
@@ -169,16 +168,19 @@ def main() -> None:
     else:
         settings = QUICK if args.quick else PAPER
     sizes = args.seeds or ([1, 3] if args.quick else [1, 3, 8])
+    if not args.multi_agent:  # S = 1 of the group first: the baseline of the ratios
+        sizes = [1, *(size for size in sizes if size != 1)]
     steady = slice(1, None) if args.epochs > 1 else slice(None)
     print(f"{args.epochs} epoch(s) per row; CPU s = time.process_time(); glibc keeps freed memory: {kept}\n")
     for algo, env_id in pairs:
         runs = []
         for compile in ([False] if args.no_compile or args.multi_agent else [False, True]):
-            runs.append(measure_in_child(algo, env_id, None, compile, settings, args.epochs))
+            if args.multi_agent:
+                runs.append(measure_in_child(algo, env_id, None, compile, settings, args.epochs))
             runs += [measure_in_child(algo, env_id, size, compile, settings, args.epochs) for size in sizes]
         base = runs[0].per_seed_k(runs[0].cpu[steady])
         print(f"### {algo} on {env_id}: {describe(algo, env_id, settings)}\n")
-        print("| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs single seed "
+        print(f"| configuration | CPU s / 1k steps / seed, all epochs | after the first epoch | speed-up vs {runs[0].label} "
               "| collection share of wall | passes per epoch | peak MiB | peak MiB / seed |")
         print("|---|---|---|---|---|---|---|---|")
         for row in runs:

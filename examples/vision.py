@@ -37,8 +37,7 @@ from sg_torchrl.objectives import (
     make_gae,
     normalize_advantages,
 )
-from sg_torchrl.modules import ObservationLayout, make_actor_critics
-from sg_torchrl.train.updates import forward_in_chunks, write_values
+from sg_torchrl.modules.mlp import ObservationLayout, forward_in_chunks, make_actor_critics, write_values
 
 
 def parse() -> argparse.Namespace:

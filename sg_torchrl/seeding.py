@@ -16,15 +16,14 @@ purpose         rule                                          consumers
 ``init``        ``torch.manual_seed(s)``, the global torch    the networks' initialisation (every trainer;
                 RNG (:func:`seed_torch`), before the networks a group seeds it once per seed before that
                 are built; an unstacked run's action noise    seed's networks); the action noise of
-                goes on drawing from the same global stream   ``Trainer`` and of each seed of the
-                                                              multi-agent engine (a group's or ``--seed``'s,
-                                                              whose state is kept per seed after its team
-                                                              is built)
+                goes on drawing from the same global stream   each seed of the multi-agent engine (a
+                                                              group's or ``--seed``'s, whose state is kept
+                                                              per seed after its team is built)
 ``actions``     ``Generator().manual_seed(a)``,               a single-agent seed group's per-seed action
                 ``a = SeedSequence([s, 1])``'s first uint64   noise (``GroupTrainer``, ``StackedPolicy``)
                 (:func:`action_seed`)
-``minibatches`` ``Generator().manual_seed(s)``                the single-seed ``Trainer``'s minibatch order;
-                                                              a seed group's ``SeedShuffler``; a multi-agent
+``minibatches`` ``Generator().manual_seed(s)``                a single-agent seed's minibatch order (a seed
+                                                              group's ``SeedShuffler``); a multi-agent
                                                               team's round generator (agent orders and
                                                               minibatch shuffles); a multi-agent round or
                                                               agent order built without a generator

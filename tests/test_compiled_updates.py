@@ -11,9 +11,8 @@ torch.set_num_threads(1)
 from torch._dynamo.utils import counters  # noqa: E402
 
 from sg_torchrl.objectives import FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
-from sg_torchrl.train import TrainConfig, Trainer  # noqa: E402
+from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
-from sg_torchrl.train.updates import loss_inputs  # noqa: E402
 from test_first_order_losses import make_batch, make_modules  # noqa: E402
 
 
@@ -33,25 +32,11 @@ def _loss_and_batch(kind: str):
     return loss, batch
 
 
-class TestLossInputs:
-    def test_selects_the_loss_in_keys_in_their_order(self):
-        loss, batch = _loss_and_batch("ppo_lag")
-        batch["unused"] = torch.zeros(batch.shape[0])
-        selected = loss_inputs(loss, batch)
-        assert list(selected.keys()) == [k for k in loss.in_keys if k in batch.keys()]
-        assert "unused" not in selected.keys()
-        assert list(loss_inputs(loss.critic_losses, batch).keys()) == list(selected.keys())
-
-    def test_a_callable_without_in_keys_gets_everything(self):
-        _, batch = _loss_and_batch("ppo_lag")
-        assert loss_inputs(lambda td: {}, batch) is batch
-
-
 # CUP's projection loss is compiled in the training test below (each compile costs 10-40 s on a cold cache).
 @pytest.mark.parametrize("kind", ["ppo_lag", "focops"])
 def test_compiled_loss_matches_eager_values_and_gradients(kind):
     loss, batch = _loss_and_batch(kind)
-    batch = loss_inputs(loss, batch)
+    batch = batch.select(*(key for key in loss.in_keys if key in batch.keys()))  # what the loss reads, in order
     terms = [k for k in loss.out_keys if k.startswith("loss_")]
 
     eager = loss(batch)
@@ -85,7 +70,7 @@ def _config(tmp_path, **overrides) -> TrainConfig:
 # CUP runs the first-order loop (its stage one, as PPO-Lag's) and the projection passes; CPO the critic passes.
 @pytest.mark.parametrize("algo", ["cup", "cpo"])
 def test_compiled_training_reuses_its_graphs_after_the_first_epoch(tmp_path, algo):
-    trainer = Trainer(_config(tmp_path, algo=algo))
+    trainer = SingleSeedGroupTrainer(_config(tmp_path, algo=algo))
     first = trainer.train_epoch()
     graphs = counters["stats"]["unique_graphs"]
     later = [trainer.train_epoch() for _ in range(2)]

@@ -430,9 +430,8 @@ class TestTraining:
             rows = [row for row in csv.DictReader(handle) if row["Train/Epoch"]]
         assert len(rows) == 2
         for row in rows:
-            # 75-step episodes unless the ball falls first, which random actions make it do now and then (in this
-            # command's second epoch seed 0 on the fused engine drops it once; seed 1 on the Trainer, --engine
-            # loss-module, too): the mean length is the time limit or a little under it.
+            # 75-step episodes unless the ball falls first, which random actions make it do now and then: the
+            # mean length is the time limit or a little under it.
             assert 60.0 < float(row["Metrics/EpLen"]) <= 75.0
             assert 0.0 <= float(row["Metrics/EpCost"]) <= 2 * 75  # both hands' forefingers, per step
             assert 0.0 < float(row["Metrics/EpRet"]) < 75.0  # exp(-...) <= 1 per step

@@ -24,7 +24,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sg_torchrl.train import EpochTrainer, SingleSeedMultiAgentTrainer, TrainConfig, Trainer
+from sg_torchrl.train import EpochTrainer, SingleSeedGroupTrainer, SingleSeedMultiAgentTrainer, TrainConfig
 
 torch.set_num_threads(1)
 
@@ -48,7 +48,7 @@ def test_safe_algorithm_brings_episode_cost_under_the_limit(tmp_path, algo, opti
         total_steps=600_000, update_iters=10, eval_episodes=0, wandb="disabled", progress=False,
         output_dir=str(tmp_path), **options,
     )
-    assert_cost_comes_under_the_limit(Trainer(cfg), initial_violation=2, label=algo)
+    assert_cost_comes_under_the_limit(SingleSeedGroupTrainer(cfg), initial_violation=2, label=algo)
 
 
 def assert_cost_comes_under_the_limit(trainer: EpochTrainer, initial_violation: float, label: str) -> None:

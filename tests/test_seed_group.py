@@ -5,7 +5,8 @@ What is compared, and how closely:
 * **env blocks** (``sg_torchrl.make(seed=[...])``) against separate envs: bit for bit (each simulator
   draws from its own generator, seeded from ``(seed, i)`` whatever the batch);
 * **per-seed normaliser rows** against an ungrouped normaliser fed one block: bit for bit;
-* **initial networks** against the single-seed ``Trainer``'s: bit for bit;
+* **initial networks** against ``make_actor_critics`` after ``seed_torch(seed)`` (what a user's single-seed
+  code builds): bit for bit;
 * **seed s of an S = 3 group against the group of s alone** (PPO-Lag, CUP, FOCOPS, and the second-order
   CPO, TRPO-Lag, PCPO): the first epoch's trajectories (observations, actions, log-probs, rewards,
   costs, dones) bit for bit, because every random number a seed uses comes from its own generators and
@@ -26,7 +27,7 @@ What is compared, and how closely:
   bit (progress rows and parameters), first and second order;
 * the command line: a group of two writes every per-seed file (PPO-Lag, CPO); bad ``--seeds`` exit 2.
 
-The second-order group update against the single-seed ``TrustRegionUpdate``, frozen seeds and
+The second-order group update against the single-seed trust-region step, frozen seeds and
 divergence inside the trust-region step: ``tests/test_seed_group_second_order.py``.
 """
 
@@ -43,14 +44,15 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.envs.normalization import RunningObservationNorm  # noqa: E402
 from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss  # noqa: E402
-from sg_torchrl.train import ALGORITHMS, GroupTrainer, TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl import seeding  # noqa: E402
+from sg_torchrl.train import ALGORITHMS, GroupTrainer, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.config import SEED_GROUP_ALGORITHMS  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler  # noqa: E402
 from sg_torchrl.train.group_updates import FirstOrderGroupUpdate, GroupParts  # noqa: E402
 from sg_torchrl.modules import StackedActorCritic, make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_group import seed_entry  # noqa: E402
-from trainer_checks import flat_parameters, recording, tiny_config  # noqa: E402
+from trainer_checks import recording, tiny_config  # noqa: E402
 
 POINT, CHEETAH = "SafetyPointGoal1-v0", "SafetyHalfCheetahVelocity-v1"
 RTOL, ATOL = 1e-4, 1e-6
@@ -127,13 +129,15 @@ def test_grouped_normaliser_rows_follow_their_blocks_bit_for_bit():
 
 
 # --------------------------------------------------------------------------- equivalence
-def test_each_seed_starts_from_its_single_seed_trainers_networks(tmp_path):
+def test_each_seed_starts_from_its_single_seed_networks(tmp_path):
     group = GroupTrainer(group_config(tmp_path / "g", [4, 9], env_options={}))
+    env = group.base_env
     for index, seed in enumerate([4, 9]):
-        single = Trainer(tiny_config(tmp_path / f"s{seed}", seed=seed))
-        exported = group.model.export_seed(index, group.base_env.action_spec)
+        seeding.seed_torch(seed)
+        single = make_actor_critics(env.observation_spec, env.action_spec, group.cfg.network_sizes)
+        exported = group.model.export_seed(index, env.action_spec)
         ours = torch.cat([p.detach().reshape(-1) for m in exported for p in m.parameters()])
-        assert torch.equal(ours, flat_parameters(single))
+        assert torch.equal(ours, torch.cat([p.detach().reshape(-1) for m in single for p in m.parameters()]))
 
 
 @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "focops", "cpo", "trpo_lag", "pcpo"])
@@ -164,7 +168,7 @@ def test_a_seed_of_three_follows_its_group_of_one(tmp_path, algo):
 
 def test_per_seed_files_have_the_single_seed_runs_columns(tmp_path):
     for algo in ("ppo_lag", "cup", "cpo"):
-        Trainer(tiny_config(tmp_path / algo, algo=algo, total_steps=200)).run()
+        SingleSeedGroupTrainer(tiny_config(tmp_path / algo, algo=algo, total_steps=200)).run()
         group = GroupTrainer(group_config(tmp_path / f"g-{algo}", [5], algo=algo))
         group.run()
         single_header = (tmp_path / algo / "run" / "progress.csv").read_text().splitlines()[0]
@@ -350,12 +354,16 @@ def test_the_config_takes_second_order_groups():
         assert cfg.group and cfg.second_order and algo in SEED_GROUP_ALGORITHMS
 
 
+def test_the_config_takes_pixel_groups():  # stacked CNN encoders: tests/test_train_vision.py
+    cfg = TrainConfig(seeds=[0, 1], env_id="SafetyPointGoal1Vision-v0")
+    assert cfg.group and cfg.observation_mode != "vector"
+
+
 @pytest.mark.parametrize("flags, message", [
     (["--seeds", "0", "0"], "seeds must be distinct"),
     (["--seeds", "0", "-1"], "seeds must be >= 0"),
     (["--seeds", "0", "1", "--seed", "0"], "--seed and --seeds cannot be given together"),
     (["--seeds", "0", "--algo", "mappo", "--env-id", CHEETAH], "multi-agent algorithm"),  # groups take it, not this env
-    (["--seeds", "0", "--env-id", "SafetyPointGoal1Vision-v0"], "flat-vector observations"),
 ])
 def test_bad_seed_groups_exit_2_with_a_message(tmp_path, capsys, flags, message):
     assert main([*flags, "--output-dir", str(tmp_path)]) == 2

@@ -1,13 +1,14 @@
-"""The second-order seed-group update (``TrustRegionGroupUpdate``) against the single-seed ``TrustRegionUpdate``.
+"""The second-order seed-group update (``TrustRegionGroupUpdate``) against SafePO's single-seed epoch.
 
 ``tests/test_seed_group.py`` checks that seed s of a group follows the group of s alone, end to end
 (CPO, TRPO-Lag, PCPO among the algorithms). This file checks the update itself against the
 single-seed trainer's, on synthetic batches of two seeds with different costs (one above the limit,
 one below, so the multipliers and CPO / PCPO's violations differ per seed):
 
-* **every second-order algorithm**, each seed of the group against its own ``TrustRegionUpdate``
-  built as the single-seed ``Trainer`` builds it (the algorithm table's ``make_update``, ``Adam``
-  over the critics alone, the same minibatch generator seed): the same metric names in the same
+* **every second-order algorithm**, each seed of the group against its own single-seed epoch written
+  with the public pieces (:func:`single_update`: the row's trust-region step class on the TorchRL
+  actor, then the loss's ``critic_losses`` in minibatch passes of ``Adam`` over the critics alone, the
+  same minibatch generator seed): the same metric names in the same
   order, values to rtol 1e-4 / atol 1e-6 (float32: the stacked pass sums in another order, which
   conjugate gradient amplifies, as in ``tests/test_stacked_trust_region.py``), discrete ones (accepted
   trial, CPO case, critic passes) equal; the actor to rtol 1e-4 / atol 1e-6 and the critics after their
@@ -40,11 +41,13 @@ from tensordict import TensorDict  # noqa: E402
 from torch._dynamo.utils import counters  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
+from sg_torchrl.algorithms import manifest  # noqa: E402
+from sg_torchrl.objectives.passes import ClipGroup, GradientStep, run_passes, shuffled_slices  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, GroupTrainer, TrainConfig  # noqa: E402
+from sg_torchrl.train.algorithms import _NO_LINE_SEARCH, TRUST_REGION_STEPS, _trust_region_options  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values  # noqa: E402
 from sg_torchrl.train.group_updates import GroupParts  # noqa: E402
 from sg_torchrl.modules import StackedActorCritic, make_actor_critics  # noqa: E402
-from sg_torchrl.train.updates import UpdateParts  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 5, 2, [16, 16], 300
 SPEC = Bounded(-1.0, 1.0, shape=(ACT,))
@@ -85,7 +88,12 @@ def flat(modules) -> torch.Tensor:
 
 
 def single_update(algo: str, index: int, nets, data: TensorDict):
-    """Seed ``index`` through the single-seed update, built as ``Trainer`` builds it: (metrics, networks)."""
+    """Seed ``index`` through SafePO's single-seed second-order epoch: (metrics, networks).
+
+    The row's trust-region step (the algorithm table's step class and options) on the TorchRL actor with
+    the multiplier's advantage, then ``update_iters`` shuffled passes of ``loss.critic_losses`` with Adam
+    over the critics, their gradients clipped together (SafePO's critic loop, no early stop).
+    """
     cfg, row = config(algo), ALGORITHMS[algo]
     actor, critic, cost_critic = copy.deepcopy(nets)
     multiplier = row.make_multiplier(cfg)
@@ -94,9 +102,20 @@ def single_update(algo: str, index: int, nets, data: TensorDict):
     loss = row.make_loss(actor, critic, cost_critic, multiplier, cfg)
     optimizer = torch.optim.Adam([{"params": [*critic.parameters(), *cost_critic.parameters()],
                                    "lr": cfg.critic_lr}], fused=True)
-    parts = UpdateParts(actor, (critic, cost_critic), loss, optimizer, torch.Generator().manual_seed(SEEDS[index]),
-                        cfg.update_iters, cfg.minibatch_size, cfg.target_kl, cfg.max_grad_norm)
-    metrics = row.make_update(parts, multiplier, cfg)(data.clone(), multiplier.violation(COSTS[index]))
+    kind = manifest.get(algo).update
+    step = TRUST_REGION_STEPS[kind](actor, **_trust_region_options(cfg, kind not in _NO_LINE_SEARCH))
+    data = data.clone()
+    advantage = multiplier.combine(data["advantage"], data["cost_advantage"])
+    metrics = dict(step.step(data, advantage, data["cost_advantage"], multiplier.violation(COSTS[index])))
+    terms = ("loss_critic", "loss_cost_critic")
+    critic_step = GradientStep(loss.critic_losses, optimizer, terms,
+                               (ClipGroup([*critic.parameters(), *cost_critic.parameters()]),), cfg.max_grad_norm,
+                               foreach=True)
+    inputs = data.select(*(key for key in loss.in_keys if key in data.keys()))
+    _, _, means = run_passes(inputs, critic_step, passes=cfg.update_iters, order=shuffled_slices(cfg.minibatch_size),
+                             generator=torch.Generator().manual_seed(SEEDS[index]), metrics=terms)
+    metrics.update({"Train/StopIter": cfg.update_iters, "Loss/Loss_reward_critic": means["loss_critic"],
+                    "Loss/Loss_cost_critic": means["loss_cost_critic"]})
     return metrics, (actor, critic, cost_critic)
 
 

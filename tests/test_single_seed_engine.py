@@ -1,20 +1,18 @@
-"""``sg-train --seed s`` on the fused engine (a lean hot path for one seed too).
+"""``sg-train --seed s``: the seed-group engine with its one seed (a lean hot path for one seed too).
 
-A single-agent run on flat-vector observations runs by default on the seed-group engine with its one
-seed (:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`); ``--engine loss-module`` runs the
-:class:`~sg_torchrl.train.trainer.Trainer` (TorchRL ``LossModule`` s), as do pixel observations. Checked here:
+Every single-agent run trains on the seed-group engine; one seed is
+:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`, the engine with S = 1 in the single-seed
+layout. Checked here:
 
-* the choice (:func:`~sg_torchrl.train.trainer_class`, the config's filled-in ``engine``) and its refusals,
-  exit 2 from the command line;
-* the fused run writes the single-seed layout: the same files as a Trainer run, where a Trainer run writes
-  them, the same ``progress.csv`` columns and ``summary.json`` keys, the same printout; no ``seed-XXX/``
-  level, no group summary;
-* a fused ``--seed 0`` run is seed 0 of ``--seeds 0`` exactly: progress rows but their ``Time/*`` columns,
-  summary but its time, and the checkpoint's seed entry (networks, Adam rows, multiplier, normaliser,
-  generators), bit for bit; and it starts from the Trainer's initial networks (the statistical comparison
-  of the group engine with the Trainer is ``tests/test_seed_group.py``'s);
-* ``--resume`` continues a fused run bit for bit, and an old Trainer checkpoint (written before
-  ``engine`` existed) on the Trainer.
+* the choice (:func:`~sg_torchrl.train.trainer_class`), pixel ids included, and that ``--engine`` is gone;
+* a ``--seed`` run writes the single-seed layout: a single run's files in its run directory, no
+  ``seed-XXX/`` level, no group summary, the single-seed printout;
+* ``--seed 0`` is seed 0 of ``--seeds 0`` exactly: progress rows but their ``Time/*`` columns, summary
+  but its time, and the checkpoint's seed entry (networks, Adam rows, multiplier, normaliser,
+  generators), bit for bit; and it starts from ``make_actor_critics``' networks;
+* ``--resume`` continues a run bit for bit (also from a checkpoint whose config still names
+  ``engine: fused``, as written before the option was retired), and a checkpoint of the retired
+  ``LossModule`` trainer is refused with exit 2 and what to do instead.
 """
 
 from __future__ import annotations
@@ -23,28 +21,28 @@ import contextlib
 import csv
 import io
 import json
-import re
+import dataclasses
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from tensordict import TensorDictBase
 
 torch.set_num_threads(1)
 
+from sg_torchrl import seeding  # noqa: E402
 from sg_torchrl.train import (  # noqa: E402
     GroupTrainer,
     SingleSeedGroupTrainer,
     SingleSeedMultiAgentTrainer,
     TrainConfig,
-    Trainer,
     main,
+    train,
     trainer_class,
 )
-from sg_torchrl.train.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from sg_torchrl.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
-from trainer_checks import flat_parameters, tiny_config  # noqa: E402
+from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from trainer_checks import assert_same_state, tiny_config  # noqa: E402
 
 VISION = "SafetyPointGoal1Vision-v0"
 #: Three 200-step epochs of PPO-Lag on HalfCheetah with 100-step episodes and a 0.5 m/s limit (episodes end
@@ -70,115 +68,58 @@ def progress_rows(run_dir: Path) -> list[dict[str, str]]:
                 for row in csv.DictReader(handle) if row["Train/Epoch"]]
 
 
-def assert_same_state(mine, theirs, path="entry"):
-    """Two checkpoint entries equal bit for bit (tensors with ``torch.equal``, the rest with ``==``), timings
-    (``Time/*`` of the progress rows they carry) aside."""
-    if isinstance(mine, TensorDictBase):
-        assert_same_state(mine.to_dict(), theirs.to_dict(), path)
-    elif isinstance(mine, np.ndarray):
-        assert np.array_equal(mine, theirs, equal_nan=mine.dtype.kind == "f"), path
-    elif isinstance(mine, dict):
-        assert mine.keys() == theirs.keys(), path
-        for key in (k for k in mine if not str(k).startswith("Time/")):
-            assert_same_state(mine[key], theirs[key], f"{path}[{key!r}]")
-    elif isinstance(mine, (list, tuple)):
-        assert len(mine) == len(theirs), path
-        for i, (a, b) in enumerate(zip(mine, theirs)):
-            assert_same_state(a, b, f"{path}[{i}]")
-    elif isinstance(mine, torch.Tensor):
-        assert torch.equal(mine, theirs), path
-    else:
-        assert mine == theirs or (mine != mine and theirs != theirs), path
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> dict[str, tuple[Path, str]]:
-    """The same command on each engine, and as a group of one: run directory and printout of each."""
+    """The same command as one seed and as a group of one: run directory and printout of each."""
     root = tmp_path_factory.mktemp("engines")
-    out = {}
-    for name, extra in (("fused", []), ("loss-module", ["--engine", "loss-module"])):
-        out[name] = (root / name / "run", run_cli([*FLAGS, "--seed", "0", *extra, "--output-dir", str(root / name),
-                                                  "--run-name", "run"]))
+    out = {"single": (root / "single" / "run", run_cli([*FLAGS, "--seed", "0", "--output-dir", str(root / "single"),
+                                                        "--run-name", "run"]))}
     out["group"] = (root / "group" / "run", run_cli([*FLAGS, "--seeds", "0", "--output-dir", str(root / "group"),
                                                      "--run-name", "run"]))
     return out
 
 
 # --------------------------------------------------------------------------- the choice
-def test_the_engine_is_filled_in_and_picks_the_trainer():
-    assert TrainConfig().engine == "fused" and trainer_class(TrainConfig()) is SingleSeedGroupTrainer
-    reference = TrainConfig(engine="loss-module")
-    assert trainer_class(reference) is Trainer
-    vision = TrainConfig(env_id=VISION)  # the fused engine reads flat vectors: pixels fall back to the Trainer
-    assert vision.engine == "loss-module" and trainer_class(vision) is Trainer
+def test_every_single_agent_run_trains_on_the_seed_group_engine():
+    assert trainer_class(TrainConfig()) is SingleSeedGroupTrainer
+    assert trainer_class(TrainConfig(env_id=VISION)) is SingleSeedGroupTrainer  # stacked CNN encoders
     pixels = TrainConfig(env_id="SafetyCarGoal1-v0", env_options={"obs_mode": "vector+rgb"})
-    assert pixels.engine == "loss-module" and trainer_class(pixels) is Trainer
-    assert TrainConfig(seeds=[0, 1]).engine == "fused" and trainer_class(TrainConfig(seeds=[0, 1])) is GroupTrainer
-    multi = TrainConfig(algo="mappo_lag")
-    assert multi.engine is None and trainer_class(multi) is SingleSeedMultiAgentTrainer
-    assert parse_args(["--engine", "loss-module"]).engine == "loss-module"
+    assert trainer_class(pixels) is SingleSeedGroupTrainer
+    assert trainer_class(TrainConfig(seeds=[0, 1])) is GroupTrainer
+    assert trainer_class(TrainConfig(algo="mappo_lag")) is SingleSeedMultiAgentTrainer
+    assert "engine" not in TrainConfig().to_dict()
 
 
-@pytest.mark.parametrize(
-    "argv, values, message",
-    [
-        (["--engine", "fast"], {"engine": "fast"}, "--engine: invalid choice: 'fast'"),
-        (["--seeds", "0", "1", "--engine", "loss-module"], {"seeds": [0, 1], "engine": "loss-module"},
-         "seed groups (seeds) train on the fused engine"),
-        (["--algo", "mappo_lag", "--engine", "fused"], {"algo": "mappo_lag", "engine": "fused"},
-         "multi-agent algorithm with its own engine"),
-        (["--env-id", VISION, "--engine", "fused"], {"env_id": VISION, "engine": "fused"},
-         "engine 'fused' trains on flat-vector observations"),
-    ],
-)
-def test_bad_engines_exit_2_with_a_message(tmp_path, capsys, argv, values, message):
-    assert main([*argv, "--output-dir", str(tmp_path)]) == 2
-    assert message in capsys.readouterr().err
-    assert not any(tmp_path.iterdir())  # refused before anything was built or written
-    with pytest.raises(ValueError, match="config: engine|config: seed groups"):  # the Python API refuses too
-        TrainConfig(**values)
-
-
-def test_help_says_what_each_engine_is(capsys):
+def test_the_engine_option_is_gone(tmp_path, capsys):
+    assert main(["--engine", "loss-module", "--output-dir", str(tmp_path)]) == 2
+    assert "unrecognized arguments: --engine loss-module" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+    with pytest.raises(TypeError, match="engine"):
+        TrainConfig(engine="fused")
     assert main(["--help"]) == 0
-    text = " ".join(capsys.readouterr().out.split())
-    assert "--engine {fused,loss-module}" in text
-    for words in ("seed-group engine with one seed", "LossModules", "loss-module on pixel observations"):
-        assert words in text, words
+    assert "--engine" not in capsys.readouterr().out
 
 
 # --------------------------------------------------------------------------- the layout
-def test_a_fused_seed_writes_the_single_seed_layout(runs):
-    (fused, fused_out), (reference, reference_out) = runs["fused"], runs["loss-module"]
-    names = {p.name for p in fused.iterdir()}
-    assert names == {p.name for p in reference.iterdir()}
+def test_a_seed_writes_the_single_seed_layout(runs):
+    (single, out), (group, _) = runs["single"], runs["group"]
+    names = {p.name for p in single.iterdir()}
     assert names == {"config.json", "progress.csv", "csv", "summary.json", "curves.png", "checkpoint.pt"}
-    assert {str(p.relative_to(fused)) for p in (fused / "csv").rglob("*")} == \
-        {str(p.relative_to(reference)) for p in (reference / "csv").rglob("*")}
-    fused_summary, reference_summary = (json.loads((d / "summary.json").read_text()) for d in (fused, reference))
-    assert fused_summary.keys() == reference_summary.keys()  # no "seeds" / "mean" of a group
-    header = [(d / "progress.csv").read_text().splitlines()[0] for d in (fused, reference)]
-    assert header[0] == header[1]
-    assert [len(progress_rows(d)) for d in (fused, reference)] == [3, 3]
-    configs = [json.loads((d / "config.json").read_text()) for d in (fused, reference)]
-    assert (configs[0]["engine"], configs[1]["engine"]) == ("fused", "loss-module")
-    assert {k: v for k, v in configs[0].items() if k not in ("engine", "output_dir")} == \
-        {k: v for k, v in configs[1].items() if k not in ("engine", "output_dir")}
-    # What ran: the group engine's checkpoint (one seed entry) and the Trainer's (its loss modules).
-    fused_state, reference_state = load_checkpoint(fused), load_checkpoint(reference)
-    assert fused_state["seed_group"] == {"seeds": [0]} and [e["seed"] for e in fused_state["seeds"]] == [0]
-    assert "loss" in reference_state and "seed_group" not in reference_state
-
-    def shape(text: str, run_dir: Path) -> str:  # the printout with its numbers and directory masked
-        return re.sub(r"-?\d+(\.\d+)?|nan", "#", text.replace(str(run_dir), "RUN"))
-
-    assert shape(fused_out, fused) == shape(reference_out, reference)
-    assert "seed 0: 600 env steps" in fused_out and "evaluation (1 deterministic episodes)" in fused_out
+    assert {p.name for p in (single / "csv").iterdir()} == {p.name for p in (group / "seed-000" / "csv").iterdir()}
+    summary = json.loads((single / "summary.json").read_text())
+    assert "seeds" not in summary and "mean" not in summary and "Metrics/EvalEpRet" in summary
+    header = [(d / "progress.csv").read_text().splitlines()[0] for d in (single, group / "seed-000")]
+    assert header[0] == header[1] and len(progress_rows(single)) == 3
+    state = load_checkpoint(single)
+    assert state["seed_group"] == {"seeds": [0]} and [e["seed"] for e in state["seeds"]] == [0]
+    assert "engine" not in json.loads((single / "config.json").read_text())
+    assert "seed 0: 600 env steps" in out and "evaluation (1 deterministic episodes)" in out
+    assert f"continue with: sg-train --resume {single}" in out and "seed-XXX" not in out
 
 
 # --------------------------------------------------------------------------- the same run as a group of one
-def test_a_fused_seed_is_seed_0_of_a_group_of_one(runs):
-    (single, _), (group, _) = runs["fused"], runs["group"]
+def test_a_seed_is_seed_0_of_a_group_of_one(runs):
+    (single, _), (group, _) = runs["single"], runs["group"]
     seed_dir = group / "seed-000"
     assert progress_rows(single) == progress_rows(seed_dir)
     summaries = [json.loads((d / "summary.json").read_text()) for d in (single, seed_dir)]
@@ -195,29 +136,32 @@ def test_a_fused_seed_is_seed_0_of_a_group_of_one(runs):
         assert_same_state(mine[key], theirs[key], key)
 
 
-def test_a_fused_seed_starts_from_the_trainers_networks(tmp_path):
+def test_a_seed_starts_from_make_actor_critics_networks(tmp_path):
     fused = SingleSeedGroupTrainer(tiny_config(tmp_path / "f", seed=3))
-    reference = Trainer(tiny_config(tmp_path / "t", seed=3, engine="loss-module"))
-    exported = fused.model.export_seed(0, fused.base_env.action_spec)
+    env = fused.base_env
+    seeding.seed_torch(3)  # as a user's single-seed code builds them
+    reference = make_actor_critics(env.observation_spec, env.action_spec, fused.cfg.network_sizes)
+    exported = fused.model.export_seed(0, env.action_spec)
     assert torch.equal(torch.cat([p.detach().reshape(-1) for m in exported for p in m.parameters()]),
-                       flat_parameters(reference))
+                       torch.cat([p.detach().reshape(-1) for m in reference for p in m.parameters()]))
     with pytest.raises(ValueError, match="GroupTrainer's"):
         SingleSeedGroupTrainer(tiny_config(tmp_path / "g", seeds=[0, 1], run_name=None))
 
 
 # --------------------------------------------------------------------------- resume
-def test_resume_continues_a_fused_run_bit_for_bit(runs, tmp_path, capsys):
-    uninterrupted, _ = runs["fused"]
+def test_resume_continues_a_run_bit_for_bit(runs, tmp_path):
+    uninterrupted, _ = runs["single"]
     cfg = parse_args([*FLAGS, "--seed", "0", "--output-dir", str(tmp_path), "--run-name", "run"])
     SingleSeedGroupTrainer(cfg).run(max_epochs=1)
     run_dir = tmp_path / "run"
     assert load_checkpoint(run_dir)["epoch"] == 1 and len(progress_rows(run_dir)) == 1
-    assert main(["--resume", str(run_dir), "--engine", "loss-module"]) == 2  # a run keeps its engine
-    assert "keeps the engine that wrote its checkpoint (fused)" in capsys.readouterr().err
+    state = load_checkpoint(run_dir)
+    state["config"]["engine"] = "fused"  # as written before the option was retired: read past
+    save_checkpoint(state, run_dir / "checkpoint.pt")
     run_cli(["--resume", str(run_dir)])
     assert progress_rows(run_dir) == progress_rows(uninterrupted)
     resumed, whole = load_checkpoint(run_dir), load_checkpoint(uninterrupted)
-    assert resumed["epoch"] == 3
+    assert resumed["epoch"] == 3 and "engine" not in resumed["config"]
     assert_same_state(resumed["seeds"], whole["seeds"], "seeds")
     assert_same_state(resumed["collector"], whole["collector"], "collector")
     summaries = [json.loads((d / "summary.json").read_text()) for d in (run_dir, uninterrupted)]
@@ -226,12 +170,30 @@ def test_resume_continues_a_fused_run_bit_for_bit(runs, tmp_path, capsys):
     assert summaries[0] == summaries[1]
 
 
-def test_an_old_trainer_checkpoint_resumes_on_the_trainer(tmp_path):
-    Trainer(tiny_config(tmp_path, engine="loss-module")).run(max_epochs=1)
-    path = tmp_path / "run" / "checkpoint.pt"
-    state = load_checkpoint(path)
-    del state["config"]["engine"]  # as written before --engine existed
-    save_checkpoint(state, path)
-    run_cli(["--resume", str(tmp_path / "run")])
-    state = load_checkpoint(path)
-    assert state["epoch"] == 3 and "loss" in state and state["config"]["engine"] == "loss-module"
+def retired_trainer_checkpoint(runs, run_dir: Path, engine: str | None) -> None:
+    """A checkpoint as the retired ``LossModule`` trainer wrote it (``engine`` in its config, or none before
+    the option existed): its networks under ``"loss"``, no ``"seed_group"`` / ``"seeds"`` entries."""
+    state = load_checkpoint(runs["single"][0])
+    for name in ("seed_group", "seeds"):
+        del state[name]
+    state["loss"] = {}
+    state["config"] = {k: v for k, v in state["config"].items() if k != "engine"}
+    if engine is not None:
+        state["config"]["engine"] = engine
+    run_dir.mkdir(parents=True)
+    save_checkpoint(state, run_dir / "checkpoint.pt")
+
+
+@pytest.mark.parametrize("engine", ["loss-module", None])
+def test_a_retired_trainer_checkpoint_is_refused_with_what_to_do(runs, tmp_path, capsys, engine):
+    run_dir = tmp_path / "old"
+    retired_trainer_checkpoint(runs, run_dir, engine)
+    assert main(["--resume", str(run_dir)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sg-train: error: ") and "written by the LossModule trainer" in err
+    assert "fresh --run-name" in err and "earlier sg_torchrl release" in err
+    assert list(run_dir.iterdir()) == [run_dir / "checkpoint.pt"]  # nothing written next to it
+    cfg = dataclasses.replace(parse_args([*FLAGS, "--seed", "0"]), resume=str(run_dir), output_dir=str(tmp_path),
+                              run_name="old")
+    with pytest.raises(CheckpointError, match="LossModule trainer"):  # the Python API refuses too
+        train(cfg)

@@ -35,7 +35,7 @@ from sg_torchrl.objectives import (  # noqa: E402
     TrustRegionLoss,
 )
 from sg_torchrl.modules import make_actor_critics  # noqa: E402
-from sg_torchrl.train.updates import write_values  # noqa: E402
+from sg_torchrl.modules.mlp import write_values  # noqa: E402
 
 ENV_ID = "SafetyHalfCheetahVelocity-v1"
 NUM_ENVS, STEPS = 2, 12
@@ -60,7 +60,7 @@ def rollout():
 
 
 def precomputed(data, critic, cost_critic):
-    """The trainer's way (``Trainer.update``): values, both GAEs, SafePO's normalisation of the flat batch."""
+    """The way of a user's single-seed loop (``examples/vision.py``): values, both GAEs, SafePO's normalisation."""
     batch = data.clone()
     with torch.no_grad():
         write_values(batch, (critic, cost_critic), None)

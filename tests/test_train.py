@@ -11,7 +11,7 @@ import torch
 torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
-from sg_torchrl.train import ALGORITHMS, TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl.train import ALGORITHMS, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, SEED_GROUP_ALGORITHMS, parse_args  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
@@ -112,8 +112,8 @@ class TestConfig:
 
     def test_env_options_reach_the_training_and_evaluation_envs(self, tmp_path):
         # A threshold of -1 m/s makes most steps cost 1 (84 of 100 here; the default, 3.2 m/s, almost none).
-        trainer = Trainer(tiny_config(tmp_path, env_options={"velocity_threshold": -1.0, "max_episode_steps": 100},
-                                      eval_episodes=2))
+        options = {"velocity_threshold": -1.0, "max_episode_steps": 100}
+        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, env_options=options, eval_episodes=2))
         assert trainer.base_env.velocity_threshold == -1.0 and trainer.base_env.max_episode_steps == 100
         row = trainer.train_epoch()
         assert row["Metrics/EpLen"] == 100.0 and row["Metrics/EpCost"] > 70
@@ -122,7 +122,7 @@ class TestConfig:
 
     def test_unknown_env_id_is_a_clear_error(self, tmp_path):
         with pytest.raises(KeyError, match="Did you mean"):
-            Trainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))
+            SingleSeedGroupTrainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))
 
 
 class TestTraining:
@@ -142,7 +142,7 @@ class TestTraining:
         assert "EpCost" in capsys.readouterr().out
 
     def test_update_changes_parameters_and_multiplier_follows_cost(self, tmp_path):
-        trainer = Trainer(tiny_config(tmp_path, cost_limit=0.0))
+        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, cost_limit=0.0))
         before = flat_parameters(trainer).clone()
         metrics = trainer.train_epoch()
         assert not torch.equal(before, flat_parameters(trainer))
@@ -154,14 +154,12 @@ class TestTraining:
         # Cost limit 0: the constraint is violated, so Lagrangian multipliers grow and CPO / PCPO
         # take their constraint-handling branches.
         # 1000 steps per simulator: every HalfCheetah episode finishes within the epoch.
-        trainer = Trainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0, steps_per_epoch=2000, total_steps=2000))
-        actor = torch.cat([p.detach().reshape(-1).clone() for p in trainer.actor.parameters()])
-        critics = torch.cat([p.detach().reshape(-1).clone() for m in (trainer.critic, trainer.cost_critic)
-                             for p in m.parameters()])
+        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0, steps_per_epoch=2000,
+                                                     total_steps=2000))
+        actor, critics = trainer.model.flat_actor.clone(), trainer.model.flat_critics.clone()
         metrics = trainer.train_epoch()
-        assert not torch.equal(critics, torch.cat([p.detach().reshape(-1) for m in (trainer.critic, trainer.cost_critic)
-                                                   for p in m.parameters()]))
-        moved = not torch.equal(actor, torch.cat([p.detach().reshape(-1) for p in trainer.actor.parameters()]))
+        assert not torch.equal(critics, trainer.model.flat_critics)
+        moved = not torch.equal(actor, trainer.model.flat_actor)
         assert moved or metrics.get("Misc/AcceptanceStep") == 0  # a rejected line search leaves the actor
         for name in ("Metrics/EpRet", "Train/KL", "Loss/Loss_actor", "Loss/Loss_reward_critic",
                      "Loss/Loss_cost_critic", "Train/LagrangeMultiplier"):
@@ -176,18 +174,18 @@ class TestTraining:
 
     @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "cpo"])
     def test_resume_continues_exactly(self, tmp_path, algo):
-        uninterrupted = Trainer(tiny_config(tmp_path / "a", algo=algo))
+        uninterrupted = SingleSeedGroupTrainer(tiny_config(tmp_path / "a", algo=algo))
         uninterrupted.run()
 
-        first_half = Trainer(tiny_config(tmp_path / "b", algo=algo))
+        first_half = SingleSeedGroupTrainer(tiny_config(tmp_path / "b", algo=algo))
         first_half.run(max_epochs=2)
-        checkpoint = Trainer.load_checkpoint(first_half.checkpoint_path.parent)
-        resumed = Trainer(tiny_config(tmp_path / "b", algo=algo), checkpoint)
+        checkpoint = SingleSeedGroupTrainer.load_checkpoint(first_half.checkpoint_path.parent)
+        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path / "b", algo=algo), checkpoint)
         assert resumed.epoch == 2
         resumed.run()
 
         assert torch.equal(flat_parameters(uninterrupted), flat_parameters(resumed))
-        assert torch.equal(uninterrupted.multiplier.value, resumed.multiplier.value)
+        assert torch.equal(uninterrupted.multipliers[0].value, resumed.multipliers[0].value)
         assert torch.equal(uninterrupted.obs_norm.mean, resumed.obs_norm.mean)
         rows_a = (tmp_path / "a" / "run" / "progress.csv").read_text().splitlines()
         rows_b = (tmp_path / "b" / "run" / "progress.csv").read_text().splitlines()
@@ -197,33 +195,33 @@ class TestTraining:
     def test_resume_after_a_crash_past_the_checkpoint_logs_each_epoch_once(self, tmp_path):
         # Checkpoint after epoch 1, the run logs epochs 2 and 3 and dies: resuming from epoch 1 logs
         # epochs 2 and 3 again, and progress.csv must not hold them twice.
-        crashed = Trainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1))
+        crashed = SingleSeedGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1))
         crashed.run(max_epochs=1)
-        checkpoint = Trainer.load_checkpoint(crashed.checkpoint_path.parent)
+        checkpoint = SingleSeedGroupTrainer.load_checkpoint(crashed.checkpoint_path.parent)
         crashed.cfg.checkpoint_every = 100
         crashed.run(max_epochs=2)
         progress = tmp_path / "run" / "progress.csv"
         assert len(progress.read_text().splitlines()) == 4  # header + epochs 1-3
-        resumed = Trainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1), checkpoint)
+        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1), checkpoint)
         resumed.run()
         with progress.open() as handle:
             epochs = [int(float(row["Train/Epoch"])) for row in csv.DictReader(handle)]
         assert epochs == [1, 2, 3, 4]
 
     def test_resuming_a_finished_run_keeps_one_final_row(self, tmp_path):
-        finished = Trainer(tiny_config(tmp_path, eval_episodes=1))
+        finished = SingleSeedGroupTrainer(tiny_config(tmp_path, eval_episodes=1))
         finished.run()
         progress = tmp_path / "run" / "progress.csv"
         rows = progress.read_text().splitlines()
-        checkpoint = Trainer.load_checkpoint(finished.checkpoint_path.parent)
-        resumed = Trainer(tiny_config(tmp_path, eval_episodes=1), checkpoint)
+        checkpoint = SingleSeedGroupTrainer.load_checkpoint(finished.checkpoint_path.parent)
+        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path, eval_episodes=1), checkpoint)
         resumed.run()
         assert progress.read_text().splitlines()[:-1] == rows[:-1]  # the epochs, once
         assert len(progress.read_text().splitlines()) == len(rows)  # and one final row
 
     def test_missing_checkpoint_is_a_clear_error(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no checkpoint"):
-            Trainer.load_checkpoint(tmp_path)
+            SingleSeedGroupTrainer.load_checkpoint(tmp_path)
 
 
 class TestLogging:

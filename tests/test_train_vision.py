@@ -9,6 +9,10 @@ finish some.
 
 from __future__ import annotations
 
+import contextlib
+import csv
+import importlib.util
+import io
 import os
 import subprocess
 import sys
@@ -18,24 +22,30 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.modules import ConvNet
 
 torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
-from sg_torchrl.train import TrainConfig, Trainer, main  # noqa: E402
+from sg_torchrl.envs import rendering  # noqa: E402
+from sg_torchrl.envs.rendering import RenderingUnavailable  # noqa: E402
+from sg_torchrl.train import GroupTrainer, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
-from sg_torchrl.modules import (  # noqa: E402
-    DEFAULT_CNN,
+from sg_torchrl.train.fused import SeedBatch  # noqa: E402
+from sg_torchrl.modules.cnn import DEFAULT_CNN  # noqa: E402
+from sg_torchrl.modules.mlp import (  # noqa: E402
     DEPTH_RANGE,
     EncodedMLP,
     ObservationEncoder,
     ObservationLayout,
+    forward_in_chunks,
     make_actor_critics,
     make_value,
+    write_values,
 )
-from sg_torchrl.train.updates import forward_in_chunks, write_values  # noqa: E402
-from trainer_checks import flat_parameters  # noqa: E402
+from sg_torchrl.train.seed_runs import seed_entry  # noqa: E402
+from sg_torchrl.train.stacked import StackedActorCritic, in_chunks  # noqa: E402
+from trainer_checks import assert_same_state  # noqa: E402
 
 VISION_ID = "SafetyPointGoal1Vision-v0"
 #: (env id, env options), all with 64 x 64 images (the ids' default 256 would make training 16 times
@@ -59,10 +69,11 @@ def tiny_config(tmp_path, mode: str, **overrides) -> TrainConfig:
     return TrainConfig(**values)
 
 
-def encoder_parameters(module: torch.nn.Module) -> torch.Tensor:
-    convs = [m for m in module.modules() if isinstance(m, ConvNet)]
-    assert len(convs) == 1
-    return torch.cat([p.detach().reshape(-1).clone() for p in convs[0].parameters()])
+#: ``sg-train`` flags of three 40-step PPO-Lag epochs on the Vision id's default layout (vector and RGB).
+CLI_FLAGS = ["--algo", "ppo_lag", "--env-id", VISION_ID, "--env-options", "image_size=64", "max_episode_steps=25",
+             "--num-envs", "2", "--steps-per-epoch", "40", "--total-steps", "120", "--update-iters", "2",
+             "--minibatch-size", "32", "--eval-episodes", "0", "--wandb", "disabled", "--progress", "false",
+             "--checkpoint-every", "1"]
 
 
 # ---------------------------------------------------------------------------- no OpenGL needed
@@ -132,6 +143,53 @@ class TestLayoutAndEncoder:
         torch.testing.assert_close(batch["state_value"].reshape(-1, 1), whole)
         torch.testing.assert_close(batch["next", "state_value"], critic(batch["next"].clone())["state_value"])
 
+    @pytest.mark.parametrize("layout", [ObservationLayout(None, (36, 36), rgb=True),
+                                        ObservationLayout(5, (40, 40), rgb=True, depth=True)])
+    def test_stacked_encoders_are_each_seeds_single_networks(self, layout):
+        torch.manual_seed(0)
+        singles = [make_actor_critics(layout, Bounded(-1.0, 1.0, shape=(2,)), [16]) for _ in range(3)]
+        model = StackedActorCritic.from_single(singles, layout=layout)
+        entries = {"pixels": torch.randint(0, 256, (3, 6, *layout.image_shape, 3), dtype=torch.uint8)}
+        if layout.depth:
+            entries["depth"] = torch.rand(3, 6, *layout.image_shape, 1) * 10.0
+        if layout.vector_dim:
+            entries["observation"] = torch.randn(3, 6, layout.vector_dim)
+        obs = TensorDict(entries, [3, 6])
+        loc, scale = model.dist_params(obs)
+        value, cost_value = model.values(obs)
+        for seed, (actor, critic, cost_critic) in enumerate(singles):
+            inputs = [obs[seed].get(key) for key in layout.in_keys]
+            features = model.actor_mean.encoder(obs)[seed]  # one conv2d per seed: the single encoder's, bit for bit
+            assert torch.equal(features, actor.module[0].module[0].encoder(*inputs))
+            single_loc, single_scale = actor.module[0].module(*inputs)
+            torch.testing.assert_close(loc[seed], single_loc, rtol=0, atol=1e-6)  # the heads' matmuls: rounding
+            torch.testing.assert_close(scale[seed].expand_as(single_scale), single_scale)
+            torch.testing.assert_close(value[seed], critic.module(*inputs).squeeze(-1), rtol=0, atol=1e-6)
+            torch.testing.assert_close(cost_value[seed], cost_critic.module(*inputs).squeeze(-1), rtol=0, atol=1e-6)
+        chunked = in_chunks(model.values, obs, 4)  # 6 samples in chunks of 4 and 2 (matmuls of other sizes round apart)
+        torch.testing.assert_close(chunked, (value, cost_value), rtol=0, atol=1e-6)
+        exported = model.export_seed(2, Bounded(-1.0, 1.0, shape=(2,)))
+        for mine, theirs in zip(exported, singles[2]):
+            for a, b in zip(mine.parameters(), theirs.parameters(), strict=True):
+                assert torch.equal(a, b)
+        assert model.actor_rows(torch.tensor([1])).layout == layout
+
+    def test_seed_batches_keep_images_apart_in_uint8(self):
+        pixels = torch.randint(0, 256, (2, 5, 36, 36, 3), dtype=torch.uint8)
+        obs = TensorDict({"pixels": pixels, "observation": torch.randn(2, 5, 4)}, [2, 5])
+        batch = SeedBatch.pack({"observation": obs, "advantage": torch.randn(2, 5)})
+        assert batch.data.shape == (2, 5, 5) and batch.field_names == ("observation", "advantage")
+        index = torch.tensor([[4, 0], [1, 3]])
+        minibatch = batch[index].fields()
+        assert minibatch["observation"]["pixels"].dtype == torch.uint8
+        for seed in range(2):
+            assert torch.equal(minibatch["observation"]["pixels"][seed], pixels[seed, index[seed]])
+            assert torch.equal(minibatch["observation"]["observation"][seed], obs["observation"][seed, index[seed]])
+            assert torch.equal(minibatch["advantage"][seed, :, 0], batch["advantage"][seed, index[seed], 0])
+        only_images = SeedBatch.pack({"observation": obs.exclude("observation"), "advantage": torch.randn(2, 5)})
+        assert only_images.names == ("advantage",) and only_images.field_names == ("advantage", "observation")
+        assert only_images[index].fields()["observation"].keys() == {"pixels"}
+
     def test_vision_preset_is_ppo_lag_on_a_vision_id_in_whole_epochs(self):
         cfg = parse_args(["--preset", "vision"])
         assert (cfg.algo, cfg.env_id) == ("ppo_lag", VISION_ID) and cfg.env_id in sg_torchrl.list_envs()
@@ -166,41 +224,90 @@ def test_cnn_actor_and_critics_on_a_vision_rollout(backend):
     assert torch.isfinite(rollout["state_value"]).all() and torch.isfinite(rollout["cost_value"]).all()
 
 
-@pytest.mark.parametrize("mode", ["vector+rgb", "vector+rgbd"])  # pixels only: the next test
-def test_tiny_run_checkpoints_resumes_exactly_and_evaluates(backend, tmp_path, mode):
-    uninterrupted = Trainer(tiny_config(tmp_path / "a", mode))
-    assert (uninterrupted.obs_norm is None) == (mode == "rgb")  # the normaliser is for the flat vector only
-    encoder_before = encoder_parameters(uninterrupted.actor)
-    uninterrupted.run()
-    assert not torch.equal(encoder_before, encoder_parameters(uninterrupted.actor))  # the CNN learns
+def cli(argv: list[str]) -> None:
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(argv) == 0
 
-    first_half = Trainer(tiny_config(tmp_path / "b", mode))
-    first_half.run(max_epochs=2)
-    resumed = Trainer(tiny_config(tmp_path / "b", mode), Trainer.load_checkpoint(first_half.checkpoint_path.parent))
-    assert resumed.epoch == 2
-    resumed.run()
-    assert torch.equal(flat_parameters(uninterrupted), flat_parameters(resumed))
-    assert torch.equal(uninterrupted.multiplier.value, resumed.multiplier.value)
-    rows_a = (tmp_path / "a" / "run" / "progress.csv").read_text().splitlines()
-    rows_b = (tmp_path / "b" / "run" / "progress.csv").read_text().splitlines()
-    assert len(rows_a) == len(rows_b) == 4  # header + 3 epochs
-    assert [r.split(",")[:3] for r in rows_a] == [r.split(",")[:3] for r in rows_b]
 
-    resumed.cfg.eval_episodes = 2
-    evaluation = resumed._evaluate()
+def progress_rows(run_dir: Path) -> list[dict[str, float]]:
+    """``progress.csv``'s epoch rows as numbers, without their timings (``Time/*``)."""
+    with (run_dir / "progress.csv").open() as handle:
+        return [{k: float(v) for k, v in row.items() if not k.startswith("Time/")} for row in csv.DictReader(handle)]
+
+
+@pytest.fixture(scope="module")
+def group_runs(tmp_path_factory) -> Path:
+    """Three epochs of ``--seeds 0 1`` (vector and RGB) uninterrupted and in two processes, and ``--seed 1`` alone."""
+    if importlib.util.find_spec("mujoco") is None:  # pragma: no cover
+        pytest.skip("no MuJoCo")
+    try:
+        rendering.gl_backend()
+    except RenderingUnavailable as error:
+        pytest.skip(f"no OpenGL backend for headless rendering: {error}")
+    root = tmp_path_factory.mktemp("vision_groups")
+    cli([*CLI_FLAGS, "--seeds", "0", "1", "--output-dir", str(root), "--run-name", "whole"])
+    cli([*CLI_FLAGS, "--seed", "1", "--output-dir", str(root), "--run-name", "single"])
+    interrupted = GroupTrainer(parse_args([*CLI_FLAGS, "--seeds", "0", "1", "--output-dir", str(root),
+                                           "--run-name", "resumed"]))
+    interrupted.run(max_epochs=2)  # stopped after two of its three epochs, checkpointed
+    interrupted.base_env.close()
+    cli(["--resume", str(root / "resumed")])
+    return root
+
+
+def test_a_group_seed_is_its_single_seed_run(group_runs):
+    # Epoch 1's trajectories are the same and its update agrees to float rounding (the encoders are the
+    # single ones bit for bit, the MLP heads' batched matmuls sum in another order for S = 2 and S = 1);
+    # later epochs act on those rounded networks, so their figures drift apart by a little more.
+    group, single = progress_rows(group_runs / "whole" / "seed-001"), progress_rows(group_runs / "single")
+    assert len(group) == len(single) == 3
+    assert group[0]["Metrics/EpochEpCost"] == single[0]["Metrics/EpochEpCost"]
+    for epoch, (mine, alone) in enumerate(zip(group, single), start=1):
+        assert mine.keys() == alone.keys()
+        rel, abs_ = (1e-4, 1e-6) if epoch == 1 else (1e-3, 1e-4)
+        for name in mine:
+            assert mine[name] == pytest.approx(alone[name], rel=rel, abs=abs_, nan_ok=True), (epoch, name)
+    mine, alone = seed_entry(load_checkpoint(group_runs / "whole"), 1), load_checkpoint(group_runs / "single")
+    alone = seed_entry(alone, 1)
+    for network in ("actor", "critic", "cost_critic"):
+        for key, value in mine["networks"][network].items():
+            torch.testing.assert_close(value, alone["networks"][network][key], rtol=0, atol=1e-3)
+
+
+def test_a_resumed_group_continues_bit_for_bit(group_runs):
+    whole, resumed = load_checkpoint(group_runs / "whole"), load_checkpoint(group_runs / "resumed")
+    assert resumed["epoch"] == whole["epoch"] == 3
+    assert_same_state(resumed["seeds"], whole["seeds"], "seeds")
+    assert_same_state(resumed["collector"], whole["collector"], "collector")
+    for seed in ("seed-000", "seed-001"):
+        assert_same_state(progress_rows(group_runs / "resumed" / seed), progress_rows(group_runs / "whole" / seed))
+
+
+@pytest.mark.parametrize("mode", ["rgb", "vector+rgbd"])
+def test_a_single_seed_learns_from_pixels_and_evaluates(backend, tmp_path, mode):
+    trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, mode))
+    assert (trainer.obs_norm is None) == (mode == "rgb")  # the normaliser is for the flat vector only
+    assert trainer.model.layout.images and trainer.model.chunk_size is not None
+    actor_before = trainer.model.flat_actor.clone()
+    trainer.run()
+    moved = (trainer.model.flat_actor != actor_before).any(0)
+    conv = trainer.model.actor_mean.encoder.conv.weights[0][0].numel()
+    assert moved[:conv].any()  # the actor's first convolution learns (its weights lead the flat buffer)
+    trainer.cfg.eval_episodes = 2
+    evaluation = trainer._evaluate()
     assert evaluation["Metrics/EvalEpLen"] == 25.0
     assert evaluation["Metrics/EvalEpRet"] == evaluation["Metrics/EvalEpRet"]  # not NaN
-    uninterrupted.base_env.close()
-    resumed.base_env.close()
+    trainer.base_env.close()
 
 
 @pytest.mark.parametrize("algo", ["cup", "cpo"])
 def test_two_stage_and_trust_region_updates_train_the_cnns(backend, tmp_path, algo):
-    # CUP's stage-one policy and CPO's whole-batch trust-region step read the images too.
-    trainer = Trainer(tiny_config(tmp_path, "rgb", algo=algo, cost_limit=0.0, total_steps=40))
-    critic_before = encoder_parameters(trainer.critic)
+    # CUP's stage-one policy and CPO's whole-batch trust-region step read the images too, in a group.
+    trainer = GroupTrainer(tiny_config(tmp_path, "rgb", algo=algo, cost_limit=0.0, total_steps=40, seeds=[0, 1]))
+    model = trainer.model
+    before = model.flat_actor.clone(), model.flat_critics.clone()
     metrics = trainer.train_epoch()
-    assert not torch.equal(critic_before, encoder_parameters(trainer.critic))
+    assert (model.flat_actor != before[0]).any(1).all() and (model.flat_critics != before[1]).any(1).all()
     for name in ("Train/KL", "Loss/Loss_reward_critic", "Loss/Loss_cost_critic"):
         assert torch.isfinite(torch.tensor(metrics[name])), name
     trainer.base_env.close()

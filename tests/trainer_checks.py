@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from tensordict import TensorDictBase
 
-from sg_torchrl.train import TrainConfig, Trainer
+from sg_torchrl.train import GroupTrainer, TrainConfig
 
 
-def flat_parameters(trainer: Trainer) -> torch.Tensor:
-    """Every parameter of the actor and both critics, flattened into one vector (for exact-equality checks)."""
-    modules = (trainer.actor, trainer.critic, trainer.cost_critic)
-    return torch.cat([p.detach().reshape(-1) for m in modules for p in m.parameters()])
+def flat_parameters(trainer: GroupTrainer) -> torch.Tensor:
+    """Every parameter of every seed's actor and critics, flattened into one vector (for exact-equality checks)."""
+    model = trainer.model
+    return torch.cat([model.flat_actor.detach().reshape(-1), model.flat_critics.detach().reshape(-1)]).clone()
 
 
 def tiny_config(tmp_path, **overrides) -> TrainConfig:
@@ -35,3 +37,24 @@ def recording(trainer) -> list:
 
     trainer.collector.collect = collect_and_keep
     return batches
+
+
+def assert_same_state(mine, theirs, path="entry"):
+    """Two checkpoint entries equal bit for bit (tensors with ``torch.equal``, the rest with ``==``), timings
+    (``Time/*`` of the progress rows they carry) aside."""
+    if isinstance(mine, TensorDictBase):
+        assert_same_state(mine.to_dict(), theirs.to_dict(), path)
+    elif isinstance(mine, np.ndarray):
+        assert np.array_equal(mine, theirs, equal_nan=mine.dtype.kind == "f"), path
+    elif isinstance(mine, dict):
+        assert mine.keys() == theirs.keys(), path
+        for key in (k for k in mine if not str(k).startswith("Time/")):
+            assert_same_state(mine[key], theirs[key], f"{path}[{key!r}]")
+    elif isinstance(mine, (list, tuple)):
+        assert len(mine) == len(theirs), path
+        for i, (a, b) in enumerate(zip(mine, theirs)):
+            assert_same_state(a, b, f"{path}[{i}]")
+    elif isinstance(mine, torch.Tensor):
+        assert torch.equal(mine, theirs), path
+    else:
+        assert mine == theirs or (mine != mine and theirs != theirs), path

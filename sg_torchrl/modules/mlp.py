@@ -19,12 +19,13 @@ convolutional stacks to train instead of one; only the actor runs during collect
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale
-from torch import nn
+from torch import Tensor, nn
 from torchrl.data import Composite, TensorSpec
 from torchrl.modules import MLP, ConvNet, IndependentNormal, ProbabilisticActor
 
@@ -33,7 +34,7 @@ from sg_torchrl.modules.direct import DirectTensorDictModule, DirectValueOperato
 
 __all__ = [
     "DEPTH_RANGE", "IMAGE_CHUNK", "EncodedMLP", "ObservationEncoder", "ObservationLayout",
-    "make_actor", "make_actor_critics", "make_network", "make_value",
+    "forward_in_chunks", "make_actor", "make_actor_critics", "make_network", "make_value", "write_values",
 ]
 
 #: Depth (metres) at which the encoder's depth channel saturates: ``min(depth, DEPTH_RANGE) / DEPTH_RANGE``.
@@ -248,6 +249,45 @@ def make_actor_critics(
         make_value(layout, hidden_sizes, "state_value"),
         make_value(layout, hidden_sizes, "cost_value"),
     )
+
+
+@torch.no_grad()
+def forward_in_chunks(
+    module: Callable[[TensorDictBase], TensorDictBase],
+    data: TensorDictBase,
+    in_keys: Sequence[NestedKey],
+    out_keys: Sequence[NestedKey],
+    chunk_size: int | None,
+) -> dict[NestedKey, Tensor]:
+    """``module``'s ``out_keys`` over the flat ``data``, computed ``chunk_size`` samples at a time.
+
+    Only ``in_keys`` are handed to ``module`` (nothing else of the batch is copied); ``chunk_size``
+    ``None`` runs the whole batch in one call. Networks over images use chunks so that the float
+    copy of a whole epoch of ``uint8`` frames (and its first feature maps) never exists at once.
+    """
+    inputs = data.select(*in_keys)
+    size = inputs.numel()
+    step = size if chunk_size is None else max(int(chunk_size), 1)
+    outputs = [module(inputs[start : start + step]) for start in range(0, size, step)]
+    return {key: torch.cat([out.get(key) for out in outputs]) for key in out_keys}
+
+
+@torch.no_grad()
+def write_values(batch: TensorDictBase, critics: Sequence[nn.Module], chunk_size: int | None) -> None:
+    """Each critic's value of the observations and of the next observations, written into ``batch``.
+
+    ``batch`` is an epoch's ``(N, T)`` rollout; it is viewed flat and each critic (a value operator
+    with one out-key, e.g. ``state_value``) runs ``chunk_size`` samples at a time
+    (:func:`forward_in_chunks`), writing ``key`` and ``("next", key)``: what TorchRL's ``GAE`` reads
+    when it has no value network of its own (its own would run on the observations and next
+    observations stacked, all at once).
+    """
+    flat = batch.reshape(-1)
+    for prefix, source in (((), flat), (("next",), flat.get("next"))):
+        for critic in critics:
+            key = critic.out_keys[0]
+            values = forward_in_chunks(critic, source, critic.in_keys, [key], chunk_size)[key]
+            batch.set((*prefix, key), values.reshape(*batch.shape, *values.shape[1:]))
 
 
 def count_parameters(module: torch.nn.Module) -> int:

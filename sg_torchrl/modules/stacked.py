@@ -4,7 +4,8 @@ A *seed group* trains S independent runs in one process (DESIGN.md, "Many seeds 
 SafePO's networks (:mod:`sg_torchrl.modules.mlp`: tanh MLPs of [64, 64], a Gaussian actor with a
 state-independent log-std, separate reward and cost critics) are so small that a gradient step is
 per-operator overhead; stacking the S copies of each weight along a leading seed dimension turns S
-steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one.
+steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one. The
+stacked layers (:class:`StackedMLP`, the CNN encoders) are in :mod:`sg_torchrl.train.stacked_layers`.
 
 Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
 ``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
@@ -23,7 +24,12 @@ the flat gradients, so the per-seed gradient clip and the masked Adam of
 parameters' strides therefore have a gap between seeds; build the module on its device and dtype
 (``.to()`` works, and rebuilds the buffers, which an optimiser over the old ones no longer sees).
 
-Only flat-vector observations are supported (images need stacked convolutions: not built yet).
+**Pixel observations.** With an image layout (:class:`~sg_torchrl.train.models.ObservationLayout`)
+each of the three networks is a :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` (stacked CNN
+encoder, then the stacked MLP), whose convolution weights sit in the same flat groups; the networks
+then read a TensorDict of batch ``[S, B]`` (:meth:`StackedActorCritic.read_observation`) instead of a
+tensor, and passes over a whole epoch's batch go in chunks (:attr:`StackedActorCritic.chunk_size`,
+:func:`in_chunks`) so its ``uint8`` images are never converted to float at once.
 """
 
 from __future__ import annotations
@@ -33,136 +39,34 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale
 from torch import Tensor, nn
 from torchrl.data import TensorSpec
-from torchrl.modules import MLP
+from torchrl.modules import MLP, ConvNet
 
 from sg_torchrl.modules.gaussian import gaussian_log_prob
-from sg_torchrl.modules.mlp import make_actor_critics
+from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
+from sg_torchrl.modules.stacked_layers import StackedEncodedMLP, StackedMLP, linear_layers
 
-__all__ = ["StackedActorCritic", "StackedMLP", "quiet_layout_warning"]
+__all__ = ["StackedActorCritic", "StackedMLP", "in_chunks", "quiet_layout_warning"]
 
-def _linear_layers(mlp: nn.Module) -> list[nn.Linear]:
-    """The ``Linear`` layers of a tanh MLP (``Linear``, ``Tanh``, ..., ``Linear``), checked."""
-    children = list(mlp.children()) if isinstance(mlp, nn.Sequential) else []
-    shapes_ok = len(children) % 2 == 1 and all(
-        isinstance(child, nn.Linear if i % 2 == 0 else nn.Tanh) for i, child in enumerate(children)
-    )
-    if not shapes_ok or not all(child.bias is not None for child in children[::2]):
-        raise TypeError(f"expected a tanh MLP (Linear, Tanh, ..., Linear, with biases), got {mlp}")
-    return children[::2]
+def in_chunks(fn, obs: Tensor | TensorDictBase, chunk_size: int | None) -> tuple[Tensor, ...]:
+    """``fn`` over the samples of ``obs`` (``(S, N, ...)``) ``chunk_size`` at a time, outputs joined on dim 1.
 
-
-class StackedMLP(nn.Module):
-    """S independent tanh MLPs whose layers are stacked along a leading seed dimension.
-
-    Layer ``i`` is ``weights[i]`` of shape ``(S, in_i, out_i)`` (the transpose of ``nn.Linear``'s
-    ``(out, in)``, so the forward pass is ``baddbmm(bias, x, weight)`` without a transpose) and
-    ``biases[i]`` of shape ``(S, 1, out_i)``; tanh between layers, none after the last, as
-    torchrl's ``MLP(activation_class=nn.Tanh)``. Build it with :meth:`from_modules`; the
-    constructor leaves zeros.
-
-    Args:
-        num_seeds: S.
-        in_features, out_features: input and output sizes.
-        hidden_sizes: widths of the hidden layers.
-        device, dtype: where the parameters live.
+    ``fn`` returns a tuple of ``(S, n, ...)`` tensors; ``chunk_size`` ``None`` (flat vectors) makes one call.
     """
-
-    def __init__(
-        self,
-        num_seeds: int,
-        in_features: int,
-        out_features: int,
-        hidden_sizes: Sequence[int],
-        *,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype | None = None,
-    ) -> None:
-        super().__init__()
-        if num_seeds < 1:
-            raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
-        sizes = [int(in_features), *map(int, hidden_sizes), int(out_features)]
-        options = dict(device=device, dtype=dtype)
-        self.weights = nn.ParameterList(
-            [nn.Parameter(torch.zeros(num_seeds, a, b, **options)) for a, b in zip(sizes[:-1], sizes[1:])]
-        )
-        self.biases = nn.ParameterList([nn.Parameter(torch.zeros(num_seeds, 1, b, **options)) for b in sizes[1:]])
-        self.num_seeds = int(num_seeds)
-        self.sizes = tuple(sizes)
-
-    @property
-    def hidden_sizes(self) -> tuple[int, ...]:
-        return self.sizes[1:-1]
-
-    def forward(self, x: Tensor) -> Tensor:
-        """``x`` of shape ``(S, B, in)`` to ``(S, B, out)``; seed ``s`` only sees its own weights."""
-        last = len(self.weights) - 1
-        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            x = torch.baddbmm(bias, x, weight)
-            if i < last:
-                x = torch.tanh(x)
-        return x
-
-    @classmethod
-    def from_modules(
-        cls, modules: Sequence[nn.Module], *, device: torch.device | str | None = None
-    ) -> StackedMLP:
-        """Stack S tanh MLPs of one shape (e.g. torchrl ``MLP``\\ s), copying each one's weights."""
-        if not modules:
-            raise ValueError("from_modules needs at least one module")
-        layers = [_linear_layers(module) for module in modules]
-        shapes = {tuple((lin.in_features, lin.out_features) for lin in seed) for seed in layers}
-        if len(shapes) != 1:
-            raise ValueError(f"the modules differ in shape: {sorted(shapes)}")
-        first = layers[0]
-        sizes = [first[0].in_features, *(lin.out_features for lin in first)]
-        weight = first[0].weight
-        stacked = cls(len(modules), sizes[0], sizes[-1], sizes[1:-1], device=device or weight.device,
-                      dtype=weight.dtype)
-        for seed, module in enumerate(modules):
-            stacked.load_seed(seed, module)
-        return stacked
-
-    @torch.no_grad()
-    def load_seed(self, seed: int, module: nn.Module) -> None:
-        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
-        layers = _linear_layers(module)
-        if len(layers) != len(self.weights):
-            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
-            weight[seed].copy_(linear.weight.detach().T)
-            bias[seed, 0].copy_(linear.bias.detach())
-
-    @torch.no_grad()
-    def copy_seed_to(self, seed: int, module: nn.Module) -> nn.Module:
-        """Write seed ``seed``'s weights into a single tanh MLP of this shape; returns it."""
-        layers = _linear_layers(module)
-        if len(layers) != len(self.weights):
-            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
-            linear.weight.copy_(weight[seed].T)
-            linear.bias.copy_(bias[seed, 0])
-        return module
-
-    def export(self, seed: int) -> MLP:
-        """Seed ``seed`` as a fresh torchrl ``MLP`` (what ``make_network`` builds), with its weights."""
-        weight = self.weights[0]
-        mlp = MLP(in_features=self.sizes[0], out_features=self.sizes[-1], num_cells=list(self.hidden_sizes),
-                  activation_class=nn.Tanh, device=weight.device)
-        return self.copy_seed_to(seed, mlp.to(weight.dtype))
-
-    def seed_state_dict(self, seed: int) -> dict[str, Tensor]:
-        """Seed ``seed``'s weights under the keys of a single torchrl ``MLP``'s ``state_dict``."""
-        return self.export(seed).state_dict()
+    size = obs.shape[1]
+    if chunk_size is None or size <= chunk_size:
+        return tuple(fn(obs))
+    parts = [fn(obs[:, start : start + chunk_size]) for start in range(0, size, chunk_size)]
+    return tuple(torch.cat(outputs, dim=1) for outputs in zip(*parts))
 
 
 def _find(module: nn.Module, kind: type) -> nn.Module:
     found = [m for m in module.modules() if isinstance(m, kind)]
     if len(found) != 1:
-        raise TypeError(f"expected exactly one {kind.__name__} in {type(module).__name__}, found {len(found)} "
-                        f"(stacked networks support flat-vector observations only)")
+        raise TypeError(f"expected exactly one {kind.__name__} in {type(module).__name__}, found {len(found)}")
     return found[0]
 
 
@@ -194,11 +98,14 @@ class StackedActorCritic(nn.Module):
     The actor is ``actor_mean`` (a :class:`StackedMLP`) plus ``log_std`` of shape ``(S, A)``, with
     ``scale = exp(log_std).clamp_min(scale_lb)`` as torchrl's ``AddStateIndependentNormalScale``
     computes it; ``critic`` and ``cost_critic`` are :class:`StackedMLP`\\ s with one output. Inputs
-    are seed-major: ``obs`` of shape ``(S, B, obs_dim)``.
+    are seed-major: ``obs`` of shape ``(S, B, obs_dim)``; with an image layout every network is a
+    :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` reading a TensorDict of batch ``[S, B]``.
 
     Args:
         num_seeds: S.
-        obs_dim, action_dim: sizes of the flat observation and of the action.
+        obs_dim: the flat observation's size, or the :class:`~sg_torchrl.train.models.ObservationLayout`
+            of what the env emits (images: CNN encoders).
+        action_dim: the action's size.
         hidden_sizes: hidden widths of all three networks.
         scale_lb: lower bound of the action standard deviation (torchrl's default ``1e-4``).
         device, dtype: where the parameters live.
@@ -212,7 +119,7 @@ class StackedActorCritic(nn.Module):
     def __init__(
         self,
         num_seeds: int,
-        obs_dim: int,
+        obs_dim: int | ObservationLayout,
         action_dim: int,
         hidden_sizes: Sequence[int],
         *,
@@ -222,10 +129,19 @@ class StackedActorCritic(nn.Module):
     ) -> None:
         super().__init__()
         options = dict(device=device, dtype=dtype)
-        self.actor_mean = StackedMLP(num_seeds, obs_dim, action_dim, hidden_sizes, **options)
+        layout = obs_dim if isinstance(obs_dim, ObservationLayout) else ObservationLayout(vector_dim=int(obs_dim))
+        #: What the networks read: the flat vector, or images (and the vector) through CNN encoders.
+        self.layout = layout
+
+        def network(out: int) -> StackedMLP | StackedEncodedMLP:
+            if layout.images:
+                return StackedEncodedMLP(num_seeds, layout, out, hidden_sizes, **options)
+            return StackedMLP(num_seeds, layout.vector_dim, out, hidden_sizes, **options)
+
+        self.actor_mean = network(action_dim)
         self.log_std = nn.Parameter(torch.zeros(num_seeds, action_dim, **options))
-        self.critic = StackedMLP(num_seeds, obs_dim, 1, hidden_sizes, **options)
-        self.cost_critic = StackedMLP(num_seeds, obs_dim, 1, hidden_sizes, **options)
+        self.critic = network(1)
+        self.cost_critic = network(1)
         self.scale_lb = float(scale_lb)
         self._flatten()
 
@@ -235,8 +151,30 @@ class StackedActorCritic(nn.Module):
         return self.actor_mean.num_seeds
 
     @property
-    def obs_dim(self) -> int:
-        return self.actor_mean.sizes[0]
+    def obs_dim(self) -> int | None:
+        """The flat observation vector's size (``None`` when the env emits images only)."""
+        return self.layout.vector_dim
+
+    @property
+    def chunk_size(self) -> int | None:
+        """Samples per no-grad pass over a whole batch (:func:`in_chunks`): ``None`` (all) for flat vectors."""
+        return self.layout.chunk_size
+
+    def read_observation(self, source: TensorDictBase, prefix: tuple[str, ...] = ()) -> Tensor | TensorDictBase:
+        """What the networks read from ``source`` (batch ``[S * n, ...]``, seed-major), per seed: ``(S, N, ...)``.
+
+        The ``(S, N, obs_dim)`` flat vector, or with images a TensorDict of batch ``[S, N]`` holding the
+        layout's entries (views of ``source``'s: the images stay ``uint8``). ``prefix``: e.g. ``("next",)``.
+        """
+        seeds, dims = self.num_seeds, source.batch_dims
+
+        def per_seed(value: Tensor) -> Tensor:
+            return value.reshape(seeds, -1, *value.shape[dims:])
+
+        if not self.layout.images:
+            return per_seed(source.get((*prefix, "observation")))
+        entries = {key: per_seed(source.get((*prefix, key))) for key in self.layout.in_keys}
+        return TensorDict(entries, batch_size=next(iter(entries.values())).shape[:2])
 
     @property
     def action_dim(self) -> int:
@@ -249,11 +187,11 @@ class StackedActorCritic(nn.Module):
     # ------------------------------------------------------------------ flat groups
     def actor_parameters(self) -> list[nn.Parameter]:
         """The actor's parameters in flat-buffer order: mean MLP layer by layer, then ``log_std``."""
-        return [*_mlp_params(self.actor_mean), self.log_std]
+        return [*_net_params(self.actor_mean), self.log_std]
 
     def critic_parameters(self) -> list[nn.Parameter]:
         """Both critics' parameters in flat-buffer order (reward critic first)."""
-        return [*_mlp_params(self.critic), *_mlp_params(self.cost_critic)]
+        return [*_net_params(self.critic), *_net_params(self.cost_critic)]
 
     @property
     def flat_groups(self) -> tuple[Tensor, Tensor]:
@@ -263,15 +201,15 @@ class StackedActorCritic(nn.Module):
     @property
     def reward_critic_width(self) -> int:
         """Columns of :attr:`flat_critics` that hold the reward critic (the cost critic's follow)."""
-        return sum(p[0].numel() for p in _mlp_params(self.critic))
+        return sum(p[0].numel() for p in _net_params(self.critic))
 
     def _flatten(self) -> None:
         """Move every parameter into its group's flat buffer (as a view) and alias the gradients."""
         self.flat_actor = self._flatten_group(
-            [(self.actor_mean, name) for name in _mlp_names(self.actor_mean)] + [(self, "log_std")]
+            [(self.actor_mean, name) for name in self.actor_mean.parameter_names()] + [(self, "log_std")]
         )
         self.flat_critics = self._flatten_group(
-            [(net, name) for net in (self.critic, self.cost_critic) for name in _mlp_names(net)]
+            [(net, name) for net in (self.critic, self.cost_critic) for name in net.parameter_names()]
         )
 
     @staticmethod
@@ -335,7 +273,7 @@ class StackedActorCritic(nn.Module):
         have stopped, a seed group's live seeds), with :meth:`dist_params`' own forward pass.
         """
         weight = self.flat_actor
-        part = StackedActorCritic(rows.numel(), self.obs_dim, self.action_dim, self.hidden_sizes,
+        part = StackedActorCritic(rows.numel(), self.layout, self.action_dim, self.hidden_sizes,
                                   scale_lb=self.scale_lb, device=weight.device, dtype=weight.dtype)
         with torch.no_grad():
             part.flat_actor.copy_(weight.index_select(0, rows))
@@ -354,7 +292,7 @@ class StackedActorCritic(nn.Module):
     def sample(
         self, obs: Tensor, generators: Sequence[torch.Generator], *, deterministic: bool = False
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Actions for ``obs`` ``(S, B, obs_dim)``, seed ``s``'s noise drawn from ``generators[s]``.
+        """Actions for ``obs`` (``(S, B, obs_dim)``, or :meth:`read_observation`'s TensorDict), seed ``s``'s noise drawn from ``generators[s]``.
 
         Each seed draws ``randn(B, A)`` from its own generator, so its random stream (and, for the
         same weights and observations, its actions) is the same whatever the group size.
@@ -380,21 +318,31 @@ class StackedActorCritic(nn.Module):
     # ------------------------------------------------------------------ single-seed modules
     @classmethod
     def from_single(
-        cls, networks: Sequence[tuple[nn.Module, nn.Module, nn.Module]], *, device: torch.device | str | None = None
+        cls, networks: Sequence[tuple[nn.Module, nn.Module, nn.Module]], *, layout: ObservationLayout | None = None,
+        device: torch.device | str | None = None,
     ) -> StackedActorCritic:
         """Stack the ``(actor, critic, cost_critic)`` of S single-seed runs (``make_actor_critics``'s output).
 
         Seed ``s`` of the result holds copies of ``networks[s]``'s weights, so building each triple
         after ``torch.manual_seed(seed_s)`` (:func:`sg_torchrl.seeding.seed_torch`) gives every seed its
-        single-seed initialisation.
+        single-seed initialisation. ``layout``: what the networks read; needed for networks with a
+        CNN encoder (flat-vector networks tell their input size themselves).
         """
         if not networks:
             raise ValueError("from_single needs at least one (actor, critic, cost_critic)")
         mean0, scale0 = _actor_parts(networks[0][0])
-        layers = _linear_layers(mean0)
+        layers = linear_layers(mean0)
         weight = layers[0].weight
         hidden = [lin.out_features for lin in layers[:-1]]
-        stacked = cls(len(networks), layers[0].in_features, layers[-1].out_features, hidden,
+        encoded = any(isinstance(m, ConvNet) for m in networks[0][0].modules())
+        if layout is None:
+            if encoded:
+                raise ValueError("networks with a CNN encoder: give their ObservationLayout (layout=...)")
+            layout = ObservationLayout(vector_dim=layers[0].in_features)
+        elif encoded != layout.images:
+            raise ValueError(f"the networks {'have' if encoded else 'lack'} a CNN encoder; the layout reads "
+                             f"{layout.in_keys}")
+        stacked = cls(len(networks), layout, layers[-1].out_features, hidden,
                       scale_lb=float(scale0.scale_lb), device=device or weight.device, dtype=weight.dtype)
         for seed, triple in enumerate(networks):
             stacked.load_seed(seed, *triple)
@@ -403,22 +351,20 @@ class StackedActorCritic(nn.Module):
     @torch.no_grad()
     def load_seed(self, seed: int, actor: nn.Module, critic: nn.Module, cost_critic: nn.Module) -> None:
         """Copy single-seed modules (as ``make_actor_critics`` builds them) into seed ``seed``."""
-        mean, scale = _actor_parts(actor)
+        _, scale = _actor_parts(actor)
         if float(scale.scale_lb) != self.scale_lb:
             raise ValueError(f"scale lower bound {scale.scale_lb} differs from the group's {self.scale_lb}")
-        self.actor_mean.load_seed(seed, mean)
+        for net, module in ((self.actor_mean, actor), (self.critic, critic), (self.cost_critic, cost_critic)):
+            net.load_seed(seed, module if isinstance(net, StackedEncodedMLP) else _find(module, MLP))
         self.log_std[seed].copy_(scale.state_independent_scale.detach())
-        self.critic.load_seed(seed, _find(critic, MLP))
-        self.cost_critic.load_seed(seed, _find(cost_critic, MLP))
 
     @torch.no_grad()
     def copy_seed_to(self, seed: int, actor: nn.Module, critic: nn.Module, cost_critic: nn.Module) -> None:
         """Write seed ``seed``'s weights into single-seed modules (e.g. for evaluation or a checkpoint)."""
-        mean, scale = _actor_parts(actor)
-        self.actor_mean.copy_seed_to(seed, mean)
+        _, scale = _actor_parts(actor)
+        for net, module in ((self.actor_mean, actor), (self.critic, critic), (self.cost_critic, cost_critic)):
+            net.copy_seed_to(seed, module if isinstance(net, StackedEncodedMLP) else _find(module, MLP))
         scale.state_independent_scale.copy_(self.log_std[seed])
-        self.critic.copy_seed_to(seed, _find(critic, MLP))
-        self.cost_critic.copy_seed_to(seed, _find(cost_critic, MLP))
 
     def export_seed(self, seed: int, action_spec: TensorSpec) -> tuple[nn.Module, nn.Module, nn.Module]:
         """Seed ``seed`` as fresh single-seed ``(actor, critic, cost_critic)`` from ``make_actor_critics``.
@@ -427,22 +373,15 @@ class StackedActorCritic(nn.Module):
         overwritten at once).
         """
         with torch.random.fork_rng(devices=[]):
-            triple = make_actor_critics(self.obs_dim, action_spec, list(self.hidden_sizes))
+            triple = make_actor_critics(self.layout, action_spec, list(self.hidden_sizes))
         weight = self.flat_actor
         triple = tuple(module.to(weight.device).to(weight.dtype) for module in triple)
         self.copy_seed_to(seed, *triple)
         return triple
 
 
-def _mlp_names(mlp: StackedMLP) -> list[str]:
-    names = []
-    for i in range(len(mlp.weights)):
-        names += [f"weights.{i}", f"biases.{i}"]
-    return names
-
-
-def _mlp_params(mlp: StackedMLP) -> list[nn.Parameter]:
-    return [_get(mlp, name) for name in _mlp_names(mlp)]
+def _net_params(net: StackedMLP | StackedEncodedMLP) -> list[nn.Parameter]:
+    return [_get(net, name) for name in net.parameter_names()]
 
 
 def _get(module: nn.Module, name: str) -> nn.Parameter:

@@ -24,8 +24,7 @@ the KL between the policy before the update and now. What differs between the al
   any decision whether to run another pass (a seed group's: each seed's KL stop and divergence
   shrink its active mask there, and the passes end when no seed is left).
 
-:func:`run_passes` is that loop; the trainer's first-order, two-stage and trust-region updates
-(:mod:`sg_torchrl.train.updates`), the multi-agent PPO agent update and the critic epochs of MACPO
+:func:`run_passes` is that loop; the multi-agent PPO agent update and the critic epochs of MACPO
 (:mod:`sg_torchrl.objectives.multi_agent.updates`) and the seed group's passes
 (:func:`sg_torchrl.train.group_updates.seed_passes`) are its callers, so a change to the loop (the
 order of the random draws, of the float operations, of the hooks) happens in one place for all.

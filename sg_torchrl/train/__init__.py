@@ -3,12 +3,11 @@
 Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. Which trainer runs
 (:func:`trainer_class`):
 
-* one seed of the twelve single-agent algorithms (``--seed s``) on one of two engines (``--engine``):
-  ``fused`` (the default on flat-vector observations) is the seed-group engine with that one seed,
-  :class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer` (stacked networks, one fused minibatch
-  step; 1.6-1.7x less CPU per env step), writing the single-seed layout; ``loss-module`` (the default on
-  pixel observations, which the fused engine does not read) is :class:`Trainer`, which steps TorchRL
-  ``LossModule`` s (``PPOLagLoss``, ...): the reference path users compose in their own code;
+* one seed of the single-agent algorithms (``--seed s``), flat-vector or pixel observations:
+  the seed-group engine with that one seed, :class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`
+  (stacked networks, CNN encoders for pixels, one fused minibatch step), writing the single-seed layout;
+  the algorithm is the TorchRL ``LossModule`` users compose in their own code (``PPOLagLoss``, ...), in
+  the seed-batched form it defines;
 * one seed of the four multi-agent algorithms (``--algo mappo``, ``happo``, ``mappo_lag``, ``macpo`` on a
   multi-agent env id) on the multi-agent seed-group engine with that one seed,
   :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, writing the single-seed layout;
@@ -16,7 +15,8 @@ Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every opt
   :class:`~sg_torchrl.train.seed_group.GroupTrainer` (single agent) or
   :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` (multi agent).
 
-``--resume`` continues a run on the engine that wrote its checkpoint (:func:`checkpoint_engine`).
+``--resume`` continues a run; a checkpoint of the retired ``LossModule`` trainer (``--engine loss-module``
+in earlier versions) is refused (:func:`refuse_retired_checkpoint`), saying how to go on.
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
@@ -35,7 +35,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sg_torchrl.algorithms import manifest
-from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES, PRESETS, TrainConfig, command_line_values
+from sg_torchrl.train.config import (
+    MULTI_AGENT_ALGORITHM_NAMES,
+    PRESETS,
+    RETIRED_FIELDS,
+    TrainConfig,
+    command_line_values,
+)
 from sg_torchrl.train.interrupt import TrainingInterrupted
 from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError, make_dirs
 
@@ -51,7 +57,6 @@ _HEAVY = {
     "MultiAgentGroupTrainer": "sg_torchrl.train.multi_agent_group",
     "SingleSeedGroupTrainer": "sg_torchrl.train.seed_group",
     "SingleSeedMultiAgentTrainer": "sg_torchrl.train.multi_agent_group",
-    "Trainer": "sg_torchrl.train.trainer",
 }
 
 
@@ -64,15 +69,15 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentGroupTrainer",
-    "SingleSeedGroupTrainer", "SingleSeedMultiAgentTrainer", "TrainConfig", "Trainer",
-    "TrainingInterrupted", "algorithm_title", "checkpoint_engine", "main", "train", "trainer_class",
+    "SingleSeedGroupTrainer", "SingleSeedMultiAgentTrainer", "TrainConfig", "TrainingInterrupted", "algorithm_title",
+    "main", "refuse_retired_checkpoint", "train", "trainer_class",
 ]
 
 
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
-    """The trainer of ``cfg``: for a seed group :class:`MultiAgentGroupTrainer` (multi-agent algorithms) or
-    :class:`GroupTrainer`; for one seed :class:`SingleSeedMultiAgentTrainer` (multi-agent algorithms), else by
-    ``cfg.engine``: :class:`SingleSeedGroupTrainer` (``"fused"``) or :class:`Trainer` (``"loss-module"``)."""
+    """The trainer of ``cfg``: :class:`MultiAgentGroupTrainer` or :class:`GroupTrainer` for a seed group
+    (multi-agent algorithms or not), :class:`SingleSeedMultiAgentTrainer` or :class:`SingleSeedGroupTrainer` for
+    one seed."""
     if cfg.group and cfg.multi_agent:
         from sg_torchrl.train.multi_agent_group import MultiAgentGroupTrainer
 
@@ -85,25 +90,32 @@ def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
         from sg_torchrl.train.multi_agent_group import SingleSeedMultiAgentTrainer
 
         return SingleSeedMultiAgentTrainer
-    if cfg.engine == "loss-module":
-        from sg_torchrl.train.trainer import Trainer
-
-        return Trainer
     from sg_torchrl.train.seed_group import SingleSeedGroupTrainer
 
     return SingleSeedGroupTrainer
 
 
-def checkpoint_engine(checkpoint: dict[str, Any]) -> str | None:
-    """The ``engine`` of the run that wrote ``checkpoint`` (:meth:`EpochTrainer.load_checkpoint`'s dict).
+def refuse_retired_checkpoint(checkpoint: dict[str, Any], where: str | Path) -> None:
+    """Refuse a checkpoint (:meth:`EpochTrainer.load_checkpoint`'s dict, read from ``where``) of the retired
+    ``LossModule`` trainer, which earlier versions ran for ``--engine loss-module`` and for pixel observations.
 
-    ``None`` for a multi-agent run; ``"fused"`` for the seed-group engine's checkpoints (a group's or a
-    :class:`SingleSeedGroupTrainer`'s: they hold ``"seed_group"``); ``"loss-module"`` for a
-    :class:`Trainer`'s, including those written before ``engine`` existed (their configs lack it).
+    Its checkpoints are a single-agent run's without a ``"seed_group"`` entry (those written before
+    ``engine`` existed included); the seed-group engine cannot continue them (other networks, optimiser
+    and random streams), so they are refused with what to do instead.
+
+    Raises:
+        CheckpointError: ``checkpoint`` is such a checkpoint.
     """
-    if checkpoint.get("config", {}).get("algo") in MULTI_AGENT_ALGORITHM_NAMES:
-        return None
-    return "fused" if "seed_group" in checkpoint else "loss-module"
+    from sg_torchrl.train.checkpoint import CheckpointError
+
+    config = checkpoint.get("config", {})
+    if config.get("algo") in MULTI_AGENT_ALGORITHM_NAMES or "seed_group" in checkpoint:
+        return
+    raise CheckpointError(
+        f"{where} was written by the LossModule trainer (engine {config.get('engine') or 'loss-module'}), which "
+        f"this sg_torchrl no longer has: single-agent runs train on the seed-group engine, which cannot continue "
+        f"it. Start it over with the same command and a fresh --run-name (or --overwrite in its directory), or "
+        f"continue it with an earlier sg_torchrl release that still has --engine loss-module")
 
 
 def algorithm_title(algo: str) -> str:
@@ -114,13 +126,13 @@ def algorithm_title(algo: str) -> str:
 def train(cfg: TrainConfig) -> dict[str, float]:
     """Run (or continue, when ``cfg.resume`` is set) one experiment; returns the final metrics.
 
-    The trainer is :func:`trainer_class`'s; a resumed run continues on the engine that wrote its checkpoint
-    (:func:`checkpoint_engine`), whatever ``cfg.engine`` says.
+    The trainer is :func:`trainer_class`'s.
 
     Raises:
         RunDirectoryError: a new run in a directory that already holds one, without ``cfg.overwrite``
             (checked before anything is built).
-        CheckpointError: ``cfg.resume`` names a checkpoint that is damaged or not ours.
+        CheckpointError: ``cfg.resume`` names a checkpoint that is damaged, not ours, or of the retired
+            ``LossModule`` trainer (:func:`refuse_retired_checkpoint`).
         RunWriteError: a file of the run could not be written (a full disk, a read-only or vanished
             directory); the last checkpoint and the logs up to it are intact.
     """
@@ -130,8 +142,7 @@ def train(cfg: TrainConfig) -> dict[str, float]:
 
     if cfg.resume:
         checkpoint = EpochTrainer.load_checkpoint(cfg.resume)
-        if cfg.engine != checkpoint_engine(checkpoint):
-            cfg = dataclasses.replace(cfg, engine=checkpoint_engine(checkpoint))
+        refuse_retired_checkpoint(checkpoint, cfg.resume)
     else:
         check_new_run_dir(cfg.run_dir, cfg.overwrite)
         checkpoint = None
@@ -150,10 +161,9 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     Raises:
         ValueError: an invalid merged config, or flags a resumed run cannot take (``--preset``,
             ``--overwrite``, ``--output-dir`` / ``--run-name``: it stays in its directory; ``--seed`` /
-            ``--seeds`` other than its own: a run keeps its seeds; ``--engine`` other than the one that
-            wrote its checkpoint).
+            ``--seeds`` other than its own: a run keeps its seeds).
         FileNotFoundError: no checkpoint at the ``--resume`` path.
-        CheckpointError: a damaged or foreign checkpoint.
+        CheckpointError: a damaged or foreign checkpoint, or one of the retired ``LossModule`` trainer.
     """
     values = command_line_values(argv)
     resume = values.get("resume")
@@ -169,7 +179,8 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     from sg_torchrl.train.trainer import EpochTrainer
 
     checkpoint = EpochTrainer.load_checkpoint(resume)
-    saved = dict(checkpoint["config"])
+    refuse_retired_checkpoint(checkpoint, resume)
+    saved = {name: value for name, value in checkpoint["config"].items() if name not in RETIRED_FIELDS}
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(saved) - known)
     if unknown:
@@ -178,10 +189,6 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     for name in ("seed", "seeds"):  # a run (a group) keeps its seeds: its state holds their streams
         if name in values and values[name] != saved.get(name, [] if name == "seeds" else None):
             raise ValueError(f"a resumed run keeps its seeds ({_seeds_text(saved)}); --{name} cannot change them")
-    saved["engine"] = checkpoint_engine(checkpoint)  # configs written before --engine existed lack it
-    if "engine" in values and values["engine"] != saved["engine"]:
-        raise ValueError(f"a resumed run keeps the engine that wrote its checkpoint ({saved['engine']}); --engine "
-                         f"{values['engine']} cannot change it (start a new run with --engine {values['engine']})")
     merged = TrainConfig(**{**saved, **values, "resume": str(resume), "overwrite": False})
     run_dir = resume_run_dir(resume)
     moved = [name for name in ("output_dir", "run_name") if name in values]
@@ -276,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  logs:       {run_dir}/progress.csv, {run_dir}/csv" + (f", {run_dir}/wandb" if cfg.wandb != 'disabled' else ""))
     print(f"  checkpoint: {run_dir}/checkpoint.pt   (continue with: sg-train --resume {run_dir})")
     print(f"  plot:       {run_dir}/curves.png")
-    if metrics.get("Diverged"):  # the fused engine ends a run whose parameters or update turned non-finite
+    if metrics.get("Diverged"):  # the engine ends a run whose parameters or update turned non-finite
         print(f"  DIVERGED in epoch {metrics['DivergedEpoch']}: {metrics['DivergedReason']}")
         return 1
     return 0

@@ -1,7 +1,7 @@
 """The algorithms ``sg-train`` can run: the single-agent rows of the algorithm manifest, built.
 
 An algorithm is three choices over the shared actor and critics: a multiplier rule, a loss and an
-update loop (:mod:`sg_torchrl.train.updates`). The twelve SafePO single-agent algorithms of the
+update loop (:mod:`sg_torchrl.train.group_updates`). The twelve SafePO single-agent algorithms of the
 Safety-Gymnasium paper (section 5) are the single-agent rows of :mod:`sg_torchrl.algorithms.manifest`,
 which names them and says their kinds; here each kind has its builder, and :data:`ALGORITHMS` holds,
 per row, the builders its kinds choose:
@@ -18,13 +18,13 @@ So PPO is PPO-Lag with :class:`~sg_torchrl.objectives.NoMultiplier`, CPPO-PID is
 multiplier, TRPO-Lag is TRPO with a Lagrange multiplier and RCPO (as SafePO implements it) is NPG
 with one. Adding an algorithm of known kinds is a loss class and a manifest row, not code here.
 
-A row's ``make_group_update`` is its update loop for a seed group (``sg-train --seeds``,
-:mod:`sg_torchrl.train.group_updates`), built from the single-seed loss
-(the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_objective`, through
-:func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the second-order rows, from the
-row's single-seed step class through :data:`~sg_torchrl.objectives.trust_region.STACKED_STEPS`
-with the options the single-seed update passes (:func:`_trust_region_options`), so both paths read
-the same hyper-parameters. Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
+A row's ``make_group_update`` is its update loop on the seed-group engine (every single-agent run,
+``--seed`` or ``--seeds``), built from one seed's loss, the ``LossModule`` users compose in their own
+code (the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_objective`, through
+:func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the
+second-order rows, from the row's step class through
+:data:`~sg_torchrl.objectives.trust_region.STACKED_STEPS` with the config's options
+(:func:`_trust_region_options`). Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
 names them, for the command line).
 """
 
@@ -58,12 +58,10 @@ from sg_torchrl.train.group_updates import (
     TwoStageGroupUpdate,
 )
 from sg_torchrl.objectives.trust_region import STACKED_STEPS
-from sg_torchrl.train.updates import FirstOrderUpdate, PolicyUpdate, TrustRegionUpdate, TwoStageUpdate, UpdateParts
 
 __all__ = ["Algorithm", "ALGORITHMS", "TRUST_REGION_STEPS"]
 
 MakeLoss = Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
-MakeUpdate = Callable[[UpdateParts, Multiplier, TrainConfig], PolicyUpdate]
 #: ``(parts, loss, cfg) -> GroupUpdate``: ``loss`` is one seed's single-seed loss (``make_loss``), which
 #: carries the objective and its hyper-parameters.
 MakeGroupUpdate = Callable[[GroupParts, LossModule, TrainConfig], GroupUpdate]
@@ -71,12 +69,11 @@ MakeGroupUpdate = Callable[[GroupParts, LossModule, TrainConfig], GroupUpdate]
 
 @dataclass(frozen=True)
 class Algorithm:
-    """How to build one algorithm's multiplier, loss and update loop (single seed, and seed group) from a config."""
+    """How to build one algorithm's multiplier, loss and update loop from a config."""
 
     title: str
     make_multiplier: Callable[[TrainConfig], Multiplier]
     make_loss: MakeLoss
-    make_update: MakeUpdate
     make_group_update: MakeGroupUpdate | None = None
 
 
@@ -112,27 +109,12 @@ def _loss_builder(entry: AlgorithmEntry) -> MakeLoss:
 
 
 # ---------------------------------------------------------------------------- updates
-def _first_order(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
-    return FirstOrderUpdate(parts)
-
-
-def _two_stage(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
-    return TwoStageUpdate(parts)
-
-
 def _trust_region_options(cfg: TrainConfig, line_search: bool) -> dict:
-    """The options of a trust-region step class (single seed and seed group alike) from the config."""
+    """The options of a trust-region step class (its stacked form takes the same) from the config."""
     options = dict(target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping)
     if line_search:
         options.update(line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction)
     return options
-
-
-def _trust_region(step_class: type, *, line_search: bool = True) -> MakeUpdate:
-    def make(parts: UpdateParts, multiplier: Multiplier, cfg: TrainConfig) -> PolicyUpdate:
-        return TrustRegionUpdate(parts, step_class(parts.actor, **_trust_region_options(cfg, line_search)), multiplier)
-
-    return make
 
 
 def _trust_region_group(step_class: type, *, line_search: bool = True) -> MakeGroupUpdate:
@@ -159,22 +141,19 @@ TRUST_REGION_STEPS: dict[str, type] = {"natural": NaturalPolicyStep, "trpo": TRP
 _NO_LINE_SEARCH = frozenset({"natural"})
 
 # ---------------------------------------------------------------------------- the rows
-#: Builders by multiplier kind and update kind (single seed, seed group); the loss is the row's own.
+#: Builders by multiplier kind and update kind; the loss is the row's own.
 _MULTIPLIERS: dict[str, Callable[[TrainConfig], Multiplier]] = {"none": _none, "lagrange": _lagrange, "pid": _pid}
-_UPDATES: dict[str, tuple[MakeUpdate, MakeGroupUpdate]] = {
-    "first_order": (_first_order, _first_order_group),
-    "two_stage": (_two_stage, _two_stage_group),
-    **{kind: (_trust_region(step, line_search=kind not in _NO_LINE_SEARCH),
-              _trust_region_group(step, line_search=kind not in _NO_LINE_SEARCH))
+_UPDATES: dict[str, MakeGroupUpdate] = {
+    "first_order": _first_order_group,
+    "two_stage": _two_stage_group,
+    **{kind: _trust_region_group(step, line_search=kind not in _NO_LINE_SEARCH)
        for kind, step in TRUST_REGION_STEPS.items()},
 }
 
 
 def _algorithm(entry: AlgorithmEntry) -> Algorithm:
     """A manifest row's builders, chosen by its multiplier kind and update kind, and its loss class."""
-    make_update, make_group_update = _UPDATES[entry.update]
-    return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _loss_builder(entry), make_update,
-                     make_group_update)
+    return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _loss_builder(entry), _UPDATES[entry.update])
 
 
 #: The single-agent algorithms by ``--algo`` name, in the manifest's order.

@@ -23,19 +23,12 @@ holds, with a CNN encoder before ``hidden_sizes`` when there are images
 exactly as its single-seed run with that ``seed`` would train: ``num_envs``, ``steps_per_epoch`` and
 ``total_steps`` are per seed. ``--seeds 0`` is a group of one; ``--seed`` and ``--seeds`` together are
 refused. Groups train the single-agent algorithms of :data:`SEED_GROUP_ALGORITHMS` (all twelve, first
-and second order; networks stacked, :mod:`sg_torchrl.train.seed_group`) and the four multi-agent ones
-(one round per seed, :mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations; pixel
-observations are refused here, before anything is built.
-
-**Engines.** ``engine`` (``--engine``) chooses how one seed of a single-agent algorithm trains:
-``"fused"``, the seed-group engine with that one seed (stacked networks, one fused minibatch step;
-:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`, which writes the single-seed layout), or
-``"loss-module"``, the :class:`~sg_torchrl.train.trainer.Trainer` that steps TorchRL ``LossModule`` s, the
-reference path. Unset, it is filled when the config is built: fused on flat-vector observations,
-loss-module on pixel observations (which the fused engine does not read); so ``config.json`` and the
-checkpoint say which engine ran. Multi-agent algorithms leave it unset (``None``): they have one engine,
-the multi-agent seed-group engine, which runs one seed as a group of one
-(:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, the single-seed layout).
+and second order; networks stacked, :mod:`sg_torchrl.train.seed_group`), on flat-vector or pixel
+observations, and the four multi-agent ones (one round per seed,
+:mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations. One seed (``seed``) trains on
+the same engine as a group of that one seed
+(:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`,
+:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`), writing the single-seed layout.
 
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
@@ -58,13 +51,14 @@ from sg_torchrl.train.writes import check_run_name, write_atomic
 from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
-    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "ENGINES", "MULTI_AGENT_ALGORITHM_NAMES", "SECOND_ORDER",
+    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "RETIRED_FIELDS", "SECOND_ORDER",
     "SEED_GROUP_ALGORITHMS", "TrainConfig", "PRESETS", "parse_args",
 ]
 
-EngineName = Literal["fused", "loss-module"]
-#: The single-agent training engines (``--engine``; :func:`sg_torchrl.train.trainer_class` maps them to trainers).
-ENGINES: tuple[str, ...] = get_args(EngineName)
+#: Fields that configs saved by earlier versions hold and this one reads past: ``engine`` chose between the
+#: seed-group engine (``"fused"``, the only one now) and the retired ``LossModule`` trainer (``"loss-module"``,
+#: whose checkpoints ``sg-train --resume`` refuses).
+RETIRED_FIELDS: tuple[str, ...] = ("engine",)
 # Views of the algorithm manifest (sg_torchrl.algorithms.manifest), kept for the code that imports them here.
 #: The single-agent algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
 ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="single")
@@ -110,7 +104,7 @@ class TrainConfig:
     seeds: list[int] = _opt(
         (), "train a seed group: these seeds side by side in one process (e.g. 0 1 2), each exactly as its "
         "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
-        "group's directory; every algorithm, on flat observations")
+        "group's directory; every algorithm; single-agent ones on flat or pixel observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
     num_envs: int = _opt(10, "simulators stepped in one process")
     steps_per_epoch: int | None = _opt(
@@ -180,15 +174,6 @@ class TrainConfig:
     compile: bool = _opt(
         False, "single-agent: torch.compile the minibatch losses (about 2x faster first-order updates on a CPU after "
         "tens of seconds of compiling; same algorithm, float rounding differs from eager)")
-    engine: EngineName | None = _opt(
-        None, "single-agent training engine. fused: the seed-group engine with one seed (stacked networks, one fused "
-        "minibatch step; 1.6-1.7x less CPU per env step), the same run as seed s of --seeds s, written as a --seed "
-        "run; loss-module: Trainer, which steps TorchRL's LossModules (PPOLagLoss, ...), the reference path users "
-        "compose in their own code. Unset: fused on flat-vector observations, loss-module on pixel observations "
-        "(the fused engine reads flat vectors only). Seed groups are fused; multi-agent algorithms have their own "
-        "trainers and take no engine. A resumed run keeps the engine that wrote its checkpoint",
-        shown_default="fused; loss-module for pixel observations")
-
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
             if getattr(self, name) is None:
@@ -197,8 +182,6 @@ class TrainConfig:
             seeds = self.seeds
             self.seed = seeds[0] if isinstance(seeds, list) and seeds and type(seeds[0]) is int else 0
         self.validate()
-        if self.engine is None and not self.multi_agent:  # the choice is written down (config.json, checkpoints)
-            self.engine = "fused" if self.observation_mode == "vector" else "loss-module"
 
     @property
     def second_order(self) -> bool:
@@ -269,7 +252,6 @@ class TrainConfig:
             )
         self._validate_env_options()
         self._validate_observation_mode()
-        self._validate_engine()
         self._validate_checkpointing()
         if self.run_name is not None:  # every file of the run stays inside output_dir
             check_run_name(self.run_name)
@@ -340,9 +322,9 @@ class TrainConfig:
                                                        **self.env_options}.get("image_size")
         if obs_mode == "vector":  # every other mode holds images
             return
-        if self.seeds:
-            raise ValueError(f"config: seed groups (seeds) train on flat-vector observations only; {self.env_id} "
-                             f"with obs_mode={obs_mode!r} emits images (run one seed per process with --seed)")
+        if self.multi_agent:
+            raise ValueError(f"config: the multi-agent algorithms train on flat-vector observations only; "
+                             f"{self.env_id} with obs_mode={obs_mode!r} emits images")
         from sg_torchrl.modules.cnn import DEFAULT_CNN
 
         smallest = DEFAULT_CNN.min_image_size
@@ -352,23 +334,6 @@ class TrainConfig:
                 f"{DEFAULT_CNN.kernel_sizes}, strides {DEFAULT_CNN.strides}): use image_size >= {smallest} "
                 f"(the Vision ids default to 256, Safety-Gymnasium's size)"
             )
-
-    def _validate_engine(self) -> None:
-        """``engine``, when given: a single-agent choice (multi-agent algorithms have one engine), fused
-        for a seed group (the group engine is the fused one), and not fused on pixel observations (its stacked
-        networks read a flat vector). Unset, :meth:`__post_init__` picks the engine that fits."""
-        if self.engine is None:
-            return
-        if self.multi_agent:
-            raise ValueError(f"config: engine chooses how a single-agent algorithm trains; {self.algo!r} is a "
-                             f"multi-agent algorithm with its own engine: leave engine unset")
-        if self.seeds and self.engine != "fused":
-            raise ValueError(f"config: seed groups (seeds) train on the fused engine; engine {self.engine!r} "
-                             f"(Trainer) runs one seed per process: give --seed instead of --seeds")
-        if self.engine == "fused" and self.observation_mode != "vector":
-            raise ValueError(f"config: engine 'fused' trains on flat-vector observations; {self.env_id} with "
-                             f"obs_mode={self.observation_mode!r} emits images: give engine loss-module, or leave "
-                             f"engine unset (pixel observations then train on loss-module)")
 
     @property
     def observation_mode(self) -> str:
@@ -444,6 +409,11 @@ class TrainConfig:
         """
         return dataclasses.replace(self, seed=seed, seeds=[], output_dir=str(self.run_dir),
                                    run_name=f"seed-{seed:03d}", resume=None, overwrite=False)
+
+    @classmethod
+    def from_saved(cls, values: dict[str, Any]) -> TrainConfig:
+        """The config saved as ``values`` (``config.json``, a checkpoint's), read past :data:`RETIRED_FIELDS`."""
+        return cls(**{name: value for name, value in values.items() if name not in RETIRED_FIELDS})
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

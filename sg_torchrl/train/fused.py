@@ -31,6 +31,7 @@ import warnings
 from collections.abc import Iterator, Mapping, Sequence
 
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
 
 from sg_torchrl import seeding
@@ -74,7 +75,7 @@ def multiplier_values(multipliers: Sequence, dtype: torch.dtype = torch.float32)
 
 # ---------------------------------------------------------------------------- batches
 class SeedBatch:
-    """Per-sample fields of S seeds' batches, packed in one ``(S, N, F)`` tensor.
+    """Per-sample fields of S seeds' batches, packed in one ``(S, N, F)`` tensor (images kept apart).
 
     A minibatch of every field is one advanced-indexing gather (:meth:`gather`) instead of one per
     field, and :meth:`fields` splits it back into views with one ``torch.split``. Every field is
@@ -82,27 +83,50 @@ class SeedBatch:
     ``(S, N, 1)``, which is also the shape the losses compute in. Like a TensorDict for
     :func:`~sg_torchrl.objectives.passes.run_passes`: ``len(batch)`` is the samples per seed and
     ``batch[index]`` a minibatch.
+
+    **Images.** A field given as a TensorDict of batch ``[S, N]`` (an image observation,
+    :meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation`) is split: its flat vector
+    (entry ``"observation"``, if any) is packed with the other fields under the field's name, and its
+    other entries (``uint8`` pixels, depth) stay in their own dtype and shape in :attr:`apart`,
+    gathered with the same index; :meth:`fields` hands the field back as a TensorDict. So a minibatch
+    of images is one ``index_select`` per image entry and an epoch's images are never copied to float.
     """
 
     def __init__(self, data: Tensor, names: Sequence[str], widths: Sequence[int], *,
-                 _offsets: Tensor | None = None) -> None:
+                 apart: Mapping[str, TensorDictBase] | None = None, _offsets: Tensor | None = None) -> None:
         self.data = data
         self.names = tuple(names)
         self.widths = tuple(int(w) for w in widths)
+        #: Field name -> the entries of a TensorDict field kept beside :attr:`data` (batch ``[S, N]``).
+        self.apart = dict(apart or {})
         if _offsets is None:  # where each seed's rows start in data viewed as (S * N, F)
             _offsets = torch.arange(data.shape[0], device=data.device).unsqueeze(1) * data.shape[1]
         self._offsets = _offsets
 
     @classmethod
-    def pack(cls, fields: Mapping[str, Tensor]) -> SeedBatch:
-        """Pack ``(S, N)`` or ``(S, N, k)`` tensors (one dtype) into one batch."""
+    def pack(cls, fields: Mapping[str, Tensor | TensorDictBase]) -> SeedBatch:
+        """Pack ``(S, N)`` or ``(S, N, k)`` tensors (one dtype) into one batch; TensorDict fields are split
+        (see the class docstring)."""
         if not fields:
             raise ValueError("SeedBatch.pack needs at least one field")
-        columns = [value if value.dim() == 3 else value.unsqueeze(-1) for value in fields.values()]
-        shapes = {tuple(column.shape[:2]) for column in columns}
+        tensors, apart = {}, {}
+        for name, value in fields.items():
+            if isinstance(value, TensorDictBase):
+                apart[name] = value.exclude("observation")
+                if "observation" in value.keys():
+                    tensors[name] = value.get("observation")
+            else:
+                tensors[name] = value
+        columns = [value if value.dim() == 3 else value.unsqueeze(-1) for value in tensors.values()]
+        shapes = {tuple(column.shape[:2]) for column in columns} | {tuple(td.batch_size) for td in apart.values()}
         if len(shapes) != 1:
             raise ValueError(f"fields differ in (seeds, samples): {sorted(shapes)}")
-        return cls(torch.cat(columns, dim=-1), list(fields), [column.shape[-1] for column in columns])
+        return cls(torch.cat(columns, dim=-1), list(tensors), [column.shape[-1] for column in columns], apart=apart)
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        """Every field's name: the packed ones, then those with entries apart (not packed)."""
+        return self.names + tuple(name for name in self.apart if name not in self.names)
 
     @property
     def num_seeds(self) -> int:
@@ -112,9 +136,9 @@ class SeedBatch:
     def num_samples(self) -> int:
         return self.data.shape[1]
 
-    def fields(self) -> dict[str, Tensor]:
-        """Every field as a view ``(S, N, width)``."""
-        return dict(zip(self.names, torch.split(self.data, self.widths, dim=-1)))
+    def fields(self) -> dict[str, Tensor | TensorDictBase]:
+        """Every field as a view ``(S, N, width)``, a field with entries apart as a TensorDict."""
+        return field_views(self.data, self.names, self.widths, self.apart)
 
     def __len__(self) -> int:
         """The samples per seed: what minibatch indices range over (``len(data)`` in ``run_passes``)."""
@@ -130,7 +154,26 @@ class SeedBatch:
         """The minibatch ``index`` (``(S, mb)``: seed ``s`` takes its samples ``index[s]``)."""
         rows = (index + self._offsets).view(-1)  # index_select on the flat rows: faster than advanced indexing
         gathered = self.data.reshape(-1, self.data.shape[-1]).index_select(0, rows)
-        return SeedBatch(gathered.view(*index.shape, -1), self.names, self.widths)
+
+        def pick(value: Tensor) -> Tensor:
+            trailing = value.shape[2:]
+            return value.reshape(-1, *trailing).index_select(0, rows).view(*index.shape, *trailing)
+
+        apart = {name: td.apply(pick, batch_size=index.shape) for name, td in self.apart.items()}
+        return SeedBatch(gathered.view(*index.shape, -1), self.names, self.widths, apart=apart)
+
+
+def field_views(data: Tensor, names: Sequence[str], widths: Sequence[int],
+                apart: Mapping[str, TensorDictBase]) -> dict[str, Tensor | TensorDictBase]:
+    """:meth:`SeedBatch.fields` of a packed tensor and its entries apart: the packed views, and each field with
+    entries apart as a TensorDict of those and (under ``"observation"``) its packed vector."""
+    views: dict[str, Tensor | TensorDictBase] = dict(zip(names, torch.split(data, widths, dim=-1)))
+    for name, entries in apart.items():
+        td = entries.copy()
+        if name in views:
+            td.set("observation", views[name])
+        views[name] = td
+    return views
 
 
 class SeedShuffler:
@@ -243,9 +286,8 @@ class FusedFirstOrderStep:
                               max_grad_norm=max_grad_norm, compile=compile, **adam)
 
     def _eager_losses(self, data: Tensor, lam: Tensor, names: tuple[str, ...], widths: tuple[int, ...],
-                      ) -> tuple[Tensor, ...]:
-        views = dict(zip(names, torch.split(data, widths, dim=-1)))
-        return self.spec.losses(self.model, views, lam)
+                      apart: Mapping[str, TensorDictBase]) -> tuple[Tensor, ...]:
+        return self.spec.losses(self.model, field_views(data, names, widths, apart), lam)
 
     def backward(self, batch: SeedBatch, lam: Tensor) -> tuple[Tensor, ...]:
         """Gradients of the minibatch losses into the flat gradient buffers (zeroed first).
@@ -254,9 +296,9 @@ class FusedFirstOrderStep:
         ``(reward critic MSE, cost critic MSE)`` for ``"critics"``, else ``(objective, reward critic
         MSE, cost critic MSE)`` (the critics' without the L2 term, see :meth:`SeedBatchedObjective.diagnostics`).
         """
-        missing = set(self.spec.fields) - set(batch.names)
+        missing = set(self.spec.fields) - set(batch.field_names)
         if missing:
-            raise KeyError(f"the batch lacks {sorted(missing)} (fields: {batch.names})")
+            raise KeyError(f"the batch lacks {sorted(missing)} (fields: {batch.field_names})")
         model = self.model
         for index in self.groups:
             model.flat_groups[index].grad.zero_()
@@ -276,7 +318,7 @@ class FusedFirstOrderStep:
 
     def _compute(self, batch: SeedBatch, lam: Tensor) -> tuple[Tensor, ...]:
         try:
-            return self._losses(batch.data, lam, batch.names, batch.widths)
+            return self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
         except Exception as error:  # noqa: BLE001 -- compiling failed: say so once, go on eagerly
             if self._losses == self._eager_losses:
                 raise
@@ -284,7 +326,7 @@ class FusedFirstOrderStep:
             warnings.warn(f"FusedFirstOrderStep: torch.compile failed, running eagerly ({self.compile_error})",
                           stacklevel=3)
             self._losses = self._eager_losses
-            return self._losses(batch.data, lam, batch.names, batch.widths)
+            return self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
 
     def update(self, active: Tensor | None = None) -> Tensor | None:
         """The optimiser step on this objective's groups; returns each seed's gradient norm (or ``None``)."""

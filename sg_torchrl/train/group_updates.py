@@ -1,6 +1,6 @@
 """How one epoch's batch moves a seed group's networks: the update loops of SafePO for S seeds at once.
 
-The seed-group counterpart of :mod:`sg_torchrl.train.updates`. The group trainer
+Every single-agent run trains through these (``--seed`` is a group of one). The group trainer
 (:mod:`sg_torchrl.train.seed_group`) computes every seed's advantages (normalised per seed) and
 hands the algorithm's :class:`GroupUpdate` the epoch's samples as ``(S, n, k)`` tensors, seed ``s``'s
 on row ``s``: ``observation``, ``action``, ``action_log_prob``, ``loc`` and ``scale`` (the rollout
@@ -15,8 +15,8 @@ chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torch
   step of every seed's actor (:mod:`sg_torchrl.objectives.stacked_trust_region`), then critics-only passes.
 
 All run :func:`seed_passes`, a group's minibatch passes through the package's one update loop
-(:func:`~sg_torchrl.objectives.passes.run_passes`, which the single-seed trainer and the multi-agent
-rounds also run). Each seed follows its single-seed run:
+(:func:`~sg_torchrl.objectives.passes.run_passes`, which the multi-agent rounds also run). Each seed
+follows its single-seed run (SafePO's loop on its own):
 its own minibatch order (:class:`~sg_torchrl.train.fused.SeedShuffler`), its own KL early stop (after
 every pass, KL(reference || current) over the seed's batch against ``target_kl``; none for the
 critics-only passes). A seed that
@@ -42,9 +42,10 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
 
-from sg_torchrl.modules.stacked import StackedActorCritic
+from sg_torchrl.modules.stacked import StackedActorCritic, in_chunks
 from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective, combine_advantages
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedBatch, SeedShuffler, batch_kl
@@ -267,8 +268,8 @@ def seed_passes(
         raise ValueError(f"the passes of {spec.surrogate!r} stop on the KL to a reference policy: give reference")
     batch = SeedBatch.pack({name: data[name] for name in spec.fields})
     observation = data["observation"]
-    means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), observation.device)
-    kl = (lambda: batch_kl(model, observation, *reference)) if spec.kl_stop else None
+    means = RowMeans(("losses",), (spec.num_losses, batch.num_seeds), data["advantage"].device)
+    kl = (lambda: batch_kl(model, observation, *reference, chunk_size=model.chunk_size)) if spec.kl_stop else None
     stops = SeedStops(model, means, active, kl, parts.target_kl)
 
     def order(size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
@@ -324,7 +325,7 @@ class FirstOrderGroupUpdate(GroupUpdate):
 
 
 class TwoStageGroupUpdate(GroupUpdate):
-    """CUP's epoch (as :class:`~sg_torchrl.train.updates.TwoStageUpdate`) for every seed.
+    """CUP's epoch for every seed.
 
     Stage one runs :func:`seed_passes` on ``reward_spec`` (PPO on the reward advantage, both critics,
     no multiplier); each seed's stage-one policy is then evaluated on its batch (``stage1_loc`` /
@@ -349,8 +350,8 @@ class TwoStageGroupUpdate(GroupUpdate):
         first = seed_passes(self.parts, self.reward_step, data, torch.zeros_like(lam), active,
                             (data["loc"], data["scale"]))
         with torch.no_grad():
-            loc, scale = model.dist_params(data["observation"])
-            scale = scale.expand_as(loc)
+            loc, = in_chunks(lambda obs: model.dist_params(obs)[:1], data["observation"], model.chunk_size)
+            scale = model.scale().expand_as(loc)
         stage_two = {**data, "stage1_loc": loc, "stage1_scale": scale}
         second = seed_passes(self.parts, self.projection_step, stage_two, lam, active & ~first.diverged, (loc, scale))
         diverged = first.diverged | second.diverged
@@ -362,7 +363,7 @@ class TwoStageGroupUpdate(GroupUpdate):
 
 
 class TrustRegionGroupUpdate(GroupUpdate):
-    """The second-order epoch (as :class:`~sg_torchrl.train.updates.TrustRegionUpdate`) for every seed.
+    """The second-order epoch for every seed.
 
     NPG, TRPO, TRPO-Lag, RCPO, CPO and PCPO: one trust-region step of the actors on the whole batch
     (``policy_step``, a :class:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep`
@@ -423,8 +424,8 @@ class TrustRegionGroupUpdate(GroupUpdate):
             return {}
         step = self.policy_step.for_rows(rows)
 
-        def pick(value: Tensor) -> Tensor:
-            return value.index_select(0, rows)
+        def pick(value: Tensor | TensorDictBase) -> Tensor | TensorDictBase:
+            return value.index_select(0, rows) if isinstance(value, Tensor) else value[rows]
 
         batch = {name: pick(data[name]) for name in ("observation", "action", "action_log_prob")}
         moved = step.step(batch, pick(advantage), pick(data["cost_advantage"]), violation[active.to(violation.device)])

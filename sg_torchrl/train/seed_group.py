@@ -17,10 +17,10 @@ run in every respect that is not float rounding:
   ``num_envs``, seeded exactly as a ``num_envs``-simulator env with seed ``s``
   (``sg_torchrl.make(..., seed=[s0, s1, ...])``);
 * **networks**: ``torch.manual_seed(s)`` (:func:`~sg_torchrl.seeding.seed_torch`) then
-  ``make_actor_critics``, as the single-seed :class:`~sg_torchrl.train.trainer.Trainer` initialises
-  them, stacked in a
-  :class:`~sg_torchrl.modules.stacked.StackedActorCritic`;
-* **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``);
+  ``make_actor_critics`` (the TorchRL modules users build; with CNN encoders on pixel observations),
+  stacked in a :class:`~sg_torchrl.modules.stacked.StackedActorCritic`;
+* **observation normaliser**: one row of running statistics per seed (``RunningObservationNorm(groups=S)``),
+  over the flat vector only (images are scaled in the networks and stay ``uint8`` in the batch);
 * **random streams** (:mod:`sg_torchrl.seeding`): action noise from one ``torch.Generator`` per seed
   (the ``actions`` purpose, :func:`~sg_torchrl.seeding.action_seed`), minibatch order from another
   (:class:`~sg_torchrl.train.fused.SeedShuffler`, seeded with ``s`` as the single-seed trainer seeds
@@ -57,11 +57,10 @@ non-finite, is frozen (no more updates, multiplier or logs; its simulators idle 
 and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
 when none is left the run ends early.
 
-**One seed** (``sg-train --seed s``, ``engine="fused"``, the default on flat-vector observations):
-:class:`SingleSeedGroupTrainer` is this engine with the one seed, in the single-seed layout. It trains
-exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1: progress rows but their timings,
-parameters, the seed's checkpoint entry) and writes what a :class:`~sg_torchrl.train.trainer.Trainer`
-run writes, where it writes it.
+**One seed** (``sg-train --seed s``): :class:`SingleSeedGroupTrainer` is this engine with the one seed,
+in the single-seed layout. It trains exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1:
+progress rows but their timings, parameters, the seed's checkpoint entry) and writes a single run's
+files in its run directory.
 """
 
 from __future__ import annotations
@@ -89,7 +88,7 @@ from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout, seed_entry
 from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
-from sg_torchrl.modules.stacked import StackedActorCritic
+from sg_torchrl.modules.stacked import StackedActorCritic, in_chunks
 
 __all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
 
@@ -100,8 +99,9 @@ _COUNTS = ("Train/StopIter", "Train/ProjectionStopIter")
 class StackedPolicy(TensorDictModuleBase):
     """A seed group's actors as one TensorDict policy of its batched env (what :class:`RolloutCollector` calls).
 
-    Reads ``observation`` ``(S * N, obs_dim)``, views it as ``(S, N, obs_dim)`` (seed ``s``'s
-    simulators are block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
+    Reads ``observation`` ``(S * N, obs_dim)`` (or the images the networks read), views it per seed
+    (:meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation`: seed ``s``'s simulators are
+    block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
     as the single-seed actor does, seed ``s``'s noise drawn from ``generators[s]``
     (:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.sample`). Under a deterministic exploration
     type it returns the means. Seeds in :attr:`frozen` act with zeros (a diverged seed's actions may
@@ -119,12 +119,11 @@ class StackedPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get("observation")
-        seeds, rows = self.model.num_seeds, obs.shape[0]
+        obs = self.model.read_observation(tensordict)
+        rows = obs.shape[0] * obs.shape[1]
         deterministic = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE,
                                                ExplorationType.MEAN)
-        action, log_prob, loc, scale = self.model.sample(obs.reshape(seeds, -1, obs.shape[-1]), self.generators,
-                                                         deterministic=deterministic)
+        action, log_prob, loc, scale = self.model.sample(obs, self.generators, deterministic=deterministic)
         if self.frozen is not None:
             action = torch.where(self.frozen.view(-1, 1, 1), torch.zeros_like(action), action)
         tensordict.set("loc", loc.reshape(rows, -1))
@@ -144,7 +143,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     Raises:
         ValueError: a multi-agent algorithm (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`
-            trains those), an algorithm without a group update, or observations that are not a flat vector.
+            trains those), or an algorithm without a group update.
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
@@ -164,24 +163,25 @@ class GroupTrainer(SeedGroupTrainer):
         self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs,
                                         seed=[seeding.env_seed(s, seeding.Purpose.SIMULATORS) for s in self.seeds],
                                         **cfg.env_options)
+        # What the networks read (flat vector, pixels, depth) comes from the env's observation spec; the
+        # running normaliser applies to the flat vector only (images are scaled in the networks).
         layout = ObservationLayout.from_spec(self.base_env.observation_spec)
-        if layout.images or layout.vector_dim is None:
-            raise ValueError(f"seed groups train on flat-vector observations; {cfg.env_id} emits {layout.in_keys}")
-        self.obs_norm = RunningObservationNorm((layout.vector_dim,), groups=groups) if cfg.normalize_obs else None
+        normalize = cfg.normalize_obs and layout.vector_dim is not None
+        self.obs_norm = RunningObservationNorm((layout.vector_dim,), groups=groups) if normalize else None
         self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
 
         singles = []
-        for seed in self.seeds:  # each seed's networks as its single-seed Trainer initialises them
+        for seed in self.seeds:  # each seed's networks as make_actor_critics initialises them after seed_torch(seed)
             seeding.seed_torch(seed)
             singles.append(make_actor_critics(layout, self.base_env.action_spec, cfg.network_sizes))
-        self.model = StackedActorCritic.from_single(singles)
+        self.model = StackedActorCritic.from_single(singles, layout=layout)
         self.multipliers = [self.algorithm.make_multiplier(cfg) for _ in self.seeds]
         # One seed's single-seed loss names the objective and its hyper-parameters for the group update.
         loss = self.algorithm.make_loss(*singles[0], self.multipliers[0], cfg)
         self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
-        # Second order has no actor learning rate (the single-seed Trainer's Adam holds the critics
-        # alone): the actor's group is kept at lr 0 and never stepped, its trust-region step moves it.
+        # Second order has no actor learning rate (SafePO's Adam holds the critics alone): the actor's
+        # group is kept at lr 0 and never stepped, its trust-region step moves it.
         actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
         self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
@@ -245,13 +245,15 @@ class GroupTrainer(SeedGroupTrainer):
         def per_seed(value: Tensor) -> Tensor:
             return value.reshape(groups, -1, *value.shape[len(shape):])
 
-        for prefix in ((), ("next",)):
-            value, cost_value = self.model.values(per_seed(batch.get((*prefix, "observation"))))
+        model = self.model
+        for prefix in ((), ("next",)):  # with images in chunks: an epoch's frames are never all float at once
+            value, cost_value = in_chunks(model.values, model.read_observation(batch, prefix), model.chunk_size)
             batch.set((*prefix, "state_value"), value.reshape(*shape, 1))
             batch.set((*prefix, "cost_value"), cost_value.reshape(*shape, 1))
         self.reward_gae(batch)
         self.cost_gae(batch)
-        data = {name: per_seed(batch.get(name)) for name in FIELDS}
+        data = {name: per_seed(batch.get(name)) for name in FIELDS if name != "observation"}
+        data["observation"] = model.read_observation(batch)
         data["action_log_prob"] = data["action_log_prob"].unsqueeze(-1)
         advantage, cost_advantage = data["advantage"], data["cost_advantage"]
         raw = torch.stack((advantage.mean((1, 2)), cost_advantage.mean((1, 2))))
@@ -307,21 +309,21 @@ class GroupTrainer(SeedGroupTrainer):
 
 
 class SingleSeedGroupTrainer(SingleSeedLayout, GroupTrainer):
-    """One run (``cfg.seed``; no ``cfg.seeds``) on the fused engine, in the single-seed layout: ``sg-train --seed s``.
+    """One run (``cfg.seed``; no ``cfg.seeds``) on the seed-group engine, in the single-seed layout: ``sg-train --seed s``.
 
     The seed-group engine with S = 1 (stacked networks, the fused minibatch step, the seed's own action-noise
-    and minibatch generators) in the single-seed layout (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`):
-    seed ``s`` of ``--seeds s`` exactly, writing what a :class:`~sg_torchrl.train.trainer.Trainer` run writes,
-    where it writes it. It is the Trainer's run statistically, not bit for bit: the same initial networks,
-    algorithm and hyper-parameters, drawn from other random streams and rounded by other kernels. Its
-    checkpoint's ``"seed_group"`` entry is how ``--resume`` tells it from a Trainer checkpoint and continues
-    it on this engine.
+    and minibatch generators), so the run is seed ``s`` of ``--seeds s`` exactly: the same progress rows
+    but their ``Time/*`` columns, the same parameters and checkpoint entry. Only where things are written
+    differs from a group of one (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`): ``cfg.run_dir``
+    itself holds a single run's files, with no ``seed-XXX/`` level and no group summary or figure. The
+    checkpoint's ``"seed_group"`` entry is what tells it from a checkpoint of the retired ``LossModule``
+    trainer, which ``--resume`` refuses. A diverged run (its parameters or update turned non-finite) ends
+    early, reported on stderr and in ``summary.json`` (``Diverged``).
 
     Args:
-        cfg: a single-agent, single-seed config on flat-vector observations (``engine`` ``"fused"``).
+        cfg: a single-agent, single-seed config.
         checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from.
 
     Raises:
-        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those), a multi-agent algorithm, or
-            observations that are not a flat vector.
+        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those) or a multi-agent algorithm.
     """

@@ -312,6 +312,11 @@ class SingleSeedLayout:
     def _seed_config(self, seed: int) -> TrainConfig:
         return self.cfg  # the run's directory is the trainer's: no seed-XXX/ level
 
+    @property
+    def stats(self):
+        """The run's episode statistics (its one seed's record)."""
+        return self.runs[0].stats
+
     def finish(self) -> dict[str, float]:
         """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
         :meth:`EpochTrainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
@@ -347,7 +352,7 @@ def seed_entry(checkpoint: dict[str, Any], seed: int) -> dict[str, Any]:
     entries = checkpoint.get("seeds") or []
     for entry in entries:
         if entry["seed"] == seed:
-            cfg = TrainConfig(**checkpoint["config"])
+            cfg = TrainConfig.from_saved(checkpoint["config"])
             cfg = cfg.for_seed(seed) if cfg.group else cfg  # a single-seed run's config is its seed's
             return {**entry, "config": cfg.to_dict()}
     raise KeyError(f"seed {seed} is not in this checkpoint (seeds: {[entry['seed'] for entry in entries]})")

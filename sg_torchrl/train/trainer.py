@@ -1,12 +1,8 @@
-"""The on-policy safe training loop behind ``sg-train``, and :class:`Trainer`, its ``LossModule`` reference engine.
+"""The on-policy safe training loop behind ``sg-train``: :class:`EpochTrainer`, what every trainer shares.
 
-:class:`Trainer` trains one seed of a single-agent algorithm by stepping the TorchRL ``LossModule`` s
-(``PPOLagLoss``, ``CPOLoss``, ...) that users compose in their own code: the reference implementation,
-``sg-train --engine loss-module``, and the engine of pixel observations (chosen for them automatically).
-A flat-vector ``sg-train --seed s`` runs by default on the fused engine instead
-(:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`: the seed-group engine with one seed,
-1.6-1.7x less CPU per env step), which computes the same quantities and writes the same files; the
-engine is chosen by :func:`sg_torchrl.train.trainer_class`.
+Single-agent runs, one seed or a group, train on the seed-group engine
+(:mod:`sg_torchrl.train.seed_group`), multi-agent runs in :mod:`sg_torchrl.train.multi_agent` and
+:mod:`sg_torchrl.train.multi_agent_group`; :func:`sg_torchrl.train.trainer_class` picks the trainer.
 
 One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
 
@@ -15,17 +11,12 @@ One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
    policy update, as SafePO does; SafePO feeds a doubly smoothed 50-episode window mean instead,
    a quirk we do not reproduce);
 3. reward and cost GAE, batch-level advantage normalisation;
-4. the algorithm's update (:mod:`sg_torchrl.train.updates`): first-order minibatch passes with KL
+4. the algorithm's update (:mod:`sg_torchrl.train.group_updates`): first-order minibatch passes with KL
    early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
 5. log SafePO's metrics, checkpoint.
 
 Ctrl-C or ``SIGTERM`` stops a run at the end of the epoch under way, with a checkpoint
 (:mod:`sg_torchrl.train.interrupt`).
-
-The networks read what the env emits (:class:`~sg_torchrl.train.models.ObservationLayout`): the
-flat vector, or images through CNN encoders; with images, whole-batch passes without gradient (the
-critics' values for GAE, the KL early stop) run in chunks so an epoch of ``uint8`` frames is never
-converted to float at once.
 
 Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
 observation normaliser, simulator states and generators, the collector's carry, episode
@@ -49,11 +40,10 @@ A new run refuses a run directory that already holds a run (a checkpoint, ``prog
 re-running a command never deletes results silently.
 
 :class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
-metrics, the progress bar, logging, checkpoint files, the final summary and plot); :class:`Trainer`
-supplies the networks, the update and the evaluation. A seed-group engine
-(:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`: single agent, multi agent, and their one-seed
-runs) runs S runs in one loop: it keeps the loop and
-the checkpoint schedule, and hands each seed's row, logger and summary to the same helpers
+metrics, the progress bar, logging, checkpoint files, the final summary and plot). The seed-group
+engines (:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`: single agent, multi agent, and their
+one-seed runs) run S runs in one loop: each keeps the loop and the checkpoint schedule, and hands each
+seed's row, logger and summary to the same helpers
 (:func:`finished_episode_cost`, :func:`epoch_row`, :func:`open_run_logger`, :func:`write_run_summary`).
 """
 
@@ -69,28 +59,20 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import EnvBase, TransformedEnv
 from tqdm.auto import tqdm
 
-import sg_torchrl
 from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
-from sg_torchrl.envs.normalization import RunningObservationNorm
-from sg_torchrl.objectives import make_cost_gae, make_gae, normalize_advantages
 from sg_torchrl.train import checkpoint as checkpoint_files
-from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, CheckpointError
 from sg_torchrl.train.config import TrainConfig
-from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.interrupt import StopRequests, TrainingInterrupted
 from sg_torchrl.train.logging import RunLogger
-from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
 from sg_torchrl.train.plot import plot_curves
-from sg_torchrl.train.updates import UpdateParts, write_values
 from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
-    "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "Trainer", "epoch_row",
+    "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "epoch_row",
     "finished_episode_cost", "open_run_logger", "write_run_summary",
 ]
 
@@ -447,116 +429,3 @@ class EpochTrainer(abc.ABC):
         self._load_algorithm_state(state)
         self.collector.load_state_dict(state["collector"])
         torch.set_rng_state(state["torch_rng"])
-
-
-class Trainer(EpochTrainer):
-    """Build everything a single-agent run needs from a :class:`TrainConfig` and run its epochs: the
-    ``LossModule`` reference engine (``engine="loss-module"``; see the module docstring).
-
-    It steps the algorithm's TorchRL loss (:data:`~sg_torchrl.train.algorithms.ALGORITHMS`' ``make_loss``)
-    through the update loops of :mod:`sg_torchrl.train.updates`, and reads flat vectors and images alike;
-    ``sg-train`` runs it for ``--engine loss-module`` and for pixel observations, and benchmarks use it as the
-    baseline of the fused engine. It builds whatever ``cfg`` it is given, whatever ``cfg.engine`` says.
-
-    Args:
-        cfg: the experiment.
-        checkpoint: a checkpoint dict (from :meth:`load_checkpoint`) to continue from.
-    """
-
-    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
-        super().__init__(cfg)
-        self.algorithm = ALGORITHMS[cfg.algo]
-        self.title = self.algorithm.title
-        self.base_env = sg_torchrl.make(cfg.env_id, num_envs=cfg.num_envs,
-                                        seed=seeding.env_seed(cfg.seed, seeding.Purpose.SIMULATORS), **cfg.env_options)
-        # What the networks read (flat vector, pixels, depth) comes from the env's observation spec;
-        # the running normaliser applies to the flat vector only (images are scaled in the networks).
-        self.layout = ObservationLayout.from_spec(self.base_env.observation_spec)
-        normalize = cfg.normalize_obs and self.layout.vector_dim is not None
-        self.obs_norm = RunningObservationNorm((self.layout.vector_dim,)) if normalize else None
-        self.env: EnvBase = TransformedEnv(self.base_env, self.obs_norm) if self.obs_norm else self.base_env
-
-        self.actor, self.critic, self.cost_critic = make_actor_critics(
-            self.layout, self.base_env.action_spec, cfg.network_sizes
-        )
-        self.multiplier = self.algorithm.make_multiplier(cfg)
-        self.loss = self.algorithm.make_loss(self.actor, self.critic, self.cost_critic, self.multiplier, cfg)
-        # The GAEs read values that :func:`write_values` computes in chunks (no value network of their
-        # own: TorchRL's would run the critic on the stacked observations and next observations at once).
-        self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
-        self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
-
-        critic_params = [*self.critic.parameters(), *self.cost_critic.parameters()]
-        # One fused Adam with a parameter group per learning rate: SafePO's separate Adam optimisers
-        # with the same arithmetic, but one kernel call per step instead of a Python loop over
-        # parameters. Second-order methods move the actor by their trust-region step instead.
-        groups = [{"params": critic_params, "lr": cfg.critic_lr}]
-        if not cfg.second_order:
-            groups.insert(0, {"params": list(self.actor.parameters()), "lr": cfg.actor_lr})
-        self.optimizer = torch.optim.Adam(groups, fused=True)
-        epochs = cfg.epochs
-        # SafePO anneals the actor learning rate linearly to zero over the run; critics stay constant.
-        anneal = [lambda epoch: max(0.0, 1.0 - epoch / epochs)] if not cfg.second_order else []
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, [*anneal, lambda epoch: 1.0])
-        self.minibatch_rng = seeding.generator(cfg.seed, seeding.Purpose.MINIBATCHES)
-        parts = UpdateParts(
-            actor=self.actor, critics=(self.critic, self.cost_critic), loss=self.loss, optimizer=self.optimizer,
-            rng=self.minibatch_rng, passes=cfg.update_iters, minibatch_size=cfg.minibatch_size,
-            target_kl=cfg.target_kl, max_grad_norm=cfg.max_grad_norm, chunk_size=self.layout.chunk_size,
-            compile=cfg.compile,
-        )
-        self.policy_update = self.algorithm.make_update(parts, self.multiplier, cfg)
-        self.collector = RolloutCollector(self.env, self.actor, steps=cfg.steps_per_epoch // cfg.num_envs)
-        self.stats = EpisodeStats()
-        self._start(checkpoint)
-
-    # ------------------------------------------------------------------ epochs
-    def _learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """Multiplier from the epoch's episode cost (before the policy update, as SafePO), then :meth:`update`."""
-        lagrange = self.multiplier.update(self._last_mean_cost).item()
-        update_info = self.update(batch)
-        self.scheduler.step()
-        return {
-            "Train/LagrangeMultiplier": lagrange,
-            "Train/LR": 0.0 if self.cfg.second_order else self.optimizer.param_groups[0]["lr"],
-            **update_info,
-        }
-
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """Advantages on the whole batch, then the algorithm's :class:`PolicyUpdate`."""
-        with torch.no_grad():
-            write_values(batch, (self.critic, self.cost_critic), self.layout.chunk_size)
-            self.reward_gae(batch)
-            self.cost_gae(batch)
-        data = batch.reshape(-1)
-        raw_reward_adv = data["advantage"].mean().item()
-        raw_cost_adv = data["cost_advantage"].mean().item()
-        normalize_advantages(data)
-        info = self.policy_update(data, self.multiplier.violation(self._last_mean_cost))
-        return {**info, "Value/RewardAdv": raw_reward_adv, "Value/CostAdv": raw_cost_adv}
-
-    def _evaluate(self) -> dict[str, float]:
-        cfg = self.cfg
-        return evaluate_policy(cfg.env_id, self.actor, cfg.eval_episodes,
-                               seed=seeding.env_seed(cfg.seed, seeding.Purpose.EVALUATION),
-                               obs_norm=self.obs_norm, env_options=cfg.env_options)
-
-    # ------------------------------------------------------------------ checkpoints
-    def _algorithm_state(self) -> dict[str, Any]:
-        return {
-            "loss": self.loss.state_dict(),
-            "multiplier": self.multiplier.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
-            "obs_norm": None if self.obs_norm is None else self.obs_norm.state_dict(),
-            "minibatch_rng": self.minibatch_rng.get_state(),
-        }
-
-    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
-        self.multiplier.load_state_dict(state["multiplier"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.scheduler.load_state_dict(state["scheduler"])
-        if self.obs_norm is not None:
-            self.obs_norm.load_state_dict(state["obs_norm"])
-        self.minibatch_rng.set_state(state["minibatch_rng"])
