@@ -41,7 +41,7 @@ from sg_torchrl.train import (  # noqa: E402
 )
 from sg_torchrl.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
 from sg_torchrl.train.config import parse_args  # noqa: E402
-from sg_torchrl.train.models import make_actor_critics  # noqa: E402
+from sg_torchrl.modules.mlp import make_actor_critics  # noqa: E402
 from trainer_checks import assert_same_state, tiny_config  # noqa: E402
 
 VISION = "SafetyPointGoal1Vision-v0"

@@ -44,7 +44,7 @@ from sg_torchrl.modules.mlp import (  # noqa: E402
     write_values,
 )
 from sg_torchrl.train.seed_runs import seed_entry  # noqa: E402
-from sg_torchrl.train.stacked import StackedActorCritic, in_chunks  # noqa: E402
+from sg_torchrl.modules.stacked import StackedActorCritic, in_chunks  # noqa: E402
 from trainer_checks import assert_same_state  # noqa: E402
 
 VISION_ID = "SafetyPointGoal1Vision-v0"

@@ -5,7 +5,7 @@ SafePO's networks (:mod:`sg_torchrl.modules.mlp`: tanh MLPs of [64, 64], a Gauss
 state-independent log-std, separate reward and cost critics) are so small that a gradient step is
 per-operator overhead; stacking the S copies of each weight along a leading seed dimension turns S
 steps into one step of batched matmuls (``torch.baddbmm``) at little more than the cost of one. The
-stacked layers (:class:`StackedMLP`, the CNN encoders) are in :mod:`sg_torchrl.train.stacked_layers`.
+stacked layers (:class:`StackedMLP`, the CNN encoders) are in :mod:`sg_torchrl.modules.stacked_layers`.
 
 Nothing is shared between seeds: seed ``s``'s slice of every tensor is exactly the network seed
 ``s``'s single-seed run has. :meth:`StackedActorCritic.from_single` copies the modules that
@@ -24,8 +24,8 @@ the flat gradients, so the per-seed gradient clip and the masked Adam of
 parameters' strides therefore have a gap between seeds; build the module on its device and dtype
 (``.to()`` works, and rebuilds the buffers, which an optimiser over the old ones no longer sees).
 
-**Pixel observations.** With an image layout (:class:`~sg_torchrl.train.models.ObservationLayout`)
-each of the three networks is a :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` (stacked CNN
+**Pixel observations.** With an image layout (:class:`~sg_torchrl.modules.mlp.ObservationLayout`)
+each of the three networks is a :class:`~sg_torchrl.modules.stacked_layers.StackedEncodedMLP` (stacked CNN
 encoder, then the stacked MLP), whose convolution weights sit in the same flat groups; the networks
 then read a TensorDict of batch ``[S, B]`` (:meth:`StackedActorCritic.read_observation`) instead of a
 tensor, and passes over a whole epoch's batch go in chunks (:attr:`StackedActorCritic.chunk_size`,
@@ -99,11 +99,11 @@ class StackedActorCritic(nn.Module):
     ``scale = exp(log_std).clamp_min(scale_lb)`` as torchrl's ``AddStateIndependentNormalScale``
     computes it; ``critic`` and ``cost_critic`` are :class:`StackedMLP`\\ s with one output. Inputs
     are seed-major: ``obs`` of shape ``(S, B, obs_dim)``; with an image layout every network is a
-    :class:`~sg_torchrl.train.stacked_layers.StackedEncodedMLP` reading a TensorDict of batch ``[S, B]``.
+    :class:`~sg_torchrl.modules.stacked_layers.StackedEncodedMLP` reading a TensorDict of batch ``[S, B]``.
 
     Args:
         num_seeds: S.
-        obs_dim: the flat observation's size, or the :class:`~sg_torchrl.train.models.ObservationLayout`
+        obs_dim: the flat observation's size, or the :class:`~sg_torchrl.modules.mlp.ObservationLayout`
             of what the env emits (images: CNN encoders).
         action_dim: the action's size.
         hidden_sizes: hidden widths of all three networks.

@@ -1,7 +1,7 @@
 """Seed-stacked networks: S copies of SafePO's tanh MLPs and of the pixel networks' CNN encoders, run as one.
 
 :class:`StackedMLP` stacks S tanh MLPs (one ``baddbmm`` per layer for all seeds).
-The pixel networks of :mod:`sg_torchrl.train.models` (a CNN encoder over the images, the flat
+The pixel networks of :mod:`sg_torchrl.modules.mlp` (a CNN encoder over the images, the flat
 vector appended, then SafePO's tanh MLP) are stacked as :class:`StackedEncodedMLP`. Layer ``i`` of S seeds' convolutional
 stacks is one weight ``(S, out_i, in_i, k_i, k_i)`` and one bias ``(S, out_i)`` (so the convolutions
 sit in the group's flat parameter buffers like every other weight), and the forward pass runs one
@@ -12,7 +12,7 @@ over seeds takes 13 ms, one grouped ``Conv2d`` (``groups=S`` over ``(B, S * C, H
 ``torch.func.vmap`` 34 ms.
 
 Observations of an image layout travel as a TensorDict of batch ``[S, N]`` (what
-:meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation` builds) holding ``"pixels"``
+:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.read_observation` builds) holding ``"pixels"``
 (``uint8``, channels last, as the envs emit them), ``"depth"`` (metres) and ``"observation"`` (the
 flat vector), those the layout reads; the images are converted to float inside the forward pass,
 so batches keep them in ``uint8``.
@@ -213,13 +213,13 @@ class StackedConvNet(nn.Module):
 
 
 class StackedEncoder(nn.Module):
-    """S :class:`~sg_torchrl.train.models.ObservationEncoder` s: the images scaled as there, a
+    """S :class:`~sg_torchrl.modules.mlp.ObservationEncoder` s: the images scaled as there, a
     :class:`StackedConvNet`, the flat vector appended.
 
     Args:
         num_seeds: S.
         layout: what the env emits (must hold images).
-        cnn, depth_range: as :class:`~sg_torchrl.train.models.ObservationEncoder`.
+        cnn, depth_range: as :class:`~sg_torchrl.modules.mlp.ObservationEncoder`.
         device, dtype: where the parameters live.
     """
 
@@ -249,7 +249,7 @@ class StackedEncoder(nn.Module):
 
 
 class StackedEncodedMLP(nn.Module):
-    """S :class:`~sg_torchrl.train.models.EncodedMLP` s: a :class:`StackedEncoder`, then a stacked tanh MLP head.
+    """S :class:`~sg_torchrl.modules.mlp.EncodedMLP` s: a :class:`StackedEncoder`, then a stacked tanh MLP head.
 
     Args:
         num_seeds: S.

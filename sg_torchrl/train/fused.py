@@ -85,7 +85,7 @@ class SeedBatch:
     ``batch[index]`` a minibatch.
 
     **Images.** A field given as a TensorDict of batch ``[S, N]`` (an image observation,
-    :meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation`) is split: its flat vector
+    :meth:`~sg_torchrl.modules.stacked.StackedActorCritic.read_observation`) is split: its flat vector
     (entry ``"observation"``, if any) is packed with the other fields under the field's name, and its
     other entries (``uint8`` pixels, depth) stay in their own dtype and shape in :attr:`apart`,
     gathered with the same index; :meth:`fields` hands the field back as a TensorDict. So a minibatch

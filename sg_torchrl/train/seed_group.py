@@ -100,7 +100,7 @@ class StackedPolicy(TensorDictModuleBase):
     """A seed group's actors as one TensorDict policy of its batched env (what :class:`RolloutCollector` calls).
 
     Reads ``observation`` ``(S * N, obs_dim)`` (or the images the networks read), views it per seed
-    (:meth:`~sg_torchrl.train.stacked.StackedActorCritic.read_observation`: seed ``s``'s simulators are
+    (:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.read_observation`: seed ``s``'s simulators are
     block ``s``) and writes ``loc``, ``scale``, ``action`` and ``action_log_prob``
     as the single-seed actor does, seed ``s``'s noise drawn from ``generators[s]``
     (:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.sample`). Under a deterministic exploration
