@@ -93,15 +93,14 @@ class SeedBatch:
     """
 
     def __init__(self, data: Tensor, names: Sequence[str], widths: Sequence[int], *,
-                 apart: Mapping[str, TensorDictBase] | None = None, _offsets: Tensor | None = None) -> None:
+                 apart: Mapping[str, TensorDictBase] | None = None) -> None:
         self.data = data
         self.names = tuple(names)
         self.widths = tuple(int(w) for w in widths)
         #: Field name -> the entries of a TensorDict field kept beside :attr:`data` (batch ``[S, N]``).
         self.apart = dict(apart or {})
-        if _offsets is None:  # where each seed's rows start in data viewed as (S * N, F)
-            _offsets = torch.arange(data.shape[0], device=data.device).unsqueeze(1) * data.shape[1]
-        self._offsets = _offsets
+        # where each seed's rows start in data viewed as (S * N, F)
+        self._offsets = torch.arange(data.shape[0], device=data.device).unsqueeze(1) * data.shape[1]
 
     @classmethod
     def pack(cls, fields: Mapping[str, Tensor | TensorDictBase]) -> SeedBatch:
@@ -188,11 +187,10 @@ class SeedShuffler:
     ``arange(n)``, which its masked step ignores), or its next epoch's order would differ.
     """
 
-    def __init__(self, seeds: Sequence[int] = (), *, generators: Sequence[torch.Generator] | None = None) -> None:
-        self.generators = list(generators) if generators is not None else [
-            seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
+    def __init__(self, seeds: Sequence[int]) -> None:
+        self.generators = [seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
         if not self.generators:
-            raise ValueError("SeedShuffler needs seeds or generators")
+            raise ValueError("SeedShuffler needs seeds")
 
     def permutation(self, n: int, active: Sequence[bool] | None = None) -> Tensor:
         """One permutation of ``range(n)`` per seed, ``(S, n)``; an inactive seed draws none (``arange(n)``)."""
