@@ -127,7 +127,7 @@ def test_stacked_mlp_matches_each_module():
     for s, module in enumerate(modules):
         torch.testing.assert_close(out[s], module(x[s]), rtol=0, atol=1e-6)
         torch.testing.assert_close(stacked.export(s)(x[s]), module(x[s]), rtol=0, atol=0)
-        assert stacked.seed_state_dict(s).keys() == module.state_dict().keys()
+        assert stacked.export(s).state_dict().keys() == module.state_dict().keys()
 
 
 def test_actor_critic_matches_single_modules(group):
