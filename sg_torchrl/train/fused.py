@@ -13,7 +13,7 @@ algorithm is not here: the loss object hands the engine its
   seeds (so seed ``s``'s gradient block is its single-seed gradient), the critics' L2 penalty
   ``critic_l2 * sum(p ** 2)`` added to the gradient in closed form (``2 * critic_l2 * p``, one op
   on the flat buffer instead of ~40 in the graph), then :class:`SeedMaskedAdam`;
-* :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam` (re-exported here): Adam with per-seed
+* :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`: Adam with per-seed
   step counts, per-seed gradient clip and an ``active`` mask that freezes a seed whose KL early
   stop fired while the others go on;
 * :func:`batch_kl` (each seed's KL(old || new) over its whole batch, the early-stop statistic),
@@ -38,11 +38,10 @@ from sg_torchrl import seeding
 from sg_torchrl.modules.stacked import StackedActorCritic, quiet_layout_warning
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective
-from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_
+from sg_torchrl.train.seed_adam import SeedMaskedAdam
 
 __all__ = [
-    "FusedFirstOrderStep", "SeedBatch", "SeedMaskedAdam", "SeedShuffler", "batch_kl", "clip_grad_norm_per_seed_",
-    "multiplier_values", "objective_of",
+    "FusedFirstOrderStep", "SeedBatch", "SeedShuffler", "batch_kl", "multiplier_values", "objective_of",
 ]
 
 
