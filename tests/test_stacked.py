@@ -43,7 +43,7 @@ from sg_torchrl.train.fused import (  # noqa: E402
     batch_kl,
     multiplier_values,
 )
-from sg_torchrl.modules import StackedActorCritic, StackedMLP, make_actor_critics  # noqa: E402
+from sg_torchrl.modules import StackedActorCritic, StackedMLP, gaussian_log_prob, make_actor_critics  # noqa: E402
 from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_  # noqa: E402
 
 OBS, ACT, HIDDEN, N = 17, 6, [64, 64], 96
@@ -127,7 +127,7 @@ def test_stacked_mlp_matches_each_module():
     for s, module in enumerate(modules):
         torch.testing.assert_close(out[s], module(x[s]), rtol=0, atol=1e-6)
         torch.testing.assert_close(stacked.export(s)(x[s]), module(x[s]), rtol=0, atol=0)
-        assert stacked.seed_state_dict(s).keys() == module.state_dict().keys()
+        assert stacked.export(s).state_dict().keys() == module.state_dict().keys()
 
 
 def test_actor_critic_matches_single_modules(group):
@@ -136,7 +136,7 @@ def test_actor_critic_matches_single_modules(group):
     x = torch.randn(len(SEEDS), 32, OBS)
     action = torch.randn(len(SEEDS), 32, ACT)
     loc, scale = model.dist_params(x)
-    log_prob = model.log_prob(x, action)
+    log_prob = gaussian_log_prob(action, loc, scale)
     value, cost_value = model.values(x)
     for s, (actor, critic, cost_critic) in enumerate(nets):
         td = TensorDict(observation=x[s], action=action[s], batch_size=[32])

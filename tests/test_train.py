@@ -12,7 +12,7 @@ torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
-from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, SEED_GROUP_ALGORITHMS, parse_args  # noqa: E402
+from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
 
@@ -82,7 +82,7 @@ class TestConfig:
         # whole epochs, a few hundred thousand steps per seed, every seed's run in runs/make-run/seed-XXX.
         cfg = parse_args(["--preset", "make-run"])  # a TrainConfig: validated when built
         assert cfg.group and len(cfg.seeds) >= 3 and cfg.seed == cfg.seeds[0]
-        assert cfg.algo in SEED_GROUP_ALGORITHMS and not cfg.second_order and cfg.env_id in sg_torchrl.list_envs()
+        assert cfg.algo in ALGORITHM_NAMES and not cfg.second_order and cfg.env_id in sg_torchrl.list_envs()
         assert cfg.total_steps % cfg.steps_per_epoch == 0 and cfg.total_steps <= 500_000
         assert cfg.eval_episodes > 0 and cfg.cost_limit == 25.0
         assert str(cfg.run_dir) == "runs/make-run" and cfg.seed_dir(cfg.seeds[1]).name == f"seed-{cfg.seeds[1]:03d}"
@@ -117,7 +117,7 @@ class TestConfig:
         assert trainer.base_env.velocity_threshold == -1.0 and trainer.base_env.max_episode_steps == 100
         row = trainer.train_epoch()
         assert row["Metrics/EpLen"] == 100.0 and row["Metrics/EpCost"] > 70
-        evaluation = trainer._evaluate()
+        evaluation = trainer._evaluate_seed(0)
         assert evaluation["Metrics/EvalEpLen"] == 100.0 and evaluation["Metrics/EvalEpCost"] > 70
 
     def test_unknown_env_id_is_a_clear_error(self, tmp_path):

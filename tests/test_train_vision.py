@@ -294,7 +294,7 @@ def test_a_single_seed_learns_from_pixels_and_evaluates(backend, tmp_path, mode)
     conv = trainer.model.actor_mean.encoder.conv.weights[0][0].numel()
     assert moved[:conv].any()  # the actor's first convolution learns (its weights lead the flat buffer)
     trainer.cfg.eval_episodes = 2
-    evaluation = trainer._evaluate()
+    evaluation = trainer._evaluate_seed(0)
     assert evaluation["Metrics/EvalEpLen"] == 25.0
     assert evaluation["Metrics/EvalEpRet"] == evaluation["Metrics/EvalEpRet"]  # not NaN
     trainer.base_env.close()

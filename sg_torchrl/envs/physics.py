@@ -520,8 +520,3 @@ class MujocoBatch:
     def gather(self, field: str) -> np.ndarray:
         """Stack any ``MjData`` array attribute (``"xpos"``, ``"cinert"``, ...) into a new ``(N, ...)`` array."""
         return np.stack([getattr(data, field) for data in self.datas])
-
-    def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
-        """How often each simulator raised ``warning`` (MuJoCo resets a diverged simulator itself); for the
-        instability warnings, since :meth:`step` last reported that simulator unstable (it clears them)."""
-        return np.array([data.warning[warning].number for data in self.datas])

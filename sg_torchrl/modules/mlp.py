@@ -288,7 +288,3 @@ def write_values(batch: TensorDictBase, critics: Sequence[nn.Module], chunk_size
             key = critic.out_keys[0]
             values = forward_in_chunks(critic, source, critic.in_keys, [key], chunk_size)[key]
             batch.set((*prefix, key), values.reshape(*batch.shape, *values.shape[1:]))
-
-
-def count_parameters(module: torch.nn.Module) -> int:
-    return sum(p.numel() for p in module.parameters())

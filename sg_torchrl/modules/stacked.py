@@ -151,11 +151,6 @@ class StackedActorCritic(nn.Module):
         return self.actor_mean.num_seeds
 
     @property
-    def obs_dim(self) -> int | None:
-        """The flat observation vector's size (``None`` when the env emits images only)."""
-        return self.layout.vector_dim
-
-    @property
     def chunk_size(self) -> int | None:
         """Samples per no-grad pass over a whole batch (:func:`in_chunks`): ``None`` (all) for flat vectors."""
         return self.layout.chunk_size
@@ -278,11 +273,6 @@ class StackedActorCritic(nn.Module):
         with torch.no_grad():
             part.flat_actor.copy_(weight.index_select(0, rows))
         return part
-
-    def log_prob(self, obs: Tensor, action: Tensor) -> Tensor:
-        """Log-probability of ``action`` ``(S, B, A)`` under each seed's policy, ``(S, B)``."""
-        loc, scale = self.dist_params(obs)
-        return gaussian_log_prob(action, loc, scale)
 
     def values(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         """Reward and cost values of ``obs``, ``(S, B)`` each."""

@@ -144,10 +144,6 @@ class StackedMLP(nn.Module):
                   activation_class=nn.Tanh, device=weight.device)
         return self.copy_seed_to(seed, mlp.to(weight.dtype))
 
-    def seed_state_dict(self, seed: int) -> dict[str, Tensor]:
-        """Seed ``seed``'s weights under the keys of a single torchrl ``MLP``'s ``state_dict``."""
-        return self.export(seed).state_dict()
-
     def parameter_names(self) -> list[str]:
         """Parameter names in flat-buffer order: layer by layer, weight then bias."""
         return [f"{kind}.{i}" for i in range(len(self.weights)) for kind in ("weights", "biases")]

@@ -13,8 +13,7 @@
 * :func:`gaussian_kl`: closed-form KL between diagonal Gaussian policies (KL early stop).
 * :func:`run_passes`, :class:`GradientStep`, :class:`ClipGroup` and the minibatch orders
   (:func:`shuffled_slices`, :func:`shuffled_chunks`, :func:`whole_batch`): the one minibatch update
-  loop that the single-agent trainer and the multi-agent rounds share
-  (:mod:`sg_torchrl.objectives.passes`).
+  loop that the seed-group passes and the multi-agent rounds share (:mod:`sg_torchrl.objectives.passes`).
 * :class:`NaturalPolicyStep`, :class:`TRPOStep`, :class:`CPOStep`, :class:`PCPOStep`: trust-region
   policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) of one TorchRL actor, the one-seed case of
   the seed-batched step (:mod:`sg_torchrl.objectives.stacked_trust_region`) and of the second-order

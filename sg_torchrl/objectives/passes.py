@@ -1,4 +1,4 @@
-"""The package's one minibatch update loop, shared by single-agent, multi-agent and seed-group training.
+"""The package's one minibatch update loop, shared by the seed-group passes and the multi-agent rounds.
 
 Every gradient-based update in SafePO (Safety-Gymnasium paper, appendix) has the same shape: a
 number of passes over a batch, each pass split into minibatches, one optimiser step per minibatch
@@ -6,15 +6,14 @@ on a sum of loss terms with norm-clipped gradients, and after each pass an optio
 the KL between the policy before the update and now. What differs between the algorithms is only:
 
 * the **order** of the minibatches (:data:`Order`, any callable yielding minibatch indices):
-  :func:`shuffled_slices` (a fresh permutation per pass cut into slices of a size: the single-agent
-  trainer), :func:`shuffled_chunks` (a permutation cut into ``k`` chunks: the multi-agent rounds),
+  :func:`shuffled_slices` (a fresh permutation per pass cut into slices of a size: SafePO's
+  single-agent loop), :func:`shuffled_chunks` (a permutation cut into ``k`` chunks: the multi-agent rounds),
   :func:`whole_batch` (one step on the batch as it is, drawing nothing from the generator:
   ``shuffled_chunks(1)``) and a seed group's per-seed orders (``(S, mb)`` index blocks from
   :class:`~sg_torchrl.train.fused.SeedShuffler`, one generator per seed);
 * the **step** (:data:`Step`): :class:`GradientStep` (which loss terms are summed, which parameter
-  groups are clipped separately: one group over the actor and both critics in the single-agent
-  trainer, the actor, the reward critic and the cost critic each on its own in the multi-agent
-  rounds; an after-step hook: MAPPO-Lag steps each agent's multiplier after every minibatch step),
+  groups are clipped separately: the actor, the reward critic and the cost critic each on its own in
+  the multi-agent rounds; an after-step hook: MAPPO-Lag steps each agent's multiplier after every minibatch step),
   or a seed group's fused step of S seeds at once, seeds that stopped masked;
 * the **metrics** averaged over the steps: :class:`StepMeans` (loss outputs and the pre-clip norms
   of named clip groups, read with one ``.item()`` each per step) or :class:`RowMeans` (a seed
@@ -76,8 +75,8 @@ def whole_batch(size: int, generator: torch.Generator | None) -> tuple[None]:
 def shuffled_slices(minibatch_size: int) -> Order:
     """A fresh permutation per pass, cut into slices of ``minibatch_size`` (the last may be shorter).
 
-    The single-agent trainer's order (SafePO's first-order loop): the permutation is drawn even
-    when one slice covers the whole batch (that minibatch is then the batch shuffled).
+    SafePO's first-order order: the permutation is drawn even when one slice covers the whole batch
+    (that minibatch is then the batch shuffled).
     """
     if minibatch_size < 1:
         raise ValueError(f"minibatch_size must be >= 1, got {minibatch_size}.")

@@ -43,7 +43,6 @@ __all__ = [
     "Linearisation",
     "SeedFisherVectorProduct",
     "SeedLineSearch",
-    "SeedLinearisation",
     "backtracking_line_search",
     "conjugate_gradient",
     "flat_grad",
@@ -245,10 +244,11 @@ def natural_step_size(xHx: Tensor | float, delta: float) -> float:
 # ============================================================================ linearised problem
 @dataclass(frozen=True)
 class Linearisation:
-    """One seed's quantities every step is built from (notation of Achiam et al. 2017, section 6.1).
+    """The quantities every step is built from (notation of Achiam et al. 2017, section 6.1).
 
-    What the step rules (:mod:`sg_torchrl.objectives.step_rules`) read; :meth:`SeedLinearisation.seeds`
-    gives each seed's.
+    One seed's (what the step rules of :mod:`sg_torchrl.objectives.step_rules` read, from :func:`linearise`)
+    holds vectors and Python floats; S seeds' (from :func:`seed_linearise`) ``(S, P)`` rows and ``(S,)``
+    tensors, and :meth:`seeds` gives each seed's.
 
     Attributes:
         g: reward-surrogate gradient; x: :math:`H^{-1} g` (conjugate gradient); hx: :math:`Hx`;
@@ -260,34 +260,14 @@ class Linearisation:
     g: Tensor
     x: Tensor
     hx: Tensor
-    q: float
+    q: Tensor | float
     b: Tensor | None = None
     p: Tensor | None = None
-    r: float | None = None
-    s: float | None = None
-
-
-@dataclass(frozen=True)
-class SeedLinearisation:
-    """:class:`Linearisation` for S seeds: ``(S, P)`` vectors and ``(S,)`` scalars.
-
-    Attributes:
-        g, x, hx, q: reward gradient, :math:`H^{-1} g`, :math:`Hx`, :math:`x^\\top H x`.
-        b, p, r, s: cost gradient, :math:`H^{-1} b`, :math:`g^\\top p`, :math:`b^\\top p` (``None``
-            without a cost gradient).
-    """
-
-    g: Tensor
-    x: Tensor
-    hx: Tensor
-    q: Tensor
-    b: Tensor | None = None
-    p: Tensor | None = None
-    r: Tensor | None = None
-    s: Tensor | None = None
+    r: Tensor | float | None = None
+    s: Tensor | float | None = None
 
     def seeds(self) -> list[Linearisation]:
-        """Each seed's :class:`Linearisation` (its rows; scalars as Python floats).
+        """Each seed's linearisation of S seeds' (its rows; scalars as Python floats).
 
         The scalars cross to the host in one transfer per kind (``q``, ``r``, ``s``), whatever S is.
         """
@@ -300,7 +280,7 @@ class SeedLinearisation:
 
 
 def seed_linearise(hvp: MatrixVectorProduct, g: Tensor, b: Tensor | None = None, *, cg_iters: int = 15,
-                   residual_tol: float = 1e-10, eps: float = 1e-6) -> SeedLinearisation:
+                   residual_tol: float = 1e-10, eps: float = 1e-6) -> Linearisation:
     """Every seed's linearised problem: :math:`x = H^{-1} g`, :math:`p = H^{-1} b` and :math:`q, r, s`.
 
     The solves are :func:`seed_conjugate_gradient`'s; then :math:`q = x^\\top Hx`, :math:`r = g^\\top
@@ -310,9 +290,9 @@ def seed_linearise(hvp: MatrixVectorProduct, g: Tensor, b: Tensor | None = None,
     hx = hvp(x)
     q = _rowdot(x, hx)
     if b is None:
-        return SeedLinearisation(g=g, x=x, hx=hx, q=q)
+        return Linearisation(g=g, x=x, hx=hx, q=q)
     p = seed_conjugate_gradient(hvp, b, cg_iters, residual_tol, eps)
-    return SeedLinearisation(g=g, x=x, hx=hx, q=q, b=b, p=p, r=_rowdot(g, p), s=_rowdot(b, p))
+    return Linearisation(g=g, x=x, hx=hx, q=q, b=b, p=p, r=_rowdot(g, p), s=_rowdot(b, p))
 
 
 def linearise(hvp: MatrixVectorProduct | Tensor, g: Tensor, b: Tensor | None = None, *, cg_iters: int = 15,

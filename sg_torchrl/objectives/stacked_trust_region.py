@@ -18,7 +18,7 @@ agent) through a one-seed view of the actor. Each seed moves as if stepped alone
   :func:`~sg_torchrl.objectives.second_order.seed_linearise`): block-diagonal double-backward and a
   row-wise conjugate gradient that freezes a seed once its residual is below the tolerance;
 * **directions**: each method's proposal (:mod:`sg_torchrl.objectives.step_rules`) is called seed by
-  seed on :meth:`~sg_torchrl.objectives.second_order.SeedLinearisation.seeds`, so each seed takes its
+  seed on :meth:`~sg_torchrl.objectives.second_order.Linearisation.seeds`, so each seed takes its
   CPO case from its own violation;
 * **line search** (:func:`~sg_torchrl.objectives.second_order.seed_line_search`): trial ``k`` writes
   :math:`\\theta_{\\text{old}} + 0.8^{k-1} d_s` into every row still searching and evaluates those
@@ -49,7 +49,6 @@ from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.second_order import (
     Linearisation,
     SeedFisherVectorProduct,
-    SeedLinearisation,
     natural_step_size,
     seed_flat_grad,
     seed_line_search,
@@ -254,7 +253,7 @@ class TrustRegionEngine(TrustRegionOptions, abc.ABC):
         step_index, kl_after = self._apply(surrogates, proposals, before_reward, before_cost)
         return self._metrics(lin, proposals, step_index, kl_after, before_reward)
 
-    def _linearise(self, surrogates: SeedSurrogates) -> tuple[SeedLinearisation, Tensor, Tensor]:
+    def _linearise(self, surrogates: SeedSurrogates) -> tuple[Linearisation, Tensor, Tensor]:
         """Every seed's linearisation and its reward and cost surrogates before the step."""
         model = self.model
         reward, cost, kl = surrogates(model)
@@ -311,7 +310,7 @@ class TrustRegionEngine(TrustRegionOptions, abc.ABC):
         model.flat_actor.copy_(result.theta)
         return result.step_index, kl_after
 
-    def _metrics(self, lin: SeedLinearisation, proposals: SeedProposals, step_index: Tensor, kl_after: Tensor,
+    def _metrics(self, lin: Linearisation, proposals: SeedProposals, step_index: Tensor, kl_after: Tensor,
                  before_reward: Tensor) -> dict[str, Tensor]:
         def f64(value: Tensor) -> Tensor:
             return value.detach().to(torch.float64)

@@ -81,18 +81,14 @@ from sg_torchrl.objectives.stacked_trust_region import (
     TrustRegionEngine,
     _per_sample,  # value reshaped to the per-sample shape, refusing silent broadcasting
 )
-from sg_torchrl.objectives.step_rules import (  # re-exported: the step rules' home
+from sg_torchrl.objectives.step_rules import (  # the directions are re-exported (sg_torchrl.objectives)
     CPODirection,
     CPORule,
     NaturalRule,
     PCPORule,
-    Proposal,
     TRPORule,
     cpo_direction,
-    cpo_proposal,
-    natural_proposal,
     pcpo_direction,
-    pcpo_proposal,
 )
 
 __all__ = [
@@ -106,10 +102,7 @@ __all__ = [
     "TrustRegionLoss",
     "TrustRegionStep",
     "cpo_direction",
-    "cpo_proposal",
-    "natural_proposal",
     "pcpo_direction",
-    "pcpo_proposal",
 ]
 
 

@@ -21,7 +21,7 @@ import itertools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 __all__ = ["Cell", "SweepGrid", "SweepGridError", "parse_grid_option"]
 
@@ -207,14 +207,3 @@ def merge_records(previous: Mapping[str, Any] | None, grid: SweepGrid) -> dict[s
         known.update({cell["run_name"]: cell for cell in record["cells"]})
         record["cells"] = list(known.values())
     return record
-
-
-def read_cells(record: Mapping[str, Any]) -> list[Cell]:
-    """The cells listed in a ``sweep.json`` record."""
-    return [Cell(c["env_id"], c["algo"], tuple(c["seeds"]), tuple(tuple(pair) for pair in c.get("options", [])))
-            for c in record.get("cells", [])]
-
-
-def unique(items: Iterable[str]) -> tuple[str, ...]:
-    """``items`` in order without repeats."""
-    return tuple(dict.fromkeys(items))

@@ -24,8 +24,7 @@ code (the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_ob
 :func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the
 second-order rows, from the row's step class through
 :data:`~sg_torchrl.objectives.trust_region.STACKED_STEPS` with the config's options
-(:func:`_trust_region_options`). Every row has one (:data:`~sg_torchrl.train.config.SEED_GROUP_ALGORITHMS`
-names them, for the command line).
+(:func:`_trust_region_options`).
 """
 
 from __future__ import annotations
@@ -74,7 +73,7 @@ class Algorithm:
     title: str
     make_multiplier: Callable[[TrainConfig], Multiplier]
     make_loss: MakeLoss
-    make_group_update: MakeGroupUpdate | None = None
+    make_group_update: MakeGroupUpdate
 
 
 # ---------------------------------------------------------------------------- multipliers

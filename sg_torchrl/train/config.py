@@ -22,8 +22,8 @@ holds, with a CNN encoder before ``hidden_sizes`` when there are images
 **Seed groups.** ``seeds`` (``--seeds 0 1 2``) trains S seeds side by side in one process, each
 exactly as its single-seed run with that ``seed`` would train: ``num_envs``, ``steps_per_epoch`` and
 ``total_steps`` are per seed. ``--seeds 0`` is a group of one; ``--seed`` and ``--seeds`` together are
-refused. Groups train the single-agent algorithms of :data:`SEED_GROUP_ALGORITHMS` (all twelve, first
-and second order; networks stacked, :mod:`sg_torchrl.train.seed_group`), on flat-vector or pixel
+refused. Groups train every single-agent algorithm (first and second order; networks stacked,
+:mod:`sg_torchrl.train.seed_group`), on flat-vector or pixel
 observations, and the four multi-agent ones (one round per seed,
 :mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations. One seed (``seed``) trains on
 the same engine as a group of that one seed
@@ -52,7 +52,7 @@ from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
     "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "RETIRED_FIELDS", "SECOND_ORDER",
-    "SEED_GROUP_ALGORITHMS", "TrainConfig", "PRESETS", "parse_args",
+    "TrainConfig", "PRESETS", "parse_args",
 ]
 
 #: Fields that configs saved by earlier versions hold and this one reads past: ``engine`` chose between the
@@ -66,13 +66,6 @@ ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="single")
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="multi")
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
 SECOND_ORDER = manifest.SECOND_ORDER
-#: The single-agent algorithms a seed group (``--seeds``) can train: the rows of
-#: ``sg_torchrl.train.algorithms.ALGORITHMS`` that have a ``make_group_update`` (``tests/test_seed_group.py``
-#: checks that the two agree): every single-agent algorithm, the second-order ones through
-#: ``sg_torchrl.objectives.stacked_trust_region``. Every multi-agent algorithm trains in groups as well, with
-#: one round per seed (``sg_torchrl.train.multi_agent_group``), so they are not listed here. Kept here,
-#: free of torch, so that the command line refuses the others in a second.
-SEED_GROUP_ALGORITHMS = frozenset(ALGORITHM_NAMES)
 #: The paper's hyper-parameters per algorithm (the manifest rows' ``defaults``; a fresh copy here).
 #: Fields not listed have one default for all.
 ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {entry.name: dict(entry.defaults) for entry in manifest.rows()}
@@ -257,9 +250,7 @@ class TrainConfig:
             check_run_name(self.run_name)
 
     def _validate_seeds(self) -> None:
-        """A seed group's seeds: distinct, >= 0, agreeing with ``seed``, and an algorithm a group can train
-        (every multi-agent one; the single-agent ones of :data:`SEED_GROUP_ALGORITHMS`). Pixel observations
-        are refused by :meth:`_validate_observation_mode`."""
+        """A seed group's seeds: distinct, >= 0 and agreeing with ``seed`` (every algorithm trains in groups)."""
         if not self.seeds:
             return
         if min(self.seeds) < 0:
@@ -271,9 +262,6 @@ class TrainConfig:
         if self.seed != self.seeds[0]:
             raise ValueError(f"config: seed ({self.seed}) and seeds ({self.seeds}) disagree: a seed group's seed is "
                              f"its first seed; give seeds alone")
-        if not self.multi_agent and self.algo not in SEED_GROUP_ALGORITHMS:
-            raise ValueError(f"config: the algorithm {self.algo!r} is not in seed groups (--seeds trains "
-                             f"{', '.join(sorted(SEED_GROUP_ALGORITHMS))}); run one seed per process (--seed) instead")
 
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""

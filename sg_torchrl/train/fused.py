@@ -13,7 +13,7 @@ algorithm is not here: the loss object hands the engine its
   seeds (so seed ``s``'s gradient block is its single-seed gradient), the critics' L2 penalty
   ``critic_l2 * sum(p ** 2)`` added to the gradient in closed form (``2 * critic_l2 * p``, one op
   on the flat buffer instead of ~40 in the graph), then :class:`SeedMaskedAdam`;
-* :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam` (re-exported here): Adam with per-seed
+* :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`: Adam with per-seed
   step counts, per-seed gradient clip and an ``active`` mask that freezes a seed whose KL early
   stop fired while the others go on;
 * :func:`batch_kl` (each seed's KL(old || new) over its whole batch, the early-stop statistic),
@@ -38,11 +38,10 @@ from sg_torchrl import seeding
 from sg_torchrl.modules.stacked import StackedActorCritic, quiet_layout_warning
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective
-from sg_torchrl.train.seed_adam import SeedMaskedAdam, clip_grad_norm_per_seed_
+from sg_torchrl.train.seed_adam import SeedMaskedAdam
 
 __all__ = [
-    "FusedFirstOrderStep", "SeedBatch", "SeedMaskedAdam", "SeedShuffler", "batch_kl", "clip_grad_norm_per_seed_",
-    "multiplier_values", "objective_of",
+    "FusedFirstOrderStep", "SeedBatch", "SeedShuffler", "batch_kl", "multiplier_values", "objective_of",
 ]
 
 
@@ -93,15 +92,14 @@ class SeedBatch:
     """
 
     def __init__(self, data: Tensor, names: Sequence[str], widths: Sequence[int], *,
-                 apart: Mapping[str, TensorDictBase] | None = None, _offsets: Tensor | None = None) -> None:
+                 apart: Mapping[str, TensorDictBase] | None = None) -> None:
         self.data = data
         self.names = tuple(names)
         self.widths = tuple(int(w) for w in widths)
         #: Field name -> the entries of a TensorDict field kept beside :attr:`data` (batch ``[S, N]``).
         self.apart = dict(apart or {})
-        if _offsets is None:  # where each seed's rows start in data viewed as (S * N, F)
-            _offsets = torch.arange(data.shape[0], device=data.device).unsqueeze(1) * data.shape[1]
-        self._offsets = _offsets
+        # where each seed's rows start in data viewed as (S * N, F)
+        self._offsets = torch.arange(data.shape[0], device=data.device).unsqueeze(1) * data.shape[1]
 
     @classmethod
     def pack(cls, fields: Mapping[str, Tensor | TensorDictBase]) -> SeedBatch:
@@ -188,11 +186,10 @@ class SeedShuffler:
     ``arange(n)``, which its masked step ignores), or its next epoch's order would differ.
     """
 
-    def __init__(self, seeds: Sequence[int] = (), *, generators: Sequence[torch.Generator] | None = None) -> None:
-        self.generators = list(generators) if generators is not None else [
-            seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
+    def __init__(self, seeds: Sequence[int]) -> None:
+        self.generators = [seeding.generator(int(s), seeding.Purpose.MINIBATCHES) for s in seeds]
         if not self.generators:
-            raise ValueError("SeedShuffler needs seeds or generators")
+            raise ValueError("SeedShuffler needs seeds")
 
     def permutation(self, n: int, active: Sequence[bool] | None = None) -> Tensor:
         """One permutation of ``range(n)`` per seed, ``(S, n)``; an inactive seed draws none (``arange(n)``)."""

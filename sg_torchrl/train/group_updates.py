@@ -214,13 +214,11 @@ class MaskedSeedStep:
         self.step, self.lam, self.stops = step, lam, stops
         spec = step.spec
         self.l2 = spec.critic_l2 if not spec.actor_only else 0.0
-        self.width = step.model.reward_critic_width
 
     def __call__(self, minibatch: SeedBatch) -> tuple[dict[str, Tensor], tuple[()]]:
         values = torch.stack(self.step.backward(minibatch, self.lam))
         if self.l2:  # the critics' losses as reported: with the L2 term at the step's parameters
-            squares = self.step.model.flat_critics.detach().square()
-            norms = torch.stack((squares[:, :self.width].sum(1), squares[:, self.width:].sum(1)))
+            norms = torch.stack(self.step.model.critic_squared_norms())
             values = torch.cat((values[:-2], values[-2:] + self.l2 * norms))  # the critics' are the last two
         self.step.update(self.stops.mask)
         return {"losses": values}, ()

@@ -124,16 +124,16 @@ MULTI_AGENT_ALGORITHMS: dict[str, MultiAgentAlgorithm] = {
 }
 
 
-def observation_norms(env: EnvBase, group: str = GROUP, *, groups: int | None = None) -> list[RunningObservationNorm]:
-    """Running normalisers of ``(group, "observation")`` (statistics per agent and feature) and ``"state"``.
+def observation_norms(env: EnvBase, *, groups: int) -> list[RunningObservationNorm]:
+    """Running normalisers of ``("agents", "observation")`` (statistics per agent and feature) and ``"state"``.
 
     ``groups``: one row of statistics per block of simulators (a seed group's seeds,
     :class:`~sg_torchrl.envs.normalization.RunningObservationNorm`).
     """
-    observation = env.observation_spec[group, "observation"].shape[-2:]
+    observation = env.observation_spec[GROUP, "observation"].shape[-2:]
     state = env.observation_spec["state"].shape[-1:]
     return [
-        RunningObservationNorm(observation, in_keys=[(group, "observation")], groups=groups),
+        RunningObservationNorm(observation, in_keys=[(GROUP, "observation")], groups=groups),
         RunningObservationNorm(state, in_keys=["state"], groups=groups),
     ]
 

@@ -143,7 +143,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     Raises:
         ValueError: a multi-agent algorithm (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`
-            trains those), or an algorithm without a group update.
+            trains those).
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
@@ -156,8 +156,6 @@ class GroupTrainer(SeedGroupTrainer):
         # PPO-Lag update; kept, about none and 7-10 % less update CPU time, the same peak memory.
         keep_freed_memory()
         self.algorithm = ALGORITHMS[cfg.algo]
-        if self.algorithm.make_group_update is None:
-            raise ValueError(f"{cfg.algo!r} is not yet in seed groups (no group update in the algorithm table)")
         self.title = self.algorithm.title
         groups = len(self.seeds)
         self.base_env = sg_torchrl.make(cfg.env_id, num_envs=groups * cfg.num_envs,

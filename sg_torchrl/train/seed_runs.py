@@ -206,10 +206,6 @@ class SeedGroupTrainer(EpochTrainer):
             if run.last_row is not None and run.last_row["Train/Epoch"] == self.epoch:
                 run.logger.log(run.last_row, step=self.total_steps)
 
-    def _evaluate(self) -> dict[str, float]:
-        """The live seeds' evaluations, averaged (:meth:`finish` evaluates and reports each seed)."""
-        return mean_row([self._evaluate_seed(i) for i, run in enumerate(self.runs) if run.alive])
-
     def finish(self) -> dict[str, float]:
         """Each seed's evaluation, summary and plot in its directory; the group's ``summary.json`` and ``curves.png``.
 
@@ -247,7 +243,8 @@ class SeedGroupTrainer(EpochTrainer):
 
     # ------------------------------------------------------------------ checkpoints
     def _run_state(self) -> dict[str, Any]:
-        """Every seed's entry under ``"seeds"``: its algorithm state (:meth:`_seed_state`) and its own record."""
+        """Every seed's entry under ``"seeds"``: its algorithm state (:meth:`_seed_state`) and its own record;
+        ``"seed_group"`` marks a seed group's checkpoint."""
         entries = []
         for index, run in enumerate(self.runs):
             entries.append({
@@ -258,11 +255,13 @@ class SeedGroupTrainer(EpochTrainer):
                 "progress_row": None if run.last_row is None else {k: float(v) for k, v in run.last_row.items()},
                 "diverged": run.diverged,
             })
-        return {"seeds": entries}
+        return {"seeds": entries, "seed_group": {"seeds": list(self.seeds)}}
 
     @torch.no_grad()
     def _load_run_state(self, state: dict[str, Any]) -> None:
         """Restore every seed's entry (the checkpoint must hold this group's seeds, in its order)."""
+        if "seed_group" not in state:
+            raise ValueError("not a seed group's checkpoint (no 'seed_group' entry)")
         entries = state["seeds"]
         if [entry["seed"] for entry in entries] != self.seeds:
             raise ValueError(f"the checkpoint holds seeds {[e['seed'] for e in entries]}, this group {self.seeds}")
@@ -273,13 +272,6 @@ class SeedGroupTrainer(EpochTrainer):
             run.last_row = entry["progress_row"]
             run.diverged = entry["diverged"]
         self._sync_frozen()
-
-    def _algorithm_state(self) -> dict[str, Any]:
-        return {"seed_group": {"seeds": list(self.seeds)}}  # the per-seed state is in "seeds" (:meth:`_run_state`)
-
-    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
-        if "seed_group" not in state:
-            raise ValueError("not a seed group's checkpoint (no 'seed_group' entry)")
 
 
 class SingleSeedLayout:
@@ -318,9 +310,8 @@ class SingleSeedLayout:
         return self.runs[0].stats
 
     def finish(self) -> dict[str, float]:
-        """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (as
-        :meth:`EpochTrainer.finish <sg_torchrl.train.trainer.EpochTrainer.finish>`, plus ``Diverged``,
-        ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
+        """The run's evaluation, ``summary.json`` and ``curves.png`` in its directory; returns its summary (with
+        ``Diverged``, ``DivergedEpoch``, ``DivergedReason`` when it diverged)."""
         return self._finish_seed(0)
 
 

@@ -39,11 +39,10 @@ A new run refuses a run directory that already holds a run (a checkpoint, ``prog
 ``summary.json``) unless ``cfg.overwrite`` asks to start over (which removes the old run's files):
 re-running a command never deletes results silently.
 
-:class:`EpochTrainer` is what every ``sg-train`` loop shares (the epoch bookkeeping and its
-metrics, the progress bar, logging, checkpoint files, the final summary and plot). The seed-group
-engines (:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`: single agent, multi agent, and their
-one-seed runs) run S runs in one loop: each keeps the loop and the checkpoint schedule, and hands each
-seed's row, logger and summary to the same helpers
+:class:`EpochTrainer` is the loop every ``sg-train`` run goes through (the epoch counters, the
+progress bar, the checkpoint schedule and files). Its one subclass,
+:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer` (single agent, multi agent, and their one-seed
+runs), trains S runs in that loop and hands each seed's row, logger and summary to the helpers here
 (:func:`finished_episode_cost`, :func:`epoch_row`, :func:`open_run_logger`, :func:`write_run_summary`).
 """
 
@@ -192,31 +191,24 @@ def write_run_summary(
 
 
 class EpochTrainer(abc.ABC):
-    """The epoch loop every ``sg-train`` trainer shares; subclasses supply the algorithm.
+    """The epoch loop of ``sg-train``; the subclass (:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`)
+    supplies the runs and the algorithm.
 
-    A subclass builds its env, networks, :attr:`collector` and :attr:`stats` after calling
-    ``super().__init__(cfg)`` (which sets the thread count and seeds torch first, so networks are
-    initialised from ``cfg.seed``), then calls :meth:`_start` to restore a checkpoint and open the
-    logger. It implements four hooks:
+    A subclass builds its env, networks and :attr:`collector` after calling ``super().__init__(cfg)``
+    (which sets the thread count and seeds torch first, so networks are initialised from ``cfg.seed``),
+    then calls :meth:`_start` to restore a checkpoint and open the logs. It implements the hooks:
 
-    * :meth:`_learn`: everything one epoch's batch changes (multiplier, advantages, networks);
-      returns ``Train/LagrangeMultiplier``, ``Train/LR`` and the update's metrics;
-    * :meth:`_evaluate`: the deterministic evaluation of :meth:`finish`;
-    * :meth:`_algorithm_state` / :meth:`_load_algorithm_state`: the checkpoint entries beyond the
-      shared ones (epoch counters, collector, episode statistics, torch RNG).
-
-    Episode statistics are team-level (return, cost, length of finished episodes); the mean cost of
-    the episodes finished in an epoch is :attr:`last_mean_cost` (kept from the previous epoch when
-    none finished), SafePO's :math:`J_c`.
-
-    A trainer of several runs (a seed group) overrides the per-run pieces: :meth:`_train_epoch`,
-    :meth:`_open_logs`, :meth:`_log_epoch`, :meth:`_run_state` / :meth:`_load_run_state`,
-    :meth:`finish` and :meth:`_exhausted`.
+    * :meth:`_train_epoch`: collect, update, build the epoch's metrics (``Metrics/EpRet``,
+      ``Metrics/EpCost``, ``Train/LagrangeMultiplier`` for the progress bar);
+    * :meth:`_open_logs` / :meth:`_log_epoch`: the run's loggers and what an epoch writes to them;
+    * :meth:`finish`: the end of the run (evaluation, summaries, plots);
+    * :meth:`_run_state` / :meth:`_load_run_state`: the checkpoint entries beyond the shared ones
+      (epoch counters, collector, torch RNG);
+    * :meth:`_exhausted`: whether nothing is left to train.
     """
 
     title: str
     collector: RolloutCollector
-    stats: EpisodeStats
 
     def __init__(self, cfg: TrainConfig) -> None:
         self.cfg = cfg
@@ -225,12 +217,10 @@ class EpochTrainer(abc.ABC):
         self.epoch = 0
         self.total_steps = 0
         self.train_seconds = 0.0
-        self._last_mean_cost = 0.0
-        self._last_row: dict[str, float] | None = None  # the last epoch's metrics (kept in checkpoints)
         self._schedule: CheckpointSchedule | None = None  # set while :meth:`run` runs
 
     def _start(self, checkpoint: dict[str, Any] | None) -> None:
-        """Restore ``checkpoint`` (when given) and open the run's logger; the last step of ``__init__``.
+        """Restore ``checkpoint`` (when given) and open the run's logs; the last step of ``__init__``.
 
         Without a checkpoint this is a new run: a run directory that already holds a run is refused
         (:class:`~sg_torchrl.train.checkpoint.RunDirectoryError`) unless ``cfg.overwrite``, which
@@ -248,32 +238,30 @@ class EpochTrainer(abc.ABC):
                 checkpoint_files.clear_run_dir(cfg.run_dir)
         self._open_logs(checkpoint)
 
-    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
-        """Open the run's logger (:func:`open_run_logger`), after the checkpoint (if any) is restored."""
-        row = None if checkpoint is None else checkpoint.get("progress_row")
-        self.logger = open_run_logger(self.cfg, checkpoint, row)
-
-    @property
-    def last_mean_cost(self) -> float:
-        """Mean cost of the episodes finished in the last epoch that finished any (0 before)."""
-        return self._last_mean_cost
-
     # ------------------------------------------------------------------ hooks
     @abc.abstractmethod
-    def _learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """Update multiplier and networks from the epoch's ``(N, T)`` batch; returns the update metrics."""
+    def _train_epoch(self) -> dict[str, float]:
+        """Collect, update and count one epoch; returns its metrics."""
 
     @abc.abstractmethod
-    def _evaluate(self) -> dict[str, float]:
-        """``cfg.eval_episodes`` deterministic episodes (``Metrics/EvalEpRet``, ``Metrics/EvalEpCost``, ...)."""
+    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
+        """Open the run's loggers, after the checkpoint (if any) is restored."""
 
     @abc.abstractmethod
-    def _algorithm_state(self) -> dict[str, Any]:
-        """Checkpoint entries of the networks, optimisers, multipliers and normalisers."""
+    def _log_epoch(self, metrics: dict[str, float]) -> None:
+        """Log the epoch (after its checkpoint, when one was due)."""
 
     @abc.abstractmethod
-    def _load_algorithm_state(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`_algorithm_state` saved."""
+    def finish(self) -> dict[str, float]:
+        """Final evaluation, summaries and learning-curve plots."""
+
+    @abc.abstractmethod
+    def _run_state(self) -> dict[str, Any]:
+        """The checkpoint entries of the runs: networks, optimisers, multipliers, episode statistics, ..."""
+
+    @abc.abstractmethod
+    def _load_run_state(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`_run_state` saved."""
 
     def _exhausted(self) -> bool:
         """Whether nothing is left to train before the budget is spent (every seed of a group diverged)."""
@@ -329,41 +317,12 @@ class EpochTrainer(abc.ABC):
         """
         with _without_distribution_validation():
             metrics = self._train_epoch()
-        self._last_row = metrics
         schedule = self._schedule
         if schedule is not None and schedule.due(self.epoch):
             self.save_checkpoint()
             schedule.saved(self.epoch)
         self._log_epoch(metrics)
         return metrics
-
-    def _log_epoch(self, metrics: dict[str, float]) -> None:
-        """Log the epoch's row (after its checkpoint, when one was due)."""
-        self.logger.log(metrics, step=self.total_steps)
-
-    def _train_epoch(self) -> dict[str, float]:
-        start = time.perf_counter()
-        batch = self.collector.collect()
-        rollout_time = time.perf_counter() - start
-        self._last_mean_cost = finished_episode_cost(self.stats, batch, self._last_mean_cost)
-
-        update_start = time.perf_counter()
-        learned = self._learn(batch)
-        update_time = time.perf_counter() - update_start
-        self.epoch += 1
-        self.total_steps += batch.numel()
-        epoch_time = time.perf_counter() - start
-        self.train_seconds += epoch_time
-
-        return epoch_row(self.stats, self._last_mean_cost, self.epoch, self.total_steps, learned,
-                         rollout_time=rollout_time, update_time=update_time, total_time=self.train_seconds,
-                         fps=batch.numel() / epoch_time)
-
-    def finish(self) -> dict[str, float]:
-        """Final evaluation, learning-curve PNG and summary."""
-        evaluation = self._evaluate() if self.cfg.eval_episodes > 0 else None
-        return write_run_summary(self.cfg, self.logger, self.stats, evaluation, title=self.title,
-                                 total_steps=self.total_steps, train_seconds=self.train_seconds)
 
     # ------------------------------------------------------------------ checkpoints
     @property
@@ -387,25 +346,10 @@ class EpochTrainer(abc.ABC):
             "total_steps": self.total_steps,
             "train_seconds": self.train_seconds,
             **self._run_state(),
-            **self._algorithm_state(),
             "collector": self.collector.state_dict(),
             "torch_rng": torch.get_rng_state(),
         }
         return checkpoint_files.save_checkpoint(state, path)
-
-    def _run_state(self) -> dict[str, Any]:
-        """The checkpoint entries of the run's own record: :math:`J_c`, the epoch's row, episode statistics."""
-        return {
-            "last_mean_cost": self._last_mean_cost,
-            # The epoch's progress.csv row: written by a resumed run if the process died before logging it.
-            "progress_row": None if self._last_row is None else {k: float(v) for k, v in self._last_row.items()},
-            "stats": self.stats.state_dict(),
-        }
-
-    def _load_run_state(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`_run_state` saved."""
-        self._last_mean_cost = state["last_mean_cost"]
-        self.stats.load_state_dict(state["stats"])
 
     @staticmethod
     def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -426,6 +370,5 @@ class EpochTrainer(abc.ABC):
         self.total_steps = state["total_steps"]
         self.train_seconds = state["train_seconds"]
         self._load_run_state(state)
-        self._load_algorithm_state(state)
         self.collector.load_state_dict(state["collector"])
         torch.set_rng_state(state["torch_rng"])

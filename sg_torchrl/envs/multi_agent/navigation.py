@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from sg_torchrl.envs.base import CostMode
-from sg_torchrl.envs.multi_agent.group import GROUP, JointVectorAgentsMixin, agent_column, root_column
+from sg_torchrl.envs.multi_agent.group import JointVectorAgentsMixin
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.lidar import LidarMode
 from sg_torchrl.envs.navigation.tasks import Task

@@ -20,7 +20,7 @@ global ``"state"`` for the centralised critics):
   (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate` and
   :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPOStep` is the single-agent
   :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy). Their minibatch epochs
-  are the single-agent trainer's loop, :func:`~sg_torchrl.objectives.run_passes`.
+  are the package's one update loop, :func:`~sg_torchrl.objectives.run_passes`.
 """
 
 from sg_torchrl.objectives.multi_agent.advantages import (

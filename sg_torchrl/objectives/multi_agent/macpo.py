@@ -43,7 +43,8 @@ from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS, MultiAgentUpdate
 from sg_torchrl.objectives.passes import run_passes, shuffled_chunks
 from sg_torchrl.objectives.second_order import Linearisation
-from sg_torchrl.objectives.trust_region import CPOStep, Proposal
+from sg_torchrl.objectives.step_rules import Proposal
+from sg_torchrl.objectives.trust_region import CPOStep
 
 __all__ = ["MACPOStep", "MACPOUpdate"]
 
