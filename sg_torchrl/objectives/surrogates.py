@@ -290,21 +290,18 @@ class SeedBatchedObjective:
         return names + (critics if self.surrogate.trains_critics else ())
 
     # ---------------------------------------------------------------- losses
-    def _policy_terms(self, model, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    def _policy_terms(self, model, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor | None]:
+        """The log importance weight and (if the surrogate has a reference policy) the KL to it, one actor pass."""
         loc, scale = model.dist_params(batch["observation"])
         log_weight = gaussian_log_prob(batch["action"], loc, scale).unsqueeze(-1) - batch["action_log_prob"]
         kl = None
         if self.surrogate.reference is not None:
             ref_loc, ref_scale = (batch[name] for name in REFERENCE_FIELDS[self.surrogate.reference])
             kl = gaussian_kl(loc, scale, ref_loc, ref_scale).unsqueeze(-1)
-        return loc, scale, log_weight, kl
+        return log_weight, kl
 
-    def policy_loss(self, model, batch: Mapping[str, Tensor], lam: Tensor) -> Tensor:
-        """Each seed's policy loss on its minibatch, ``(S,)`` (differentiable in the actor).
-
-        ``batch`` holds ``(S, mb, width)`` fields, ``lam`` each seed's multiplier value ``(S,)``.
-        """
-        _, _, log_weight, kl = self._policy_terms(model, batch)
+    def _objective(self, log_weight: Tensor, kl: Tensor | None, batch: Mapping[str, Tensor], lam: Tensor) -> Tensor:
+        """Each seed's mean surrogate loss from the actor's terms, ``(S,)``."""
         cost_advantage = batch["cost_advantage"]
         if self.surrogate.advantage == "cost":
             advantage = cost_advantage
@@ -314,6 +311,13 @@ class SeedBatchedObjective:
             advantage = combine_advantages(batch["advantage"], cost_advantage, lam, self.combine)
         return self.surrogate.loss(log_weight, advantage, cost_advantage=cost_advantage, kl=kl, lam=lam,
                                    seed_dims=1).mean((1, 2))
+
+    def policy_loss(self, model, batch: Mapping[str, Tensor], lam: Tensor) -> Tensor:
+        """Each seed's policy loss on its minibatch, ``(S,)`` (differentiable in the actor).
+
+        ``batch`` holds ``(S, mb, width)`` fields, ``lam`` each seed's multiplier value ``(S,)``.
+        """
+        return self._objective(*self._policy_terms(model, batch), batch, lam)
 
     @staticmethod
     def critic_losses(model, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -346,8 +350,8 @@ class SeedBatchedObjective:
         """
         out: dict[str, Tensor] = {}
         if not self.critics_only:
-            out["loss_objective"] = self.policy_loss(model, batch, lam)
-            _, _, log_weight, kl = self._policy_terms(model, batch)
+            log_weight, kl = self._policy_terms(model, batch)  # one actor pass for the loss and its diagnostics
+            out["loss_objective"] = self._objective(log_weight, kl, batch, lam)
             ratio = log_weight.exp()
             out.update(kl_approx=(-log_weight).mean((1, 2)), mean_ratio=ratio.mean((1, 2)),
                        max_ratio=ratio.amax((1, 2)))
