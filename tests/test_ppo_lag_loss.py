@@ -14,7 +14,7 @@ from tensordict.nn import (  # noqa: E402
     TensorDictModule,
 )
 from torch import distributions as D, nn  # noqa: E402
-from torchrl.modules import IndependentNormal, MLP, ProbabilisticActor, ValueOperator  # noqa: E402
+from torchrl.modules import IndependentNormal, MLP, ProbabilisticActor, PopArtValueNorm, ValueOperator  # noqa: E402
 from torchrl.objectives import ClipPPOLoss  # noqa: E402
 
 from sg_torchrl.objectives import (  # noqa: E402
@@ -192,6 +192,41 @@ class TestPPOLagLoss:
         # and the multiplier matters: the reward-only objective is different
         plain = clip_ppo_reference(actor, critic, data, data["advantage"])
         assert not torch.allclose(out["loss_objective"], plain["loss_objective"])
+
+    @pytest.mark.parametrize(
+        "options",
+        [dict(entropy_coeff=0.01), dict(delay_actor=True), dict(max_importance_ratio=1.5),
+         dict(clip_epsilon=(0.1, 0.3)), dict(functional=False, entropy_coeff=0.02)],
+        ids=["entropy", "delay_actor", "max_importance_ratio", "asymmetric_clip", "not_functional"],
+    )
+    @pytest.mark.filterwarnings("ignore:No target network updater")  # delay_actor's target stays fixed here
+    def test_torchrl_options_give_clip_ppo_numbers(self, options):
+        """The ratio, entropy and diagnostics (computed by the loss itself) are ClipPPOLoss's, bit for bit."""
+        actor, critic, cost_critic = make_modules()
+        loss = PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier(init=0.0), **options)
+        reference = ClipPPOLoss(actor, critic, loss_critic_type="l2", entropy_bonus="entropy_coeff" in options,
+                                **options)
+        data = make_batch(actor)
+        with torch.no_grad():  # the actor moves on from its target (delay_actor's proximal policy)
+            for p in actor.parameters():
+                p.add_(0.05)
+        out, ref = loss(data), reference(data.clone())
+        keys = ["loss_objective", "clip_fraction", "kl_approx", "ESS", "max_ratio", "mean_ratio"]
+        if "entropy_coeff" in options:
+            keys += ["entropy", "loss_entropy"]
+        for key in keys:
+            torch.testing.assert_close(out[key], ref[key], rtol=0, atol=0, msg=key)
+
+    @pytest.mark.parametrize(
+        "options, error",
+        [(dict(normalize_advantage=True), ValueError), (dict(advantage_norm=PopArtValueNorm()), ValueError),
+         (dict(entropy_coeff={"action": 0.01}), TypeError)],
+        ids=["normalize_advantage", "advantage_norm", "per_head_entropy_coeff"],
+    )
+    def test_refuses_per_minibatch_normalisation_and_per_head_entropy(self, options, error):
+        actor, critic, cost_critic = make_modules()
+        with pytest.raises(error, match="normalises them once per batch|composite"):
+            PPOLagLoss(actor, critic, cost_critic, LagrangeMultiplier(), **options)
 
     def test_cost_critic_loss(self):
         actor, critic, cost_critic = make_modules()

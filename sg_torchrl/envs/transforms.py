@@ -14,7 +14,6 @@ from tensordict import TensorDictBase, unravel_key
 from tensordict.utils import NestedKey, expand_as_right
 from torchrl.data import Composite
 from torchrl.envs.transforms import RewardSum
-from torchrl.envs.transforms.utils import _get_reset
 
 __all__ = ["EpisodeSum", "RewardSpec"]
 
@@ -23,6 +22,24 @@ __all__ = ["EpisodeSum", "RewardSpec"]
 _COST_HINT = ("sg_torchrl declares 'cost' and 'cost_info' in the observation spec, so that env.reward_key stays "
               "unique; sum them per episode with sg_torchrl.envs.EpisodeSum(in_keys=['reward', 'cost']), which "
               "TorchRL's RewardSum (reward-spec keys only) cannot do")
+
+
+def _reset_flags(reset_key: NestedKey, tensordict: TensorDictBase) -> torch.Tensor:
+    """Which entries of ``reset_key``'s group a reset concerns: the ``_reset`` entry, or all when it is absent.
+
+    TorchRL's reading of a reset signal (as in ``RewardSum``): a partial reset names its entries in
+    ``reset_key`` (over the group's batch shape, extra trailing dims any-reduced); no entry means
+    every entry resets.
+    """
+    reset = tensordict.get(reset_key, None)
+    group = tensordict.get(reset_key[:-1], None) if isinstance(reset_key, tuple) else tensordict
+    if group is None:
+        group = tensordict
+    if reset is None:
+        return torch.ones((), dtype=torch.bool, device=group.device).expand(group.batch_size)
+    if reset.ndim > group.ndim:
+        reset = reset.flatten(group.ndim, -1).any(-1)
+    return reset
 
 
 class RewardSpec(Composite):
@@ -93,6 +110,8 @@ class EpisodeSum(RewardSum):
         )
 
     def _generate_episode_reward_spec(self) -> Composite:
+        # RewardSum's one builder of the sums' spec, read by its public transform_*_spec methods;
+        # replacing it here keeps those methods (and their reward_spec switch) RewardSum's own.
         episode_spec = Composite()
         for in_key, out_key in zip(self.in_keys, self.out_keys, strict=True):
             source = self._source_spec(in_key)
@@ -122,7 +141,7 @@ class EpisodeSum(RewardSum):
             if value is None:
                 value = self._source_spec(in_key)[in_key].zero()
             else:
-                keep = ~_get_reset(reset_key, tensordict)
+                keep = ~_reset_flags(reset_key, tensordict)
                 value = torch.where(expand_as_right(keep, value), value, 0.0)
             tensordict_reset.set(out_key, value)
         return tensordict_reset

@@ -1,7 +1,8 @@
 """The critics' side of the first-order losses: the cost critic's regression beside the reward critic's.
 
 :class:`CostCriticLosses` is a mixin of :class:`~sg_torchrl.objectives.PPOLagLoss` (over TorchRL's
-``ClipPPOLoss``, whose ``loss_critic``, ``_reduce_loss`` and ``_clear_weakrefs`` it calls): the
+``ClipPPOLoss``, whose public ``loss_critic`` it calls, and whose ``_reduce_loss`` reduces every term
+as TorchRL's own losses do, with ``reduction`` and ``loss_mask_key``): the
 cost critic's loss mirrors TorchRL's reward-critic loss, and :meth:`CostCriticLosses.critic_losses`
 reports both with SafePO's L2 penalty ``critic_l2_coeff * sum(p ** 2)``. The first-order losses'
 ``forward`` and the second-order updates' critic passes both train the critics with it.
@@ -14,6 +15,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn, Tensor
 from torchrl.objectives.utils import distance_loss
+
+from sg_torchrl.objectives.actor_terms import release_compile_refs
 
 __all__ = ["CostCriticLosses"]
 
@@ -96,7 +99,12 @@ class CostCriticLosses:
         return self.cost_critic_coeff * loss, clip_fraction, explained_variance
 
     def _reduce_losses(self, td_out: TensorDictBase, tensordict: TensorDictBase) -> TensorDictBase:
-        """Applies the loss's reduction (and the input's loss mask) to every ``loss_*`` entry."""
+        """Applies the loss's reduction (and the input's loss mask) to every ``loss_*`` entry.
+
+        Through ``LossModule._reduce_loss``, the one place TorchRL implements its documented
+        ``reduction`` and ``loss_mask_key`` options (no public form exists); a copy here would drift
+        from the reduction every TorchRL loss applies.
+        """
         return td_out.named_apply(
             lambda name, value: self._reduce_loss(value, tensordict).squeeze(-1)
             if name.startswith("loss_")
@@ -113,7 +121,7 @@ class CostCriticLosses:
         the second-order updates train their critics with it alone.
         """
         td_out = TensorDict()
-        if self._has_critic:
+        if self._trains_reward_critic:
             loss_critic, clip_fraction, explained_variance = self.loss_critic(tensordict.copy())
             td_out.set("loss_critic", loss_critic)
             if clip_fraction is not None:
@@ -135,13 +143,6 @@ class CostCriticLosses:
                 norm = self._squared_param_norm(network) if key in td_out.keys() else None
                 if norm is not None:
                     td_out.set(key, td_out.get(key) + self.critic_l2_coeff * norm)
-        self._clear_weakrefs(
-            tensordict,
-            td_out,
-            "critic_network_params",
-            "target_critic_network_params",
-            "cost_critic_network_params",
-            "target_cost_critic_network_params",
-        )
+        release_compile_refs(tensordict, td_out, self.critic_network_params, self.cost_critic_network_params)
         return td_out
 

@@ -32,6 +32,7 @@ from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDic
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from sg_torchrl.objectives.actor_terms import release_compile_refs
 from sg_torchrl.objectives.multipliers import _as_finite_float, Multiplier, NoMultiplier
 from sg_torchrl.objectives.ppo_lag import _as_key_list, PPOLagLoss
 from sg_torchrl.objectives.surrogates import CUPProjectionSurrogate, FOCOPSSurrogate, PGSurrogate, SeedBatchedObjective
@@ -188,7 +189,7 @@ class FOCOPSLoss(PPOLagLoss):
     def _set_in_keys(self) -> None:
         super()._set_in_keys()
         extra = [*_as_key_list(self.tensor_keys.old_loc), *_as_key_list(self.tensor_keys.old_scale)]
-        self._in_keys = list(dict.fromkeys([*self._in_keys, *extra]))
+        self.in_keys = list(dict.fromkeys([*self.in_keys, *extra]))
 
     @property
     def surrogate(self) -> FOCOPSSurrogate:
@@ -319,21 +320,22 @@ class CUPLoss(PPOLagLoss):
         keys: list[NestedKey] = list(actor.in_keys) if actor is not None else []
         for name in ("action", "sample_log_prob", "cost_advantage", "stage1_loc", "stage1_scale"):
             keys.extend(_as_key_list(getattr(self.tensor_keys, name)))
-        self._in_keys = list(dict.fromkeys(keys))
+        self.in_keys = list(dict.fromkeys(keys))
 
     @property
     def out_keys(self) -> list[NestedKey]:
-        if self._out_keys is None:
+        """The projection's terms and diagnostics (no critic losses: stage two trains the actor alone)."""
+        if self._output_keys is None:
             keys = ["loss_objective", *self.surrogate.diagnostic_names]
             if self.entropy_bonus:
                 keys.extend(["entropy", "loss_entropy"])
             keys.extend(["ESS", "kl_approx", "max_ratio", "mean_ratio", "lagrange_multiplier"])
-            self._out_keys = keys
-        return self._out_keys
+            self._output_keys = keys
+        return self._output_keys
 
     @out_keys.setter
     def out_keys(self, values: list[NestedKey]) -> None:
-        self._out_keys = values
+        self._output_keys = values
 
     @property
     def surrogate(self) -> CUPProjectionSurrogate:
@@ -357,9 +359,8 @@ class CUPLoss(PPOLagLoss):
         td_out.set(
             "lagrange_multiplier", self.multiplier.value.to(device=ref.device, dtype=ref.dtype)
         )
-        self._clear_weakrefs(
-            tensordict, td_out, "actor_network_params", "target_actor_network_params"
-        )
+        release_compile_refs(tensordict, td_out, self.actor_network_params,
+                             self.target_actor_network_params if self.delay_actor else None)
         return td_out
 
     def extra_repr(self) -> str:

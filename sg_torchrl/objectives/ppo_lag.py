@@ -38,14 +38,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from tensordict import is_tensor_collection, TensorDict, TensorDictBase, TensorDictParams
+from tensordict import TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
 from torch import distributions as D, Tensor
 from torchrl.objectives import ClipPPOLoss
 
-from sg_torchrl.objectives.kl import kl_to_stored_gaussian
+from sg_torchrl.objectives.actor_terms import ActorTerms, release_compile_refs
 from sg_torchrl.objectives.cost_critic import CostCriticLosses
+from sg_torchrl.objectives.kl import kl_to_stored_gaussian
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.surrogates import ClipSurrogate, SeedBatchedObjective, Surrogate
 from sg_torchrl.objectives.value import AdvantageEstimation
@@ -65,7 +66,7 @@ def _as_key_list(keys: NestedKey | list[NestedKey]) -> list[NestedKey]:
     return [keys]
 
 
-class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
+class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
     """PPO-Lagrangian loss: clipped PPO on the Lagrangian advantage, plus reward and cost critics.
 
     With :math:`r_t(\\theta) = \\pi_\\theta(a_t|s_t) / \\pi_{\\text{old}}(a_t|s_t)` and
@@ -83,9 +84,10 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
     the KL-regularised targets of :class:`~sg_torchrl.objectives.FOCOPSLoss` and
     :class:`~sg_torchrl.objectives.CUPLoss`), written once in :mod:`sg_torchrl.objectives.surrogates`
     and trained by the seed-batched engine through :meth:`seed_batched_objective`; the advantage rule
-    is the multiplier's. The actor is evaluated once per call; the ratio
-    (torchrl's ``_log_weight``), ratio diagnostics, entropy and reward-critic loss are
-    :class:`~torchrl.objectives.ClipPPOLoss`'s own methods.
+    is the multiplier's. The actor is evaluated once per call
+    (:class:`~sg_torchrl.objectives.actor_terms.ActorTerms`: TorchRL's PPO ratio, ratio diagnostics
+    and entropy); the reward-critic loss is :class:`~torchrl.objectives.ClipPPOLoss`'s public
+    ``loss_critic``.
 
     Critic losses follow SafePO: mean squared error to the GAE targets plus an L2 penalty
     ``critic_l2_coeff * sum(p ** 2)`` over *all* parameters (weights and biases) of the network
@@ -97,8 +99,9 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         L^{\\text{cost\\_critic}} = c_c\\,\\mathrm{MSE}(V^c, V^{c,\\text{targ}}) + \\beta \\sum_{p^c} \\|p^c\\|^2 .
 
     Defaults match SafePO / the Safety-Gymnasium paper: clip 0.2, no entropy bonus, MSE critic
-    losses, no advantage normalisation inside the loss (SafePO normalises once per batch: use
-    :func:`~sg_torchrl.objectives.normalize_advantages` before the minibatch loop).
+    losses. Advantages are normalised once per batch (SafePO), never inside the loss: use
+    :func:`~sg_torchrl.objectives.normalize_advantages` (or :meth:`estimate_advantages`) before the
+    minibatch loop; TorchRL's per-minibatch ``normalize_advantage`` / ``advantage_norm`` are refused.
 
     Advantages follow TorchRL's convention: when the input lacks ``"advantage"`` (or
     ``"cost_advantage"``), the loss computes it, and its value target, from the input's
@@ -125,7 +128,8 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         clip_epsilon (float): PPO ratio clip. Defaults to ``0.2``.
         entropy_bonus (bool, optional): add ``loss_entropy``. ``None`` (default) means "only if
             ``entropy_coeff`` is non-zero"; SafePO uses no entropy bonus.
-        entropy_coeff (float or mapping): entropy weight. Defaults to ``0.0``.
+        entropy_coeff (float): entropy weight. Defaults to ``0.0``. (TorchRL's per-head mapping is
+            for composite action distributions, which these losses do not take.)
         critic_l2_coeff (float, optional): weight :math:`\\beta` of the squared-parameter penalty
             added to both critic losses. Defaults to ``0.001`` (SafePO). ``None`` disables it.
         cost_critic_coeff (float, optional): weight :math:`c_c` of the cost-critic MSE. ``None``
@@ -133,7 +137,7 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         loss_critic_type (str): ``"l2"`` (default, SafePO's MSE), ``"l1"`` or ``"smooth_l1"``;
             used for both critics.
         **kwargs: forwarded to :class:`~torchrl.objectives.ClipPPOLoss` (``critic_coeff``,
-            ``normalize_advantage``, ``clip_value``, ``separate_losses``, ``reduction``, ...).
+            ``clip_value``, ``separate_losses``, ``reduction``, ``delay_actor``, ...).
             ``clip_value`` also clips the cost critic (against the stored ``"cost_value"``).
 
     Input keys (all configurable with :meth:`set_keys`, see :class:`_AcceptedKeys`, or moved into
@@ -233,11 +237,11 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             raise TypeError("PPOLagLoss needs a cost_critic_network.")
         if critic_network is None:
             raise TypeError("PPOLagLoss needs a critic_network.")
+        if isinstance(entropy_coeff, Mapping):
+            raise TypeError("entropy_coeff must be a float: per-head coefficients are for composite action "
+                            "distributions, which PPOLagLoss does not take.")
         if entropy_bonus is None:
-            if isinstance(entropy_coeff, Mapping):
-                entropy_bonus = any(float(c) != 0.0 for c in entropy_coeff.values())
-            else:
-                entropy_bonus = float(entropy_coeff) != 0.0
+            entropy_bonus = float(entropy_coeff) != 0.0
         super().__init__(
             actor_network,
             critic_network,
@@ -247,6 +251,14 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             loss_critic_type=loss_critic_type,
             **kwargs,
         )
+        if self.normalize_advantage or self.advantage_norm is not None:
+            raise ValueError(
+                "PPOLagLoss does not normalise advantages per minibatch (normalize_advantage / advantage_norm): "
+                "SafePO normalises them once per batch, with normalize_advantages or loss.estimate_advantages."
+            )
+        # Fixed at construction, as TorchRL's losses do: whether the reward critic is trained, and the clip's form.
+        self._trains_reward_critic = self.critic_coeff is not None and bool(self.critic_coeff > 0)
+        self._asymmetric_clip_epsilon = isinstance(clip_epsilon, (tuple, list))
         device = next(iter(self.buffers()), torch.empty(())).device
         if self.functional:
             # Same treatment as the reward critic in PPOLoss: with separate_losses, parameters
@@ -265,9 +277,8 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             cost_critic_coeff = float(self.critic_coeff) if self.critic_coeff is not None else 1.0
         self.register_coeff_buffer("cost_critic_coeff", cost_critic_coeff, device=device)
         self._cost_value_estimator = None  # built on first use, with the reward one
-        # in_keys / out_keys were cached by the parent before the cost critic existed.
-        self._in_keys = None
-        self._out_keys = None
+        # in_keys were cached by the parent before the cost critic existed.
+        self.in_keys = None
 
     # ------------------------------------------------------------------ keys
     def _set_in_keys(self) -> None:
@@ -286,22 +297,25 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             names += ["value", "cost_value"]
         for name in names:
             keys.extend(_as_key_list(getattr(self.tensor_keys, name)))
-        self._in_keys = list(dict.fromkeys(keys))
+        self.in_keys = list(dict.fromkeys(keys))
+
+    _output_keys: list[NestedKey] | None = None
 
     @property
     def out_keys(self) -> list[NestedKey]:
-        if self._out_keys is None:
-            keys = [k for k in ClipPPOLoss.out_keys.fget(self) if k != "clip_fraction"]
-            keys.extend(self.surrogate.diagnostic_names)
-            keys.extend(["loss_cost_critic", "lagrange_multiplier"])
-            if self.clip_value is not None:
-                keys.append("cost_value_clip_fraction")
-            self._out_keys = keys
-        return self._out_keys
+        """ClipPPOLoss's output keys (its ``clip_fraction`` is the surrogate's), the surrogate's and the cost ones."""
+        if self._output_keys is None:
+            clip_value = self.clip_value is not None
+            keys = ["loss_objective", *(["entropy", "loss_entropy"] if self.entropy_bonus else []), "loss_critic",
+                    *(["value_clip_fraction"] if clip_value else []), "ESS", "kl_approx", "max_ratio", "mean_ratio",
+                    *self.surrogate.diagnostic_names, "loss_cost_critic", "lagrange_multiplier",
+                    *(["cost_value_clip_fraction"] if clip_value else [])]
+            self._output_keys = keys
+        return self._output_keys
 
     @out_keys.setter
     def out_keys(self, values: list[NestedKey]) -> None:
-        self._out_keys = values
+        self._output_keys = values
 
     # ------------------------------------------------------------------ hook
     def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
@@ -351,7 +365,7 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         Subclasses return their own (``PGLoss``, ``FOCOPSLoss``, ``CUPLoss``); a new first-order
         algorithm is a new :class:`~sg_torchrl.objectives.surrogates.Surrogate` returned here.
         """
-        if self._asymmetric_clip:
+        if self._asymmetric_clip_epsilon:
             return ClipSurrogate(float(self.clip_epsilon_low), float(self.clip_epsilon_high))
         return ClipSurrogate(float(self.clip_epsilon))
 
@@ -432,7 +446,7 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
                 ``forward``, ...) without defining its own ``seed_batched_objective``: the engine
                 would train another algorithm than the one the class defines.
             ValueError: for options the seed-batched form does not implement (entropy bonus,
-                value clipping, in-loss advantage normalisation, non-MSE critics, critic
+                value clipping, non-MSE critics, critic
                 coefficients other than 1, ``delay_actor`` / ``max_importance_ratio``).
         """
         overrides = self._unbatched_overrides()
@@ -445,7 +459,6 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         unsupported = {
             "entropy_bonus": bool(self.entropy_bonus),
             "clip_value": self.clip_value is not None,
-            "normalize_advantage": bool(self.normalize_advantage),
             "loss_critic_type != 'l2'": self.loss_critic_type != "l2",
             "critic_coeff != 1": self.critic_coeff is not None and float(self.critic_coeff) != 1.0,
             "cost_critic_coeff != 1": float(self.cost_critic_coeff) != 1.0,
@@ -469,53 +482,6 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
         return [f"{cls.__name__}.{name}" for name in _MATH_HOOKS
                 if inspect.unwrap(getattr(cls, name)) is not inspect.unwrap(getattr(owner, name))]
 
-    def _actor_loss(self, tensordict: TensorDictBase, advantage: Tensor) -> TensorDictBase:
-        """Unreduced policy terms on ``advantage``: :meth:`_surrogate`, ratio diagnostics, entropy.
-
-        Evaluates the actor once (on a shallow copy of ``tensordict``, which therefore keeps its
-        stored values) through torchrl's ``_log_weight``, applies the loss's optional advantage
-        normalisation, then the :meth:`_surrogate` hook. Diagnostics as
-        :class:`~torchrl.objectives.ClipPPOLoss`: ``kl_approx``, ``ESS``, ``max_ratio``,
-        ``mean_ratio`` (of the behaviour ratio), plus ``entropy`` / ``loss_entropy`` with an
-        entropy bonus.
-
-        Raises:
-            ValueError: if ``advantage`` does not have the log-ratio's shape ``[*B, 1]``.
-        """
-        scratch = tensordict.copy()
-        advantage = self._maybe_normalize_advantage(advantage, scratch, update_norm=False)
-        log_weight, dist, kl_approx, log_is_weight = self._log_weight(
-            scratch, adv_shape=advantage.shape[:-1]
-        )
-        if advantage.shape != log_weight.shape:
-            raise ValueError(
-                f"The advantage has shape {tuple(advantage.shape)} but the log-ratio has shape "
-                f"{tuple(log_weight.shape)}; the advantage needs the trailing value dimension "
-                f"(batch shape + (1,))."
-            )
-        loss, diagnostics = self._surrogate(
-            log_weight, advantage, dist, tensordict, log_is_weight=log_is_weight
-        )
-        td_out = TensorDict({"loss_objective": loss, **diagnostics})
-        with torch.no_grad():
-            log_ratio = Surrogate.log_ratio(log_weight, log_is_weight).detach()
-            flat = log_ratio.reshape(-1)  # over every sample, also of an [N, T] rollout
-            ess = (2 * flat.logsumexp(0) - (2 * flat).logsumexp(0)).exp()
-            ratio = log_ratio.exp()
-            td_out.set("kl_approx", kl_approx.detach().mean())
-            td_out.set("ESS", ess / flat.numel())
-            td_out.set("max_ratio", ratio.max())
-            td_out.set("mean_ratio", ratio.mean())
-        if self.entropy_bonus:
-            entropy = self._get_entropy(dist, adv_shape=advantage.shape[:-1])
-            logged = entropy
-            if is_tensor_collection(entropy):
-                td_out.set("composite_entropy", entropy.detach())
-                logged = torch.stack(list(entropy.values(True, True))).sum(0)
-            td_out.set("entropy", logged.detach().mean())
-            td_out.set("loss_entropy", self._weighted_loss_entropy(entropy))
-        return td_out
-
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
@@ -528,7 +494,6 @@ class PPOLagLoss(CostCriticLosses, AdvantageEstimation, ClipPPOLoss):
             "lagrange_multiplier",
             self.multiplier.value.to(device=ref.device, dtype=ref.dtype),
         )
-        self._clear_weakrefs(
-            tensordict, td_out, "actor_network_params", "target_actor_network_params"
-        )
+        release_compile_refs(tensordict, td_out, self.actor_network_params,
+                             self.target_actor_network_params if self.delay_actor else None)
         return td_out

@@ -197,13 +197,11 @@ class TrustRegionLoss(LossModule):
         return False
 
     def _set_in_keys(self) -> None:
+        # LossModule's default _forward_value_estimator_keys calls it after set_keys (no estimator here).
         tk = self.tensor_keys
         keys = [*self.actor_network.in_keys, tk.action, tk.sample_log_prob, tk.advantage,
                 tk.cost_advantage, tk.loc, tk.scale]
         self.in_keys = list(dict.fromkeys(keys))
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        self._set_in_keys()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes ``loss_objective``, ``loss_cost`` (if the cost advantage is given) and ``kl``."""

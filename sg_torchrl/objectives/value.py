@@ -301,8 +301,10 @@ class AdvantageEstimation:
             value_type = self.default_value_estimator
         if isinstance(value_type, ValueEstimatorBase) or isinstance(value_type, type):
             return self
-        value_type, hp = self._prepare_value_estimator_kwargs(value_type, **hyperparams)
-        estimator = build_value_estimator(self, value_type, **hp, value_network=self.cost_critic_network)
+        # TorchRL's convention (dispatch_value_estimator): a loss's own ``gamma`` is the default discount.
+        if hasattr(self, "gamma"):
+            hyperparams.setdefault("gamma", self.gamma)
+        estimator = build_value_estimator(self, value_type, **hyperparams, value_network=self.cost_critic_network)
         estimator.set_keys(**self._cost_estimator_keys())
         self._cost_value_estimator = estimator
         return self
@@ -403,8 +405,8 @@ class AdvantageEstimation:
         tk = self.tensor_keys
         jobs = []
         if reward:
-            jobs.append((self.value_estimator, tk.advantage,
-                         self._cached_critic_network_params_detached, self.target_critic_network_params))
+            params = self.critic_network_params.detach() if self.functional else None
+            jobs.append((self.value_estimator, tk.advantage, params, self.target_critic_network_params))
         if cost:
             params = self.cost_critic_network_params.detach() if self.functional else None
             jobs.append((self.cost_value_estimator, tk.cost_advantage,
