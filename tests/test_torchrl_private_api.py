@@ -17,7 +17,7 @@ import torch
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torchrl.envs.transforms import RewardSum, Transform
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, ValueOperator
-from torchrl.objectives import ClipPPOLoss, LossModule, PPOLoss
+from torchrl.objectives import ClipPPOLoss, DDPGLoss, LossModule, PPOLoss, SACLoss, TD3Loss
 from torchrl.objectives.multiagent import MAPPOLoss
 from torchrl.objectives.value import GAE, ValueEstimatorBase
 
@@ -44,7 +44,9 @@ ALLOWED = {
 
 def _torchrl_private_names() -> frozenset[str]:
     """Single-underscore names of the TorchRL classes sg_torchrl subclasses, and of a built ClipPPOLoss."""
-    classes = (LossModule, PPOLoss, ClipPPOLoss, MAPPOLoss, ValueEstimatorBase, GAE, Transform, RewardSum)
+    # The off-policy losses subclass SACLoss, TD3Loss and DDPGLoss: their private names are scanned for too.
+    classes = (LossModule, PPOLoss, ClipPPOLoss, MAPPOLoss, SACLoss, TD3Loss, DDPGLoss, ValueEstimatorBase, GAE,
+               Transform, RewardSum)
     names = {name for cls in classes for name in dir(cls)}
     actor = ProbabilisticActor(
         TensorDictModule(torch.nn.Sequential(MLP(in_features=3, out_features=2, num_cells=[4]),
