@@ -28,6 +28,11 @@ purpose         rule                                          consumers
                                                               minibatch shuffles); a multi-agent round or
                                                               agent order built without a generator
                                                               (seed 0)
+``replay``      ``Generator().manual_seed(r)``,               an off-policy seed's replay-buffer sampling
+                ``r = SeedSequence([s, 2])``'s first uint64   (its TorchRL ``ReplayBuffer``'s generator)
+``updates``     ``Generator().manual_seed(u)``,               an off-policy seed's noise in its gradient
+                ``u = SeedSequence([s, 3])``'s first uint64   steps (SAC's sampled actions, TD3's target
+                                                              smoothing)
 ``evaluation``  env seed ``s + 10_000`` (:func:`env_seed`),   the deterministic evaluation of every trainer
                 its simulators then by the ``simulators``     (``evaluate_policy``), single run or seed of
                 rule                                          a group
@@ -70,11 +75,15 @@ class Purpose(str, enum.Enum):
     INIT = "init"
     ACTIONS = "actions"
     MINIBATCHES = "minibatches"
+    REPLAY = "replay"
+    UPDATES = "updates"
     EVALUATION = "evaluation"
 
 
 #: Purposes whose stream is a ``torch.Generator`` (:func:`generator`).
-_TORCH = (Purpose.INIT, Purpose.ACTIONS, Purpose.MINIBATCHES)
+_TORCH = (Purpose.INIT, Purpose.ACTIONS, Purpose.MINIBATCHES, Purpose.REPLAY, Purpose.UPDATES)
+#: The stream index of each purpose seeded from ``SeedSequence([seed, index])`` (:func:`action_seed` is 1's).
+_SPAWNED = {Purpose.ACTIONS: 1, Purpose.REPLAY: 2, Purpose.UPDATES: 3}
 #: Purposes whose stream is an env seed, one numpy generator per simulator (:func:`env_seed`).
 _ENV = (Purpose.SIMULATORS, Purpose.EVALUATION)
 
@@ -85,22 +94,27 @@ def action_seed(seed: int) -> int:
     Not ``seed`` itself, which seeds the minibatch-order generator: two ``torch.Generator`` s with one
     seed would draw the same stream.
     """
-    return int(np.random.SeedSequence([seed, 1]).generate_state(1, dtype=np.uint64)[0])
+    return _spawned_seed(seed, _SPAWNED[Purpose.ACTIONS])
+
+
+def _spawned_seed(seed: int, index: int) -> int:
+    return int(np.random.SeedSequence([seed, index]).generate_state(1, dtype=np.uint64)[0])
 
 
 def generator(seed: int, purpose: Purpose | str) -> torch.Generator:
     """A fresh CPU ``torch.Generator`` drawing the ``purpose`` stream of run ``seed``.
 
     ``init``: the state the global RNG has after :func:`seed_torch` (``manual_seed(seed)``);
-    ``actions``: seeded with :func:`action_seed`; ``minibatches``: seeded with ``seed``.
+    ``actions``: seeded with :func:`action_seed`; ``minibatches``: seeded with ``seed``; ``replay`` and
+    ``updates``: with the first uint64 of ``SeedSequence([seed, 2])`` / ``SeedSequence([seed, 3])``.
 
     Raises:
         ValueError: ``purpose`` is an env's (``simulators``, ``evaluation``: :func:`env_seed`,
             :func:`numpy_seeds`).
     """
     purpose = Purpose(purpose)
-    if purpose is Purpose.ACTIONS:
-        return torch.Generator().manual_seed(action_seed(seed))
+    if purpose in _SPAWNED:
+        return torch.Generator().manual_seed(_spawned_seed(seed, _SPAWNED[purpose]))
     if purpose in _TORCH:
         return torch.Generator().manual_seed(int(seed))
     raise ValueError(f"the {purpose.value!r} stream is an env's (env_seed, numpy_seeds), not a torch.Generator")

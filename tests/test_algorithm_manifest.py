@@ -14,7 +14,8 @@ from sg_torchrl.algorithms import manifest
 ROOT = Path(__file__).resolve().parents[1]
 SINGLE = ("pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
 MULTI = ("mappo", "happo", "mappo_lag", "macpo")
-BEYOND_THE_PAPER = ("ppo_lag_pessimistic",)
+OFF_POLICY = ("sac", "td3", "ddpg", "sac_lag", "td3_lag", "ddpg_lag", "sac_pid", "td3_pid", "ddpg_pid")
+BEYOND_THE_PAPER = ("ppo_lag_pessimistic", *OFF_POLICY)
 
 
 def _python(code: str) -> subprocess.CompletedProcess:
@@ -49,8 +50,8 @@ def test_names_are_the_papers_in_its_order():
 
 
 def test_an_unknown_name_lists_the_known_ones():
-    with pytest.raises(KeyError, match="unknown algorithm 'sac'; known: pg, ppo, .*, macpo"):
-        manifest.get("sac")
+    with pytest.raises(KeyError, match="unknown algorithm 'sac2'; known: pg, ppo, .*, sac, .*, macpo"):
+        manifest.get("sac2")
     with pytest.raises(ValueError, match="agents must be one of single, multi"):
         manifest.names(agents="both")
 
@@ -65,7 +66,8 @@ def test_rows_are_read_only():
 def test_the_config_views_derive_from_the_manifest():
     from sg_torchrl.train import config
 
-    assert config.ALGORITHM_NAMES == SINGLE + BEYOND_THE_PAPER and config.MULTI_AGENT_ALGORITHM_NAMES == MULTI
+    assert config.ALGORITHM_NAMES == SINGLE + ("ppo_lag_pessimistic",) and config.MULTI_AGENT_ALGORITHM_NAMES == MULTI
+    assert config.OFF_POLICY_ALGORITHM_NAMES == OFF_POLICY == manifest.names(family="off_policy")
     assert config.SECOND_ORDER == manifest.SECOND_ORDER
     assert config.ALGORITHM_DEFAULTS == {entry.name: dict(entry.defaults) for entry in manifest.rows()}
 
@@ -87,6 +89,22 @@ def test_every_row_resolves_its_loss_and_builds(entry):
 
         assert issubclass(entry.round_class(), MultiAgentUpdate)
         assert MULTI_AGENT_ALGORITHMS[entry.name].title == entry.title
+    elif entry.off_policy:  # built by the off-policy engine from the row alone
+        import torch
+        from torchrl.data import Bounded
+
+        from sg_torchrl.modules.off_policy import make_off_policy_networks
+        from sg_torchrl.train.algorithms import make_multiplier
+        from sg_torchrl.train.config import TrainConfig
+        from sg_torchrl.train.off_policy import make_loss, off_policy_objective_of
+
+        cfg, spec = TrainConfig(algo=entry.name), Bounded(-torch.ones(2), torch.ones(2), (2,))
+        networks = make_off_policy_networks(3, spec, [4], stochastic=entry.name.startswith("sac"),
+                                            num_critics=1 if entry.name.startswith("ddpg") else 2,
+                                            constrained=entry.multiplier != "none")
+        loss = make_loss(cfg, networks, make_multiplier(entry.multiplier, cfg), spec)
+        assert entry.round_class() is None and isinstance(loss, entry.loss_class())
+        assert off_policy_objective_of(loss).constrained == (entry.multiplier != "none")
     else:
         from sg_torchrl.train.algorithms import ALGORITHMS
 
@@ -98,4 +116,4 @@ def test_the_tables_hold_the_manifest_rows_in_order():
     from sg_torchrl.train.algorithms import ALGORITHMS
     from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS
 
-    assert tuple(ALGORITHMS) == SINGLE + BEYOND_THE_PAPER and tuple(MULTI_AGENT_ALGORITHMS) == MULTI
+    assert tuple(ALGORITHMS) == SINGLE + ("ppo_lag_pessimistic",) and tuple(MULTI_AGENT_ALGORITHMS) == MULTI

@@ -28,9 +28,19 @@ mappo       MAPPO      multi   first order   first_order  none        AgentPPOLo
 happo       HAPPO      multi   first order   first_order  none        AgentPPOLoss (HAPPOUpdate)
 mappo_lag   MAPPO-Lag  multi   first order   first_order  lagrange    AgentPPOLoss (MAPPOLagUpdate)
 macpo       MACPO      multi   second order  cpo          none        AgentPPOLoss (MACPOUpdate)
+sac         SAC        single  off policy    off_policy   none        SACLagLoss
+td3         TD3        single  off policy    off_policy   none        TD3LagLoss
+ddpg        DDPG       single  off policy    off_policy   none        DDPGLagLoss
+sac_lag     SAC-Lag    single  off policy    off_policy   lagrange    SACLagLoss
+td3_lag     TD3-Lag    single  off policy    off_policy   lagrange    TD3LagLoss
+ddpg_lag    DDPG-Lag   single  off policy    off_policy   lagrange    DDPGLagLoss
+sac_pid     SAC-PID    single  off policy    off_policy   pid         SACLagLoss
+td3_pid     TD3-PID    single  off policy    off_policy   pid         TD3LagLoss
+ddpg_pid    DDPG-PID   single  off policy    off_policy   pid         DDPGLagLoss
 ==========  =========  ======  ============  ===========  ==========  ===========================
 
-Update kinds: ``first_order`` (SafePO's minibatch passes with a KL early stop), ``two_stage`` (CUP: a
+Update kinds: ``off_policy`` (the off-policy family, beyond the paper: gradient steps on replayed
+transitions interleaved with collection, :mod:`sg_torchrl.train.off_policy`), ``first_order`` (SafePO's minibatch passes with a KL early stop), ``two_stage`` (CUP: a
 reward stage, then the projection), and the trust-region steps of the actor, ``natural`` (NPG's
 step, no line search), ``trpo``, ``cpo`` and ``pcpo``. A multi-agent row's update is its
 :attr:`~AlgorithmEntry.round` (the agents updated one at a time): first-order clipped-PPO epochs per
@@ -52,6 +62,19 @@ set have one default for all:
   10 conjugate-gradient iterations, 10 line-search steps of fraction 0.5, 15 critic epochs. SafePO's
   settings the paper does not list: gradient-norm clip 10, no critic L2.
 
+The off-policy family (SAC, TD3, DDPG, their Lagrangian and PID forms) is not in the paper; its defaults
+are OmniSafe's (``configs/off-policy/SACLag.yaml``, ``TD3Lag.yaml``, ``DDPGLag.yaml``, ``*PID.yaml``; its
+off-policy benchmark's settings): 2,000 steps per epoch from one simulator, one gradient step per env step
+on a minibatch of 256 from a replay buffer of 1,000,000, random actions for the first 10,000 steps (SAC) or
+25,000 (TD3, DDPG), ReLU [256, 256] actor and critics with Adam 3e-4 (PID rows: actor 1e-4), gradient-norm
+clip 40 per network, Polyak 0.005, actor and target updates every second gradient step (DDPG every
+step), SAC's alpha fixed at 0.2, TD3's exploration noise 0.1 and target smoothing 0.2 clipped at 0.5,
+no observation normalisation, no critic L2; Lagrange init 0.001 with Adam 0.001; cost limit 25. Where
+OmniSafe updates the multiplier after every gradient step from the last episodes' mean cost, ``sg-train``
+updates it once per epoch from the epoch's, as for the on-policy family; so the PID rows keep the paper's
+per-epoch gains (0.1 / 0.01 / 0.01, CPPO-PID's): OmniSafe's 1e-6 / 1e-7 / 1e-7 are sized for 2,000 updates
+per epoch and would leave the multiplier where it starts.
+
 Adding an algorithm adds a row here (and, for a new kind, its builder in :mod:`sg_torchrl.train`).
 """
 
@@ -63,14 +86,14 @@ from types import MappingProxyType
 from typing import Any, Mapping
 
 __all__ = [
-    "AGENTS", "BASELINES", "ENTRIES", "FAMILIES", "MULTIPLIERS", "SECOND_ORDER", "UPDATES", "AlgorithmEntry",
+    "AGENTS", "BASELINES", "ENTRIES", "FAMILIES", "MULTIPLIERS", "OFF_POLICY", "SECOND_ORDER", "UPDATES", "AlgorithmEntry",
     "UnknownAlgorithmError", "baseline", "get", "names", "resolve", "rows",
 ]
 
 AGENTS = ("single", "multi")
-FAMILIES = ("first_order", "second_order")
-#: Update kinds: the first-order loops, then the trust-region steps of the actor.
-UPDATES = ("first_order", "two_stage", "natural", "trpo", "cpo", "pcpo")
+FAMILIES = ("first_order", "second_order", "off_policy")
+#: Update kinds: the first-order loops, the trust-region steps of the actor, the off-policy steps.
+UPDATES = ("first_order", "two_stage", "natural", "trpo", "cpo", "pcpo", "off_policy")
 MULTIPLIERS = ("none", "lagrange", "pid")
 
 
@@ -96,8 +119,8 @@ class AlgorithmEntry:
         name: the ``sg-train --algo`` value (and run directory component).
         title: the name as the Safety-Gymnasium paper and SafePO print it (``"PPO-Lag"``).
         agents: ``"single"`` or ``"multi"``.
-        family: ``"first_order"`` or ``"second_order"`` (the actor moves by a trust-region step, no actor
-            learning rate).
+        family: ``"first_order"``, ``"second_order"`` (the actor moves by a trust-region step, no actor
+            learning rate) or ``"off_policy"`` (SAC, TD3, DDPG and their constrained forms: a replay buffer).
         update: the update kind (:data:`UPDATES`), which chooses the update builder.
         multiplier: the multiplier kind (:data:`MULTIPLIERS`), which chooses the multiplier builder.
         loss: the loss class as ``"module:Name"``, imported only by :meth:`loss_class`.
@@ -140,6 +163,10 @@ class AlgorithmEntry:
         return self.family == "second_order"
 
     @property
+    def off_policy(self) -> bool:
+        return self.family == "off_policy"
+
+    @property
     def paper(self) -> str:
         """The row's name in the paper's results tables."""
         return self.paper_name or self.title
@@ -155,7 +182,7 @@ class AlgorithmEntry:
 
 # ---------------------------------------------------------------------------- paper defaults
 _SINGLE_AGENT_DEFAULTS = dict(
-    env_id="SafetyHalfCheetahVelocity-v1", steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
+    env_id="SafetyHalfCheetahVelocity-v1", num_envs=10, steps_per_epoch=20_000, max_grad_norm=40.0, critic_l2=1e-3,
     lagrangian_init=1e-3, lagrangian_lr=0.035, cg_iters=15, step_fraction=0.8, normalize_obs=True,
 )
 _FIRST_ORDER_DEFAULTS = dict(_SINGLE_AGENT_DEFAULTS, actor_lr=3e-4, critic_lr=3e-4, update_iters=40, minibatch_size=64,
@@ -170,13 +197,24 @@ _BOUNDED_NU_DEFAULTS = dict(_FIRST_ORDER_DEFAULTS, multiplier_upper_bound=2.0)
 # does not list (gradient clip 10 per network, critics without L2). Observation normalisation stands
 # in for the input LayerNorm of SafePO's networks (see sg_torchrl.train.config).
 _MULTI_AGENT_DEFAULTS = dict(
-    env_id="Safety2x3HalfCheetahVelocity-v0", steps_per_epoch=10_000, actor_lr=5e-4, critic_lr=5e-4, update_iters=5,
+    env_id="Safety2x3HalfCheetahVelocity-v0", num_envs=10, steps_per_epoch=10_000, actor_lr=5e-4, critic_lr=5e-4, update_iters=5,
     minibatch_size=10_000, target_kl=0.016, max_grad_norm=10.0, critic_l2=0.0, lagrangian_init=1e-5,
     lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
 )
 # MACPO: trust region 0.01, CG 10, 10 search steps of 0.5, 15 critic epochs ("SGD iters").
 _MACPO_DEFAULTS = dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, target_kl=0.01, update_iters=15, cg_iters=10,
                        line_search_steps=10, step_fraction=0.5)
+
+# OmniSafe's off-policy settings (module docstring); the on-policy fields they leave unused keep the
+# single-agent values so that every config validates alike.
+_OFF_POLICY_DEFAULTS = dict(
+    _SINGLE_AGENT_DEFAULTS, steps_per_epoch=2_000, num_envs=1, actor_lr=3e-4, critic_lr=3e-4, critic_l2=0.0,
+    minibatch_size=256, update_iters=1, target_kl=0.02, normalize_obs=False, lagrangian_lr=1e-3, replay_size=1_000_000,
+    warmup_steps=25_000, polyak=0.005, policy_delay=2, utd_ratio=1.0, exploration_noise=0.1, policy_noise=0.2,
+    noise_clip=0.5, alpha=0.2, cost_critic_reduction="max",
+)
+_SAC_DEFAULTS = dict(_OFF_POLICY_DEFAULTS, warmup_steps=10_000)
+_DDPG_DEFAULTS = dict(_OFF_POLICY_DEFAULTS, policy_delay=1)
 
 # ---------------------------------------------------------------------------- the rows
 _PG_LOSS = "sg_torchrl.objectives:PGLoss"
@@ -201,7 +239,19 @@ def _multi(name: str, title: str, family: str, update: str, multiplier: str, rou
                           round=_ROUNDS + round_name)
 
 
-_FIRST, _SECOND = FAMILIES
+def _off(name: str, title: str, multiplier: str, loss: str, defaults: Mapping[str, Any],
+         **loss_options: str) -> AlgorithmEntry:
+    """An off-policy row: its loss from ``sg_torchrl.objectives.off_policy``; the PID rows' actor rate OmniSafe's."""
+    if multiplier == "pid":
+        defaults = dict(defaults, actor_lr=1e-4)
+    return AlgorithmEntry(name, title, "single", "off_policy", "off_policy", multiplier,
+                          "sg_torchrl.objectives.off_policy:" + loss, defaults,
+                          {"cost_reduction": "cost_critic_reduction", **loss_options})
+
+
+_SAC_OPTIONS = {"alpha_init": "alpha"}
+_TD3_OPTIONS = {"policy_noise": "policy_noise", "noise_clip": "noise_clip"}
+_FIRST, _SECOND, _OFF = FAMILIES
 #: Every algorithm, in the paper's order (its tables' rows): single agent, then multi agent.
 ENTRIES: tuple[AlgorithmEntry, ...] = (
     _single("pg", "PG", _FIRST, "first_order", "none", _PG_LOSS, _FIRST_ORDER_DEFAULTS),
@@ -225,6 +275,13 @@ ENTRIES: tuple[AlgorithmEntry, ...] = (
     # algorithm": one Surrogate, one loss subclass and this row).
     _single("ppo_lag_pessimistic", "PPO-Lag-Pessimistic", _FIRST, "first_order", "lagrange",
             "sg_torchrl.objectives:PessimisticPPOLagLoss", _FIRST_ORDER_DEFAULTS),
+    # Beyond the paper: the off-policy family (OmniSafe's SAC, TD3, DDPG and their Lagrangian and PID forms).
+    *(_off(f"{base}{suffix}", f"{title}{label}", multiplier, loss, defaults, **options)
+      for suffix, label, multiplier in (("", "", "none"), ("_lag", "-Lag", "lagrange"), ("_pid", "-PID", "pid"))
+      for base, title, loss, defaults, options in (
+          ("sac", "SAC", "SACLagLoss", _SAC_DEFAULTS, _SAC_OPTIONS),
+          ("td3", "TD3", "TD3LagLoss", _OFF_POLICY_DEFAULTS, _TD3_OPTIONS),
+          ("ddpg", "DDPG", "DDPGLagLoss", _DDPG_DEFAULTS, {}))),
     _multi("mappo", "MAPPO", _FIRST, "first_order", "none", "MAPPOUpdate", _MULTI_AGENT_DEFAULTS),
     _multi("happo", "HAPPO", _FIRST, "first_order", "none", "HAPPOUpdate", _MULTI_AGENT_DEFAULTS),
     _multi("mappo_lag", "MAPPO-Lag", _FIRST, "first_order", "lagrange", "MAPPOLagUpdate", _MULTI_AGENT_DEFAULTS),
@@ -275,3 +332,5 @@ def baseline(name: str) -> str:
 
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
 SECOND_ORDER: frozenset[str] = frozenset(names(family="second_order"))
+#: The off-policy algorithms (a replay buffer; :mod:`sg_torchrl.train.off_policy`).
+OFF_POLICY: frozenset[str] = frozenset(names(family="off_policy"))

@@ -55,6 +55,8 @@ _HEAVY = {
     "EpochTrainer": "sg_torchrl.train.trainer",
     "GroupTrainer": "sg_torchrl.train.seed_group",
     "MultiAgentGroupTrainer": "sg_torchrl.train.multi_agent_group",
+    "OffPolicyGroupTrainer": "sg_torchrl.train.off_policy",
+    "SingleSeedOffPolicyTrainer": "sg_torchrl.train.off_policy",
     "SingleSeedGroupTrainer": "sg_torchrl.train.seed_group",
     "SingleSeedMultiAgentTrainer": "sg_torchrl.train.multi_agent_group",
 }
@@ -69,6 +71,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentGroupTrainer",
+    "OffPolicyGroupTrainer", "SingleSeedOffPolicyTrainer",
     "SingleSeedGroupTrainer", "SingleSeedMultiAgentTrainer", "TrainConfig", "TrainingInterrupted", "algorithm_title",
     "main", "refuse_retired_checkpoint", "train", "trainer_class",
 ]
@@ -77,7 +80,11 @@ __all__ = [
 def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
     """The trainer of ``cfg``: :class:`MultiAgentGroupTrainer` or :class:`GroupTrainer` for a seed group
     (multi-agent algorithms or not), :class:`SingleSeedMultiAgentTrainer` or :class:`SingleSeedGroupTrainer` for
-    one seed."""
+    one seed; the off-policy algorithms' :class:`OffPolicyGroupTrainer` / :class:`SingleSeedOffPolicyTrainer`."""
+    if cfg.off_policy:
+        from sg_torchrl.train.off_policy import OffPolicyGroupTrainer, SingleSeedOffPolicyTrainer
+
+        return OffPolicyGroupTrainer if cfg.group else SingleSeedOffPolicyTrainer
     if cfg.group and cfg.multi_agent:
         from sg_torchrl.train.multi_agent_group import MultiAgentGroupTrainer
 

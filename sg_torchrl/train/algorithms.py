@@ -58,7 +58,7 @@ from sg_torchrl.train.group_updates import (
 )
 from sg_torchrl.objectives.trust_region import STACKED_STEPS
 
-__all__ = ["Algorithm", "ALGORITHMS", "TRUST_REGION_STEPS"]
+__all__ = ["Algorithm", "ALGORITHMS", "TRUST_REGION_STEPS", "make_multiplier"]
 
 MakeLoss = Callable[[nn.Module, nn.Module, nn.Module, Multiplier, TrainConfig], LossModule]
 #: ``(parts, loss, cfg) -> GroupUpdate``: ``loss`` is one seed's single-seed loss (``make_loss``), which
@@ -150,10 +150,17 @@ _UPDATES: dict[str, MakeGroupUpdate] = {
 }
 
 
+def make_multiplier(kind: str, cfg: TrainConfig) -> Multiplier:
+    """A multiplier of ``kind`` (a manifest row's ``multiplier``: ``none``, ``lagrange``, ``pid``) from the config."""
+    return _MULTIPLIERS[kind](cfg)
+
+
 def _algorithm(entry: AlgorithmEntry) -> Algorithm:
     """A manifest row's builders, chosen by its multiplier kind and update kind, and its loss class."""
     return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _loss_builder(entry), _UPDATES[entry.update])
 
 
-#: The single-agent algorithms by ``--algo`` name, in the manifest's order.
-ALGORITHMS: dict[str, Algorithm] = {entry.name: _algorithm(entry) for entry in manifest.rows(agents="single")}
+#: The single-agent on-policy algorithms by ``--algo`` name, in the manifest's order (the off-policy rows are
+#: built by :mod:`sg_torchrl.train.off_policy`).
+ALGORITHMS: dict[str, Algorithm] = {entry.name: _algorithm(entry) for entry in manifest.rows(agents="single")
+                                    if not entry.off_policy}

@@ -71,7 +71,7 @@ __all__ = [
 CHECKPOINT_NAME = "checkpoint.pt"
 #: What a run writes into its directory; a new run with ``--overwrite`` removes these, and nothing else.
 RUN_FILES = (CHECKPOINT_NAME, CHECKPOINT_NAME + ".tmp", "config.json", "progress.csv", "summary.json", "curves.png",
-             "csv", "tb", "wandb")
+             "csv", "tb", "wandb", "replay")
 #: The per-seed run directories inside a seed group's directory (``seed-000``, ``seed-001``, ...).
 SEED_DIR_PATTERN = "seed-[0-9]*"
 #: The files whose presence means a directory already holds a run.

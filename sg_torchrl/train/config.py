@@ -51,7 +51,8 @@ from sg_torchrl.train.writes import check_run_name, write_atomic
 from sg_torchrl.validation import describe, fits, parse_bool
 
 __all__ = [
-    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "RETIRED_FIELDS", "SECOND_ORDER",
+    "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "OFF_POLICY_ALGORITHM_NAMES",
+    "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER",
     "TrainConfig", "PRESETS", "parse_args",
 ]
 
@@ -60,8 +61,14 @@ __all__ = [
 #: whose checkpoints ``sg-train --resume`` refuses).
 RETIRED_FIELDS: tuple[str, ...] = ("engine",)
 # Views of the algorithm manifest (sg_torchrl.algorithms.manifest), kept for the code that imports them here.
-#: The single-agent algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
-ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="single")
+#: The single-agent on-policy algorithms (rows of :data:`sg_torchrl.train.algorithms.ALGORITHMS`).
+ALGORITHM_NAMES: tuple[str, ...] = tuple(n for n in manifest.names(agents="single") if n not in manifest.OFF_POLICY)
+#: The off-policy algorithms (:mod:`sg_torchrl.train.off_policy`).
+OFF_POLICY_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(family="off_policy")
+#: Fields only the off-policy algorithms read (``None`` for the others, which refuse a value).
+OFF_POLICY_FIELDS: tuple[str, ...] = ("replay_size", "warmup_steps", "polyak", "policy_delay", "utd_ratio",
+                                      "exploration_noise", "policy_noise", "noise_clip", "alpha",
+                                      "cost_critic_reduction")
 #: The multi-agent algorithms (rows of :data:`sg_torchrl.train.multi_agent.MULTI_AGENT_ALGORITHMS`).
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="multi")
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
@@ -99,7 +106,8 @@ class TrainConfig:
         "single-seed run; num_envs, steps_per_epoch and total_steps are per seed; logs go to seed-XXX/ in the "
         "group's directory; every algorithm; single-agent ones on flat or pixel observations")
     total_steps: int = _opt(1_000_000, "env steps to train for (all simulators together)")
-    num_envs: int = _opt(10, "simulators stepped in one process")
+    num_envs: int | None = _opt(None, "simulators stepped in one process (10; off-policy 1, OmniSafe's)",
+                                shown_default=10)
     steps_per_epoch: int | None = _opt(
         None, "env steps per epoch (one policy update), a multiple of num_envs (20000; multi-agent 10000)")
     cost_limit: float = _opt(25.0, "episode cost limit d of the constrained MDP")
@@ -108,7 +116,7 @@ class TrainConfig:
     cost_gae_lambda: float = _opt(0.95, "GAE lambda of the cost advantage")
     hidden_sizes: list[int] = _opt(
         (), "hidden layer sizes of actor and critics; default: the paper's, tanh 256 256 for the Ant and "
-        "Doggo navigation robots, else tanh 64 64; multi-agent: ReLU 128 128")
+        "Doggo navigation robots, else tanh 64 64; multi-agent: ReLU 128 128; off-policy: ReLU 256 256")
     actor_lr: float | None = _opt(
         None, "actor Adam learning rate (first order: 3e-4, linearly annealed to 0; multi-agent 5e-4, constant)")
     critic_lr: float | None = _opt(
@@ -167,6 +175,21 @@ class TrainConfig:
     compile: bool = _opt(
         False, "single-agent: torch.compile the minibatch losses (about 2x faster first-order updates on a CPU after "
         "tens of seconds of compiling; same algorithm, float rounding differs from eager)")
+    # Off-policy algorithms (sac, td3, ddpg, *_lag, *_pid) only; OmniSafe's defaults from the manifest.
+    replay_size: int | None = _opt(None, "off-policy: replay buffer capacity per seed (1000000)")
+    warmup_steps: int | None = _opt(
+        None, "off-policy: env steps of uniformly random actions before the first gradient step (SAC 10000, TD3 and "
+        "DDPG 25000)")
+    polyak: float | None = _opt(None, "off-policy: target networks move this fraction towards the trained ones (0.005)")
+    policy_delay: int | None = _opt(
+        None, "off-policy: gradient steps per actor and target update (SAC and TD3 2, DDPG 1)")
+    utd_ratio: float | None = _opt(None, "off-policy: gradient steps per env step, per seed (1.0)")
+    exploration_noise: float | None = _opt(None, "TD3 / DDPG: std of the Gaussian noise added to actions (0.1)")
+    policy_noise: float | None = _opt(None, "TD3: std of the target policy smoothing noise (0.2)")
+    noise_clip: float | None = _opt(None, "TD3: clip of the target policy smoothing noise (0.5)")
+    alpha: float | None = _opt(None, "SAC: the fixed entropy weight (0.2)")
+    cost_critic_reduction: Literal["max", "mean", "min"] | None = _opt(
+        None, "off-policy: reduction of the twin cost critics (max: pessimistic for cost)")
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
             if getattr(self, name) is None:
@@ -199,6 +222,7 @@ class TrainConfig:
         self._validate_types()
         self._validate_env_kind()
         self._validate_seeds()
+        self._validate_off_policy()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
         for name in positive:
@@ -262,6 +286,40 @@ class TrainConfig:
         if self.seed != self.seeds[0]:
             raise ValueError(f"config: seed ({self.seed}) and seeds ({self.seeds}) disagree: a seed group's seed is "
                              f"its first seed; give seeds alone")
+
+    @property
+    def off_policy(self) -> bool:
+        """Whether the algorithm is an off-policy one (SAC, TD3, DDPG and their constrained forms)."""
+        return self.algo in OFF_POLICY_ALGORITHM_NAMES
+
+    def _validate_off_policy(self) -> None:
+        """The off-policy fields: refused for the on-policy algorithms, in range for the off-policy ones."""
+        if not self.off_policy:
+            given = [name for name in OFF_POLICY_FIELDS if getattr(self, name) is not None]
+            if given:
+                raise ValueError(f"config: {given[0]} is an option of the off-policy algorithms "
+                                 f"({', '.join(OFF_POLICY_ALGORITHM_NAMES)}), not of {self.algo!r}")
+            return
+        for name in ("replay_size", "policy_delay"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"config: {name} must be >= 1, got {getattr(self, name)}")
+        if self.warmup_steps < 0:
+            raise ValueError(f"config: warmup_steps must be >= 0, got {self.warmup_steps}")
+        if not 0.0 < self.polyak <= 1.0:
+            raise ValueError(f"config: polyak must be in (0, 1], got {self.polyak}")
+        if not self.utd_ratio > 0:
+            raise ValueError(f"config: utd_ratio must be > 0, got {self.utd_ratio}")
+        for name in ("exploration_noise", "policy_noise", "noise_clip", "alpha"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"config: {name} must be >= 0, got {getattr(self, name)}")
+        if self.observation_mode != "vector":
+            raise ValueError(f"config: the off-policy algorithms train on flat-vector observations only; {self.env_id} "
+                             f"with obs_mode={self.observation_mode!r} emits images")
+        if self.normalize_obs:
+            raise ValueError("config: the off-policy algorithms take no observation normalisation (OmniSafe's "
+                             "default; a running normaliser would shift the replayed observations)")
+        if self.compile:
+            raise ValueError("config: --compile applies to the on-policy algorithms; the off-policy steps run eagerly")
 
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""
@@ -365,6 +423,8 @@ class TrainConfig:
             return list(self.hidden_sizes)
         if self.multi_agent:
             return [128, 128]
+        if self.off_policy:
+            return [256, 256]  # OmniSafe's ReLU actor and critics
         from sg_torchrl.envs import registry_entry
 
         try:
