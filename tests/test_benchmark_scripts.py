@@ -47,3 +47,13 @@ def test_revision_speed_compares_a_revision_with_this_tree():
     row = next(line for line in result.stdout.splitlines() if line.startswith("| ppo_lag S=1 eager |"))
     base, this, ratio = (float(cell) for cell in row.strip("|").split("|")[1:])
     assert base > 0 and this > 0 and ratio == pytest.approx(this / base, rel=1e-2)
+
+
+def test_off_policy_speed_rows(tmp_path):
+    out = tmp_path / "rows.json"
+    result = _run("off_policy_speed.py", "--steps", "20", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [row["row"] for row in rows] == ["plain torch", "engine S=1", "engine S=3"]
+    assert rows[0]["cpu_s_per_1k_gradient_steps"] > 0 and all(row["cpu_s_per_1k_steps_per_seed"] > 0 for row in rows[1:])
+    assert "| engine S=3 |" in result.stdout

@@ -21,6 +21,7 @@ TINY = ["--env-id", "SafetyHalfCheetahVelocity-v1", "--total-steps", "4000", "--
         ("first_order.py", ["--algo", "ppo_lag", "--update-iters", "2", "--compile"]),
         ("second_order.py", ["--algo", "cpo", "--critic-iters", "2"]),
         ("torchrl_ppo_lag.py", ["--update-iters", "2"]),  # TorchRL's PPO recipe with PPOLagLoss
+        ("sac_lag.py", ["--warmup-steps", "3000", "--batch-size", "64", "--hidden", "32"]),  # TorchRL's SAC loop
     ],
 )
 def test_recipe_runs(script, args):
