@@ -61,7 +61,7 @@ class TestConfig:
             ("actor_lr", -1.0, "actor_lr"),
             ("cost_limit", -3.0, "cost_limit"),
             ("total_steps", 10, "less than one epoch"),
-            ("algo", "sac", "unknown algo"),
+            ("algo", "sac2", "unknown algo"),
             ("step_fraction", 1.0, "step_fraction"),
             ("line_search_steps", 0, "line_search_steps"),
         ],
