@@ -9,6 +9,7 @@ lands every epoch on a bound (12.5, 25, 37.5, 50: each in the lower region).
 from __future__ import annotations
 
 import csv
+import json
 import math
 import shutil
 from pathlib import Path
@@ -114,6 +115,15 @@ def test_multi_agent_env_without_mappo_lag(tmp_path):
 def test_warmup_share_leaves_out_the_first_epochs(sweep, share, kept, shares):
     row = _rows(collect(sweep), warmup_share=share)[("env", CHEETAH, "CPO")]
     assert (row["evaluations"], _shares(row), row["warm-up share"]) == (kept, shares, share)
+
+
+def test_warmup_of_a_cell_without_a_budget_is_a_share_of_the_steps_it_logged(tmp_path):
+    cell = group(tmp_path / "sweep", GOAL, "ppo_lag", {0: (10.0, 40.0)})  # costs 10 20 30 40 at 250 ... 1000 steps
+    config = json.loads((cell / "config.json").read_text())
+    del config["total_steps"]  # an older run's config
+    (cell / "config.json").write_text(json.dumps(config))
+    row = _rows(collect(tmp_path / "sweep"), warmup_share=0.5)[("env", GOAL, "PPO-Lag")]
+    assert (row["evaluations"], _shares(row)) == (2, (0.0, 0.0, 0.5, 0.5))  # above 500 of the 1000 logged
 
 
 def test_cost_regions_option_moves_the_bounds(sweep):

@@ -107,7 +107,8 @@ def counted_costs(cell: CellResult, warmup_share: float = WARMUP_SHARE) -> list[
     histories = cell_histories(cell)
     rows = [row for rows in histories.values() for row in rows
             if _finite(row.get("Train/Epoch")) and _finite(row.get("Metrics/EpCost"))]
-    budget = cell.total_steps or max((row.get("Train/TotalSteps", 0.0) for row in rows), default=0.0)
+    budget = cell.total_steps or max((row["Train/TotalSteps"] for row in rows if _finite(row.get("Train/TotalSteps"))),
+                                     default=0.0)
     return [row["Metrics/EpCost"] for row in rows if row.get("Train/TotalSteps", NAN) > warmup_share * budget]
 
 
