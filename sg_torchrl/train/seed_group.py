@@ -57,6 +57,14 @@ non-finite, is frozen (no more updates, multiplier or logs; its simulators idle 
 and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
 when none is left the run ends early.
 
+**Device** (``--device``, :mod:`sg_torchrl.train.devices`). The networks, the masked Adam's state,
+the multiplier values the losses read, GAE, the epoch's batch and the whole update live on
+``cfg.device``; the simulators, the observation normaliser (it runs in the env's transform during
+collection, never in the update) and the multipliers' own state (each follows a host-side
+:math:`J_c` once per epoch) stay on the host. :class:`StackedPolicy` copies each step's observation
+to the device and its outputs back once; the batch crosses once per epoch; the update reads back
+once per pass and per epoch (:mod:`sg_torchrl.train.group_updates`). Checkpoints hold CPU tensors.
+
 **One seed** (``sg-train --seed s``): :class:`SingleSeedGroupTrainer` is this engine with the one seed,
 in the single-seed layout. It trains exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1:
 progress rows but their timings, parameters, the seed's checkpoint entry) and writes a single run's
