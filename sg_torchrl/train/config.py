@@ -46,6 +46,7 @@ from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from sg_torchrl.algorithms import manifest
+from sg_torchrl.train.devices import check_device_name
 from sg_torchrl.train.presets import PRESETS
 from sg_torchrl.train.writes import check_run_name, write_atomic
 from sg_torchrl.validation import describe, fits, parse_bool
@@ -167,6 +168,10 @@ class TrainConfig:
     compile: bool = _opt(
         False, "single-agent: torch.compile the minibatch losses (about 2x faster first-order updates on a CPU after "
         "tens of seconds of compiling; same algorithm, float rounding differs from eager)")
+    device: str = _opt(
+        "cpu", "where the networks, optimiser state and updates live: cpu, cuda or cuda:N (the simulators stay on "
+        "their backend; single-agent algorithms; a resumed run may change it)")
+
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
             if getattr(self, name) is None:
@@ -199,6 +204,7 @@ class TrainConfig:
         self._validate_types()
         self._validate_env_kind()
         self._validate_seeds()
+        self._validate_device()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
         for name in positive:
@@ -263,6 +269,15 @@ class TrainConfig:
             raise ValueError(f"config: seed ({self.seed}) and seeds ({self.seeds}) disagree: a seed group's seed is "
                              f"its first seed; give seeds alone")
 
+    def _validate_device(self) -> None:
+        """``device``'s form (:func:`~sg_torchrl.train.devices.check_device_name`); the multi-agent engine trains
+        on the CPU only so far. Whether this machine has the device is checked where training starts
+        (:func:`~sg_torchrl.train.devices.check_device_available`), so a saved config reads anywhere."""
+        check_device_name(self.device)
+        if self.multi_agent and self.device != "cpu":
+            raise ValueError(f"config: device {self.device!r}: multi-agent training runs on cpu only so far "
+                             f"({self.algo!r}); give --device cpu")
+
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""
         if not (isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1):
@@ -289,7 +304,10 @@ class TrainConfig:
         that a bad option fails before anything is built."""
         from sg_torchrl.envs.registry import validate_env_options
 
-        reserved = sorted(set(self.env_options) & {"num_envs", "device", "seed"})
+        if "device" in self.env_options:
+            raise ValueError("config: env_options cannot set device: the simulators run on their backend (the "
+                             "backend option); --device places the networks and updates")
+        reserved = sorted(set(self.env_options) & {"num_envs", "seed"})
         if reserved:
             raise ValueError(
                 f"config: env_options cannot set {', '.join(reserved)}; use --{reserved[0].replace('_', '-')}"
