@@ -113,6 +113,7 @@ from sg_torchrl.render_modes import (
     RENDER_OPTIONS,
     FrameSource,
     available_render_modes,
+    render_frames,
     split_render_options,
 )
 
@@ -298,11 +299,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
         ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
         self._check_open()
-        if self._frames is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
-                                  f"(or one of {list(RENDER_MODES)}) to make")
-            return None
-        return self._frames.render()
+        return render_frames(self._frames)
 
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""

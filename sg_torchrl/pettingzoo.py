@@ -71,7 +71,8 @@ from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 from sg_torchrl.gym import EpisodeEndedError
-from sg_torchrl.render_modes import RENDER_MODES, FrameSource, available_render_modes, split_render_options
+from sg_torchrl.render_modes import (RENDER_MODES, FrameSource, available_render_modes, render_frames,
+                                     split_render_options)
 
 __all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
 
@@ -182,11 +183,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
     def render(self) -> np.ndarray | list[np.ndarray] | None:
         """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`), or ``None``."""
         self._check_open()
-        if self._frames is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
-                                  f"(or one of {list(RENDER_MODES)}) to make")
-            return None
-        return self._frames.render()
+        return render_frames(self._frames)
 
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""

@@ -61,7 +61,7 @@ from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_
 from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
 from sg_torchrl.dexhands.tasks import TASKS
 from sg_torchrl.envs.backends import Backend, make_physics
-from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.base import CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.rendering import FollowCamera, RenderMixin
 
@@ -121,8 +121,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         warp_device: str | None = None,
         warp_options: dict[str, Any] | None = None,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)  # before MujocoBatch, for this message
         if safety not in SAFETY_VARIANTS:
             raise ValueError(f"unknown safety variant {safety!r}; choose from {sorted(SAFETY_VARIANTS)}")
         if task not in TASKS:

@@ -54,11 +54,17 @@ from sg_torchrl.envs.snapshots import SimulatorSnapshots
 from sg_torchrl.envs.transforms import RewardSpec
 from sg_torchrl.seeding import block_seeds, numpy_generators
 
-__all__ = ["SafeEnv", "CostMode", "block_seeds"]
+__all__ = ["SafeEnv", "CostMode", "FLOAT32_MAX", "block_seeds", "check_num_envs", "reject_complex_action"]
 
 CostMode = Literal["indicator", "raw"]
 
-_FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
+
+
+def check_num_envs(num_envs: object) -> None:
+    """Raise ``ValueError`` unless ``num_envs`` is a positive integer (tasks call it before building simulators)."""
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
 
 
 def _magnitude(reward: np.ndarray, costs: dict[str, np.ndarray]) -> float:
@@ -130,8 +136,7 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         device: torch.device | str = "cpu",
         seed: int | Sequence[int] | None = None,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)
         if max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
         if frame_skip < 1:
@@ -240,7 +245,7 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         sum that overflows only sends the step to the exact test), and the outcome test is
         :meth:`_nonfinite_outcome`'s own whole-batch magnitude.
         """
-        return math.isfinite(np.add.reduce(observation, axis=None)) and _magnitude(reward, costs) <= _FLOAT32_MAX
+        return math.isfinite(np.add.reduce(observation, axis=None)) and _magnitude(reward, costs) <= FLOAT32_MAX
 
     def _nonfinite_outcome(self, reward: np.ndarray, costs: dict[str, np.ndarray]) -> np.ndarray:
         """Which simulators' reward or cost would be emitted non-finite, ``(N,)`` bool.
@@ -258,13 +263,13 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         is finite. One sum over the whole batch decides the common all-finite case (about 3 us, the
         per-step price of this check); only when it fails is the sum taken per simulator.
         """
-        if _magnitude(reward, costs) <= _FLOAT32_MAX:
+        if _magnitude(reward, costs) <= FLOAT32_MAX:
             return np.zeros(self.num_envs, dtype=bool)
         n = self.num_envs
         per_sim = np.abs(np.reshape(reward, (n, -1))).sum(axis=1)
         for value in costs.values():
             per_sim += np.abs(np.reshape(value, (n, -1))).sum(axis=1)
-        return ~(per_sim <= _FLOAT32_MAX)
+        return ~(per_sim <= FLOAT32_MAX)
 
     # ------------------------------------------------------------------ TorchRL API
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
