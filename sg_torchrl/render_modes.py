@@ -7,7 +7,7 @@ renders simulator 0 the way gymnasium (and Safety-Gymnasium) define the mode:
 * ``"depth_array"``: ``render()`` returns the current depth image, ``(height, width)`` ``float32``,
   as MuJoCo's (and so gymnasium's) depth buffer: 0 at the near clipping plane, 1 at the far one,
   growing with distance (``far * (z - near) / (z * (far - near))`` for a point at ``z`` metres along
-  the optical axis; the env's ``render_depth``). :meth:`FrameSource.metric_depth` gives metres.
+  the optical axis; the env's ``render_depth``, which also gives metres).
 * ``"rgb_array_list"`` / ``"depth_array_list"``: a frame is taken after every ``reset`` and ``step``
   (``reset`` first drops what was collected); ``render()`` returns the frames since the last call
   and starts a new list, as gymnasium's ``RenderCollection`` does.
@@ -137,10 +137,6 @@ class FrameSource:
         if not self._depth:
             return self._env.render(0, self.width, self.height, self.camera)
         return self._env.render_depth(0, self.width, self.height, self.camera, linear=False)
-
-    def metric_depth(self) -> np.ndarray:
-        """The current depth image in metres along the optical axis (``env.depth_range()`` bounds it)."""
-        return self._env.render_depth(0, self.width, self.height, self.camera, linear=True)
 
     def after_reset(self) -> None:
         """Call after every ``reset``: list modes start a new list with this frame; ``human`` shows it."""

@@ -510,7 +510,3 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         plan = (tuple(codes), any(code == 3 for _, code in codes))
         self.__dict__["_info_plan_cache"] = plan  # not through nn.Module.__setattr__
         return plan
-
-    def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
-        """The cost this task assigns to a measured velocity (for documentation and tests)."""
-        return (np.asarray(velocity) > self.velocity_threshold).astype(np.float64)
