@@ -39,11 +39,9 @@ API
   closed env raises ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
 * ``reset(seed=None, options=None)``: ``options`` (a dict, or ``None``) is accepted and ignored, as
   by Safety-Gymnasium's own envs; anything else raises ``TypeError``.
-* Rendering: gymnasium's render modes, ``"rgb_array"``, ``"depth_array"``, ``"rgb_array_list"``,
-  ``"depth_array_list"`` and ``"human"`` (headless except ``human``, which needs a display and
-  pygame and otherwise fails at construction naming the reason), see :mod:`sg_torchrl.render_modes`.
-  The default camera follows the robot; options ``width``, ``height`` (default 256) and ``camera``
-  (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
+* Rendering: gymnasium's render modes (``"rgb_array"``, ``"depth_array"``, their ``*_list`` forms and
+  ``"human"``) with options ``width``, ``height`` and ``camera`` (or Safety-Gymnasium's ``camera_name`` /
+  ``camera_id``); the default camera follows the robot. See :mod:`sg_torchrl.render_modes`.
 * ``copy.deepcopy(env)`` builds a new env with the same id and options and loads the simulator's
   state into it (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state`: physics, random streams, step
   counter, layout): the copy's next step, given the same action, equals the original's.

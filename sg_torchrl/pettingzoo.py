@@ -39,11 +39,8 @@ API
   before ``reset`` or after the end raises :class:`sg_torchrl.gym.EpisodeEndedError`; an action dict
   that misses a live agent, names an unknown one, has the wrong shape or is not finite raises
   ``ValueError``. Actions outside the bounds are clipped.
-* Seeding: ``reset(seed=s)`` re-seeds the simulator (same seed, same initial observations and, with the
-  same actions, the same trajectory); ``reset()`` continues the random stream.
-* The values are exactly the TorchRL env's (``float32`` observations and rewards converted to python
-  / ``float64``; actions converted to ``float32``, the action spec's dtype): a policy trained with
-  TorchRL sees the same inputs through the façade.
+* Seeding and values as in :mod:`sg_torchrl.gym`: ``reset(seed=s)`` re-seeds the simulator, ``reset()``
+  continues its random stream; the values are exactly the TorchRL env's (actions cast to ``float32``).
 
 Speed
 -----

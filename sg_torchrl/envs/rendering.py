@@ -8,18 +8,11 @@
 What renders
 ------------
 :class:`RenderMixin` gives an env with a :class:`~sg_torchrl.envs.physics.MujocoBatch` ``physics``
-(NavigationEnv, VelocityEnv) ``render(index, width, height, camera)``: simulator ``index`` as an
-``(height, width, 3)`` ``uint8`` RGB array, and ``render_depth(...)``: its depth image, ``(height,
-width)`` ``float32``, in metres or in gymnasium's ``depth_array`` convention. The env owns one
-:class:`Renderer`, created at the first frame and released by ``env.close()`` (or at interpreter
-exit, whichever comes first). Rendering only reads ``MjData``: it never changes a trajectory.
-``camera`` is a name of :attr:`RenderMixin.camera_names` (``None`` / ``"follow"``: the env's
-:attr:`RenderMixin.default_camera`, following the robot; ``"chase"``; ``"world"`` / ``"human"``;
-Safety-Gymnasium's ``"fixednear"``, ``"fixedfar"``, ``"vision"``, ``"track"``), a model camera's
-id, a :class:`FollowCamera` or an ``MjvCamera``: see :mod:`sg_torchrl.envs.cameras`.
-
-:meth:`RenderMixin.render_camera` returns the ``MjvCamera`` a frame would use (tests use it to
-check that the camera follows the robot).
+(navigation, velocity and two-hand envs) :meth:`~RenderMixin.render` (RGB) and
+:meth:`~RenderMixin.render_depth` of one simulator, from a camera of :mod:`sg_torchrl.envs.cameras`.
+The env owns one :class:`Renderer`, created at the first frame and released by ``env.close()`` (or
+at interpreter exit, whichever comes first). Rendering only reads ``MjData``: it never changes a
+trajectory.
 
 OpenGL backend and frame quality
 --------------------------------
