@@ -119,6 +119,7 @@ __all__ = [
     "EpisodeEndedError",
     "GymnasiumEnv",
     "SafetyGymnasiumEnv",
+    "SimulatorFacade",
     "gymnasium_twin_id",
     "make",
     "register_envs",
@@ -136,6 +137,58 @@ class EpisodeEndedError(gymnasium.error.ResetNeeded, AssertionError):
 
     Also an ``AssertionError``, so code written for Safety-Gymnasium (which asserts) still catches it.
     """
+
+
+class SimulatorFacade:
+    """What the gymnasium and PettingZoo façades share: one simulator ``_env`` of ``env_id``, built from
+    ``_options``, with its frame source ``_frames`` (``None`` without a render mode) and ``_closed`` flag."""
+
+    @property
+    def torchrl_env(self):
+        """The wrapped TorchRL env (one simulator)."""
+        return self._env
+
+    def render(self) -> np.ndarray | list[np.ndarray] | None:
+        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
+        ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
+        self._check_open()
+        return render_frames(self._frames)
+
+    def _release(self) -> None:
+        """``close()``'s shared part: mark closed, close the window and the simulator."""
+        self._closed = True
+        if self._frames is not None:
+            self._frames.close()
+        self._env.close(raise_if_closed=False)
+
+    def _clone(self, memo: dict):
+        """A new façade with this one's id and options whose simulator continues from this one's
+        (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state` loaded into the copy)."""
+        self._check_open()
+        if not hasattr(self._env, "sim_state"):
+            raise TypeError(f"{self.env_id}: {type(self._env).__name__} cannot snapshot its simulator")
+        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
+        memo[id(self)] = clone
+        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        return clone
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
+
+    def _check_reset_options(self, options: Any) -> None:
+        self._check_open()
+        if options is not None and not isinstance(options, dict):
+            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
+
+    def _raise_episode_ended(self) -> None:
+        """``step`` before ``reset`` or after the episode ended (or on a closed env: that error)."""
+        self._check_open()
+        raise EpisodeEndedError(f"{self.env_id}: call reset() before step(): the episode has not started or has "
+                                "ended (terminated or truncated)")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.env_id!r})"
 
 
 def _split_twin_id(env_id: str) -> tuple[str, bool]:
@@ -185,7 +238,7 @@ def make(
     return env
 
 
-class SafetyGymnasiumEnv(gymnasium.Env):
+class SafetyGymnasiumEnv(SimulatorFacade, gymnasium.Env):
     """One sg_torchrl simulator behind Safety-Gymnasium's ``gymnasium.Env`` API (6-tuple step).
 
     Args:
@@ -254,11 +307,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     # ------------------------------------------------------------------ properties
     @property
-    def torchrl_env(self):
-        """The wrapped TorchRL env (one simulator)."""
-        return self._env
-
-    @property
     def max_episode_steps(self) -> int | None:
         """Steps after which the env truncates an episode by itself (``None``: never)."""
         steps = int(self._env.max_episode_steps)
@@ -277,9 +325,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
         ``options`` (a dict or ``None``) is accepted and ignored, as Safety-Gymnasium's envs do.
         """
-        self._check_open()
-        if options is not None and not isinstance(options, dict):
-            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
+        self._check_reset_options(options)
         super().reset(seed=seed)  # seeds self.np_random and validates the seed
         if seed is not None:
             self._env.set_seed(int(seed), static_seed=True)
@@ -293,20 +339,11 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         """Advance one step: ``(obs, reward, cost, terminated, truncated, info)``."""
         return self._transition(action)
 
-    def render(self) -> np.ndarray | list[np.ndarray] | None:
-        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
-        ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
-        self._check_open()
-        return render_frames(self._frames)
-
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
         if not self._closed:
-            self._closed = True
             self._needs_reset = True  # so that step() reaches the closed-env check
-            if self._frames is not None:
-                self._frames.close()
-            self._env.close(raise_if_closed=False)
+            self._release()
 
     def __deepcopy__(self, memo: dict) -> SafetyGymnasiumEnv:
         """A new env with the same id and options whose simulator continues exactly from this one's.
@@ -315,12 +352,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         copy, so the same action gives both the same next step. Render frames collected so far
         (``*_list`` modes) are copied; the copy opens its own renderer and window.
         """
-        self._check_open()
-        if not hasattr(self._env, "sim_state"):
-            raise TypeError(f"{self.env_id}: {type(self._env).__name__} cannot snapshot its simulator")
-        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
-        memo[id(self)] = clone
-        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        clone = self._clone(memo)
         clone._needs_reset = self._needs_reset
         clone._np_random = copy.deepcopy(self._np_random, memo)
         clone._np_random_seed = self._np_random_seed
@@ -330,10 +362,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         return clone
 
     # ------------------------------------------------------------------ internals
-    def _check_open(self) -> None:
-        if self._closed:
-            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
-
     def _action(self, action: Any) -> np.ndarray:
         """The action as the ``(1, act_dim)`` float32 array the TorchRL env would receive."""
         array = np.asarray(action, dtype=np.float32)
@@ -349,11 +377,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     def _transition(self, action: Any) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         if self._needs_reset:
-            self._check_open()
-            raise EpisodeEndedError(
-                f"{self.env_id}: call reset() before step(): the episode has not started or has ended "
-                "(terminated or truncated)"
-            )
+            self._raise_episode_ended()
         action32 = self._action(action)
         if self._fast:
             out = self._fast_step(action32)
@@ -403,9 +427,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         obs = self._observation(nxt)
         terminated, truncated = bool(nxt.get("terminated")[0, 0]), bool(nxt.get("truncated")[0, 0])
         return obs, float(nxt.get("reward")[0, 0]), cost, terminated, truncated, info
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.env_id!r})"
 
 
 def _check_options(env_id: str, options: dict[str, Any]) -> None:
