@@ -92,8 +92,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
             ``backend="cpu"`` only).
         backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible; thousands
             of envs, ``benchmarks/warp_throughput.py``); see :mod:`sg_torchrl.envs.backends`.
-        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
-        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
+        warp_device, warp_options: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``

@@ -13,9 +13,7 @@ class owns everything tasks share:
   truncation;
 * seeding with one generator per simulator (``SeedSequence(seed).spawn``: the ``simulators`` rule
   of :mod:`sg_torchrl.seeding`), so simulator ``i`` with seed ``s`` produces the same trajectory
-  whatever ``N`` is; a list of seeds splits the simulators into equal contiguous blocks, block ``k``
-  seeded as an env of its own with ``seeds[k]`` (the simulators of a seed group,
-  :func:`~sg_torchrl.seeding.block_seeds`, re-exported here);
+  whatever ``N`` is; a list of seeds seeds blocks of simulators (``seed`` of :class:`SafeEnv`);
 * action validation (shape, finiteness) with errors that name the problem, clipping to the
   action bounds as the reference does, and isolation of a diverged simulator or one whose reward
   or cost is not finite (it is reset and reported ``truncated``, the rest of the batch carries on).

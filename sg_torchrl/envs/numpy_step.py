@@ -45,9 +45,6 @@ class NumpyStepInterface:
             observation, reward and cost as Python floats, the flags as Python bools and ``cost_info``
             ``{name: float}``. Each value is the float32 value the TorchRL ``step`` emits, widened
             (the observation a fresh array), so a policy sees the same inputs through either API.
-
-        Why: on one simulator the batched bookkeeping (``(N, 1)`` columns, TensorDicts) costs more
-        than the physics of a small robot; this is the step of the gymnasium façade.
         """
         if self.num_envs != 1:
             raise ValueError(f"step_one steps a one-simulator env; this one has num_envs={self.num_envs}")

@@ -1,15 +1,11 @@
-"""Simulator snapshots and env copies: the part of :class:`~sg_torchrl.envs.base.SafeEnv` that
-captures its simulators and rebuilds them elsewhere.
+"""Simulator snapshots and env copies, a part of :class:`~sg_torchrl.envs.base.SafeEnv`.
 
-* :meth:`SimulatorSnapshots.sim_state` / :meth:`~SimulatorSnapshots.load_sim_state`: the generators,
-  step counters and physics of every simulator. Checkpoints save them so that a resumed run replays
-  the uninterrupted one bit for bit.
-* Copies (``copy.deepcopy``, ``pickle``): ``deepcopy`` and ``pickle`` copy numpy views as separate
-  arrays, so a copied env's caches, buffers and control views would no longer alias its ``MjData``
-  and the copy would step wrongly. An env built by ``sg_torchrl.make`` remembers how
-  (:meth:`~SimulatorSnapshots.remember_construction`); its copies are new envs built the same way whose
-  simulators continue from its :meth:`~SimulatorSnapshots.sim_state`. The copy's next step, given the
-  same action, equals the original's.
+* :meth:`SimulatorSnapshots.sim_state`: the generators, step counters and physics of every simulator.
+  Checkpoints save it so that a resumed run replays the uninterrupted one bit for bit.
+* Copies (``copy.deepcopy``, ``pickle``) copy numpy views as separate arrays, so a copied env's caches,
+  buffers and control views would no longer alias its ``MjData`` and the copy would step wrongly. An
+  env built by ``sg_torchrl.make`` remembers how; its copies are new envs built the same way whose
+  simulators continue from its ``sim_state``: given the same action, the copy's next step equals the original's.
 """
 
 from __future__ import annotations
