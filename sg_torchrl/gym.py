@@ -24,7 +24,7 @@ API
   ``reward_ctrl``, ... as Safety-Gymnasium's info).
   ``reset(seed=None, options=None)`` returns ``(obs, {})``. A seed re-seeds the simulator (same
   seed, same initial observation and, with the same actions, the same trajectory); no seed continues
-  the random stream, so each episode gets a new initial state.
+  the random stream. ``options`` (a dict or ``None``) is ignored, as by Safety-Gymnasium's own envs.
 * :class:`GymnasiumEnv` (``make(env_id, cost_in_info=True)``, or ``make`` of a twin id): the same
   env with gymnasium's usual **5-tuple** ``(obs, reward, terminated, truncated, info)`` and the cost
   in ``info["cost"]``, like Safety-Gymnasium's ``Safety<Name>Gymnasium-v<k>`` twins. It passes
@@ -35,10 +35,9 @@ API
   ``action_space.shape``, or that is not finite, raises ``ValueError``; an option the env does not
   take raises ``TypeError`` worded as Python words it (``... got an unexpected keyword argument
   'frameskip'``), which TorchRL's ``GymEnv`` relies on to drop its ``frameskip``. Actions outside the bounds
-  are clipped, as in Safety-Gymnasium. An unknown ``render_mode`` raises ``ValueError``. Using a
-  closed env raises ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
-* ``reset(seed=None, options=None)``: ``options`` (a dict, or ``None``) is accepted and ignored, as
-  by Safety-Gymnasium's own envs; anything else raises ``TypeError``.
+  are clipped, as in Safety-Gymnasium. An unknown ``render_mode`` raises ``ValueError``, reset
+  ``options`` that are not a dict ``TypeError``. Using a closed env raises
+  ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
 * Rendering: gymnasium's render modes (``"rgb_array"``, ``"depth_array"``, their ``*_list`` forms and
   ``"human"``) with options ``width``, ``height`` and ``camera`` (or Safety-Gymnasium's ``camera_name`` /
   ``camera_id``); the default camera follows the robot. See :mod:`sg_torchrl.render_modes`.
@@ -52,10 +51,9 @@ API
   ``uint8`` (:class:`~sg_torchrl.envs.vision.DictLayout`; ``"depth"`` ``(H, W, 1)`` ``float32`` metres
   last in RGB-D modes). Pixels alone give ``"vision"`` (and ``"depth"``). These envs step through the
   TorchRL ``step``.
-* The values are exactly the TorchRL env's: the observation is its ``float32`` observation
-  converted to ``float64``, reward and cost are its ``float32`` values as python floats, and the
-  action is converted to ``float32`` (the action spec's dtype) before use. A policy evaluated
-  through the façade therefore sees the same inputs as in TorchRL training.
+* The values are exactly the TorchRL env's (``float32`` observations, rewards and costs widened to
+  ``float64`` / python floats; actions cast to ``float32``, the action spec's dtype): a policy
+  evaluated through the façade sees the same inputs as in TorchRL training.
 
 Gymnasium's registry and the 6-tuple
 ------------------------------------
@@ -105,13 +103,13 @@ from sg_torchrl.envs.info import numpy_scalar_info
 from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
+from sg_torchrl.facade import EpisodeEndedError, SimulatorFacade
 from sg_torchrl.gym_registration import ENTRY_POINT, TWIN_SUFFIX, gymnasium_twin_id, register_envs
 from sg_torchrl.render_modes import (
     RENDER_MODES,
     RENDER_OPTIONS,
     FrameSource,
     available_render_modes,
-    render_frames,
     split_render_options,
 )
 
@@ -119,7 +117,6 @@ __all__ = [
     "EpisodeEndedError",
     "GymnasiumEnv",
     "SafetyGymnasiumEnv",
-    "SimulatorFacade",
     "gymnasium_twin_id",
     "make",
     "register_envs",
@@ -130,65 +127,6 @@ _TWIN_SUFFIX = TWIN_SUFFIX
 # What ``max_episode_steps=None`` ("no internal limit") becomes for the TorchRL env, which needs an
 # int: effectively unlimited, and within int32 wherever a task stores it.
 _NO_LIMIT = 2**31 - 1
-
-
-class EpisodeEndedError(gymnasium.error.ResetNeeded, AssertionError):
-    """``step`` was called before ``reset`` or after the episode ended.
-
-    Also an ``AssertionError``, so code written for Safety-Gymnasium (which asserts) still catches it.
-    """
-
-
-class SimulatorFacade:
-    """What the gymnasium and PettingZoo façades share: one simulator ``_env`` of ``env_id``, built from
-    ``_options``, with its frame source ``_frames`` (``None`` without a render mode) and ``_closed`` flag."""
-
-    @property
-    def torchrl_env(self):
-        """The wrapped TorchRL env (one simulator)."""
-        return self._env
-
-    def render(self) -> np.ndarray | list[np.ndarray] | None:
-        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
-        ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
-        self._check_open()
-        return render_frames(self._frames)
-
-    def _release(self) -> None:
-        """``close()``'s shared part: mark closed, close the window and the simulator."""
-        self._closed = True
-        if self._frames is not None:
-            self._frames.close()
-        self._env.close(raise_if_closed=False)
-
-    def _clone(self, memo: dict):
-        """A new façade with this one's id and options whose simulator continues from this one's
-        (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state` loaded into the copy)."""
-        self._check_open()
-        if not hasattr(self._env, "sim_state"):
-            raise TypeError(f"{self.env_id}: {type(self._env).__name__} cannot snapshot its simulator")
-        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
-        memo[id(self)] = clone
-        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
-        return clone
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
-
-    def _check_reset_options(self, options: Any) -> None:
-        self._check_open()
-        if options is not None and not isinstance(options, dict):
-            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
-
-    def _raise_episode_ended(self) -> None:
-        """``step`` before ``reset`` or after the episode ended (or on a closed env: that error)."""
-        self._check_open()
-        raise EpisodeEndedError(f"{self.env_id}: call reset() before step(): the episode has not started or has "
-                                "ended (terminated or truncated)")
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.env_id!r})"
 
 
 def _split_twin_id(env_id: str) -> tuple[str, bool]:

@@ -65,7 +65,7 @@ from sg_torchrl.envs.multi_agent import GROUP as _GROUP
 from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
-from sg_torchrl.gym import SimulatorFacade
+from sg_torchrl.facade import SimulatorFacade
 from sg_torchrl.render_modes import RENDER_MODES, FrameSource, available_render_modes, split_render_options
 
 __all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
