@@ -14,15 +14,9 @@ The env owns one :class:`Renderer`, created at the first frame and released by `
 at interpreter exit, whichever comes first). Rendering only reads ``MjData``: it never changes a
 trajectory.
 
-OpenGL backend and frame quality
---------------------------------
-The backend (EGL, OSMesa or ``MUJOCO_GL``'s) is chosen once per process by
-:func:`~sg_torchrl.envs.opengl.gl_backend`; :class:`RenderingUnavailable` says what is missing where
-none works. By default (``render_fast``) frames have no anti-aliasing, which on a
-software rasteriser costs several times the frame rate, and no shadows; they do have the model's
-skybox and reflections (about 10%: the navigation worlds' floor reflects and their sky has stars, as
-in Safety-Gymnasium, and the pixel observations look the same as ``render``). Frames of
-any size work (the renderer's offscreen buffer is sized for them; the shared model is left as is).
+The OpenGL backend is chosen once per process (:func:`~sg_torchrl.envs.opengl.gl_backend`); frame
+quality is :class:`Renderer`'s ``fast`` / ``effects``. Frames of any size work (the renderer's
+offscreen buffer is sized for them; the shared model is left as is).
 
 Videos
 ------
