@@ -48,9 +48,13 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from sg_torchrl.envs.numpy_step import NumpyStepInterface
+from sg_torchrl.envs import snapshots
 from sg_torchrl.envs.snapshots import SimulatorSnapshots
 from sg_torchrl.envs.transforms import RewardSpec
 from sg_torchrl.seeding import block_seeds, numpy_generators
+
+#: Envs pickled before the snapshot code had a module of its own name their rebuild function here.
+_rebuilt_env = snapshots._rebuilt_env
 
 __all__ = ["SafeEnv", "CostMode", "FLOAT32_MAX", "block_seeds", "check_num_envs", "reject_complex_action"]
 
