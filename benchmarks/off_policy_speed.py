@@ -26,7 +26,7 @@ from torch import nn
 
 from _report import write_json
 from sg_torchrl.train import trainer_class
-from sg_torchrl.train.config import parse_args
+from sg_torchrl.train.command_line import parse_args
 
 OBS, ACT, HIDDEN, BATCH = 17, 6, 256, 256  # SafetyHalfCheetahVelocity-v1, OmniSafe's sizes
 

@@ -24,7 +24,7 @@ API
   ``reward_ctrl``, ... as Safety-Gymnasium's info).
   ``reset(seed=None, options=None)`` returns ``(obs, {})``. A seed re-seeds the simulator (same
   seed, same initial observation and, with the same actions, the same trajectory); no seed continues
-  the random stream, so each episode gets a new initial state.
+  the random stream. ``options`` (a dict or ``None``) is ignored, as by Safety-Gymnasium's own envs.
 * :class:`GymnasiumEnv` (``make(env_id, cost_in_info=True)``, or ``make`` of a twin id): the same
   env with gymnasium's usual **5-tuple** ``(obs, reward, terminated, truncated, info)`` and the cost
   in ``info["cost"]``, like Safety-Gymnasium's ``Safety<Name>Gymnasium-v<k>`` twins. It passes
@@ -35,15 +35,12 @@ API
   ``action_space.shape``, or that is not finite, raises ``ValueError``; an option the env does not
   take raises ``TypeError`` worded as Python words it (``... got an unexpected keyword argument
   'frameskip'``), which TorchRL's ``GymEnv`` relies on to drop its ``frameskip``. Actions outside the bounds
-  are clipped, as in Safety-Gymnasium. An unknown ``render_mode`` raises ``ValueError``. Using a
-  closed env raises ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
-* ``reset(seed=None, options=None)``: ``options`` (a dict, or ``None``) is accepted and ignored, as
-  by Safety-Gymnasium's own envs; anything else raises ``TypeError``.
-* Rendering: gymnasium's render modes, ``"rgb_array"``, ``"depth_array"``, ``"rgb_array_list"``,
-  ``"depth_array_list"`` and ``"human"`` (headless except ``human``, which needs a display and
-  pygame and otherwise fails at construction naming the reason), see :mod:`sg_torchrl.render_modes`.
-  The default camera follows the robot; options ``width``, ``height`` (default 256) and ``camera``
-  (or Safety-Gymnasium's ``camera_name`` / ``camera_id``) choose the frame.
+  are clipped, as in Safety-Gymnasium. An unknown ``render_mode`` raises ``ValueError``, reset
+  ``options`` that are not a dict ``TypeError``. Using a closed env raises
+  ``gymnasium.error.ClosedEnvironmentError``; ``close()`` may be called twice.
+* Rendering: gymnasium's render modes (``"rgb_array"``, ``"depth_array"``, their ``*_list`` forms and
+  ``"human"``) with options ``width``, ``height`` and ``camera`` (or Safety-Gymnasium's ``camera_name`` /
+  ``camera_id``); the default camera follows the robot. See :mod:`sg_torchrl.render_modes`.
 * ``copy.deepcopy(env)`` builds a new env with the same id and options and loads the simulator's
   state into it (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state`: physics, random streams, step
   counter, layout): the copy's next step, given the same action, equals the original's.
@@ -54,10 +51,9 @@ API
   ``uint8`` (:class:`~sg_torchrl.envs.vision.DictLayout`; ``"depth"`` ``(H, W, 1)`` ``float32`` metres
   last in RGB-D modes). Pixels alone give ``"vision"`` (and ``"depth"``). These envs step through the
   TorchRL ``step``.
-* The values are exactly the TorchRL env's: the observation is its ``float32`` observation
-  converted to ``float64``, reward and cost are its ``float32`` values as python floats, and the
-  action is converted to ``float32`` (the action spec's dtype) before use. A policy evaluated
-  through the façade therefore sees the same inputs as in TorchRL training.
+* The values are exactly the TorchRL env's (``float32`` observations, rewards and costs widened to
+  ``float64`` / python floats; actions cast to ``float32``, the action spec's dtype): a policy
+  evaluated through the façade sees the same inputs as in TorchRL training.
 
 Gymnasium's registry and the 6-tuple
 ------------------------------------
@@ -107,6 +103,7 @@ from sg_torchrl.envs.info import numpy_scalar_info
 from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
+from sg_torchrl.facade import EpisodeEndedError, SimulatorFacade
 from sg_torchrl.gym_registration import ENTRY_POINT, TWIN_SUFFIX, gymnasium_twin_id, register_envs
 from sg_torchrl.render_modes import (
     RENDER_MODES,
@@ -130,13 +127,6 @@ _TWIN_SUFFIX = TWIN_SUFFIX
 # What ``max_episode_steps=None`` ("no internal limit") becomes for the TorchRL env, which needs an
 # int: effectively unlimited, and within int32 wherever a task stores it.
 _NO_LIMIT = 2**31 - 1
-
-
-class EpisodeEndedError(gymnasium.error.ResetNeeded, AssertionError):
-    """``step`` was called before ``reset`` or after the episode ended.
-
-    Also an ``AssertionError``, so code written for Safety-Gymnasium (which asserts) still catches it.
-    """
 
 
 def _split_twin_id(env_id: str) -> tuple[str, bool]:
@@ -186,7 +176,7 @@ def make(
     return env
 
 
-class SafetyGymnasiumEnv(gymnasium.Env):
+class SafetyGymnasiumEnv(SimulatorFacade, gymnasium.Env):
     """One sg_torchrl simulator behind Safety-Gymnasium's ``gymnasium.Env`` API (6-tuple step).
 
     Args:
@@ -255,11 +245,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     # ------------------------------------------------------------------ properties
     @property
-    def torchrl_env(self):
-        """The wrapped TorchRL env (one simulator)."""
-        return self._env
-
-    @property
     def max_episode_steps(self) -> int | None:
         """Steps after which the env truncates an episode by itself (``None``: never)."""
         steps = int(self._env.max_episode_steps)
@@ -278,9 +263,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
         ``options`` (a dict or ``None``) is accepted and ignored, as Safety-Gymnasium's envs do.
         """
-        self._check_open()
-        if options is not None and not isinstance(options, dict):
-            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
+        self._check_reset_options(options)
         super().reset(seed=seed)  # seeds self.np_random and validates the seed
         if seed is not None:
             self._env.set_seed(int(seed), static_seed=True)
@@ -294,24 +277,11 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         """Advance one step: ``(obs, reward, cost, terminated, truncated, info)``."""
         return self._transition(action)
 
-    def render(self) -> np.ndarray | list[np.ndarray] | None:
-        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`): an RGB ``(H, W, 3)``
-        ``uint8`` or depth ``(H, W)`` ``float32`` array, a list of them (``*_list``), or ``None``."""
-        self._check_open()
-        if self._frames is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
-                                  f"(or one of {list(RENDER_MODES)}) to make")
-            return None
-        return self._frames.render()
-
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
         if not self._closed:
-            self._closed = True
             self._needs_reset = True  # so that step() reaches the closed-env check
-            if self._frames is not None:
-                self._frames.close()
-            self._env.close(raise_if_closed=False)
+            self._release()
 
     def __deepcopy__(self, memo: dict) -> SafetyGymnasiumEnv:
         """A new env with the same id and options whose simulator continues exactly from this one's.
@@ -320,12 +290,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         copy, so the same action gives both the same next step. Render frames collected so far
         (``*_list`` modes) are copied; the copy opens its own renderer and window.
         """
-        self._check_open()
-        if not hasattr(self._env, "sim_state"):
-            raise TypeError(f"{self.env_id}: {type(self._env).__name__} cannot snapshot its simulator")
-        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
-        memo[id(self)] = clone
-        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        clone = self._clone(memo)
         clone._needs_reset = self._needs_reset
         clone._np_random = copy.deepcopy(self._np_random, memo)
         clone._np_random_seed = self._np_random_seed
@@ -335,10 +300,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         return clone
 
     # ------------------------------------------------------------------ internals
-    def _check_open(self) -> None:
-        if self._closed:
-            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
-
     def _action(self, action: Any) -> np.ndarray:
         """The action as the ``(1, act_dim)`` float32 array the TorchRL env would receive."""
         array = np.asarray(action, dtype=np.float32)
@@ -354,11 +315,7 @@ class SafetyGymnasiumEnv(gymnasium.Env):
 
     def _transition(self, action: Any) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         if self._needs_reset:
-            self._check_open()
-            raise EpisodeEndedError(
-                f"{self.env_id}: call reset() before step(): the episode has not started or has ended "
-                "(terminated or truncated)"
-            )
+            self._raise_episode_ended()
         action32 = self._action(action)
         if self._fast:
             out = self._fast_step(action32)
@@ -408,9 +365,6 @@ class SafetyGymnasiumEnv(gymnasium.Env):
         obs = self._observation(nxt)
         terminated, truncated = bool(nxt.get("terminated")[0, 0]), bool(nxt.get("truncated")[0, 0])
         return obs, float(nxt.get("reward")[0, 0]), cost, terminated, truncated, info
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.env_id!r})"
 
 
 def _check_options(env_id: str, options: dict[str, Any]) -> None:

@@ -39,11 +39,8 @@ API
   before ``reset`` or after the end raises :class:`sg_torchrl.gym.EpisodeEndedError`; an action dict
   that misses a live agent, names an unknown one, has the wrong shape or is not finite raises
   ``ValueError``. Actions outside the bounds are clipped.
-* Seeding: ``reset(seed=s)`` re-seeds the simulator (same seed, same initial observations and, with the
-  same actions, the same trajectory); ``reset()`` continues the random stream.
-* The values are exactly the TorchRL env's (``float32`` observations and rewards converted to python
-  / ``float64``; actions converted to ``float32``, the action spec's dtype): a policy trained with
-  TorchRL sees the same inputs through the façade.
+* Seeding and values as in :mod:`sg_torchrl.gym`: ``reset(seed=s)`` re-seeds the simulator, ``reset()``
+  continues its random stream; the values are exactly the TorchRL env's (actions cast to ``float32``).
 
 Speed
 -----
@@ -56,10 +53,8 @@ that override ``_step``) go through the public TorchRL ``step``. Both give ident
 
 from __future__ import annotations
 
-import copy
 from typing import Any
 
-import gymnasium
 import numpy as np
 import pettingzoo
 import torch
@@ -70,7 +65,7 @@ from sg_torchrl.envs.multi_agent import GROUP as _GROUP
 from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
-from sg_torchrl.gym import EpisodeEndedError
+from sg_torchrl.facade import SimulatorFacade
 from sg_torchrl.render_modes import RENDER_MODES, FrameSource, available_render_modes, split_render_options
 
 __all__ = ["CostInInfoParallelEnv", "SafeParallelEnv", "make"]
@@ -92,7 +87,7 @@ def make(env_id: str, *, cost_in_info: bool = False, render_mode: str | None = N
     return cls(env_id, render_mode=render_mode, **options)
 
 
-class SafeParallelEnv(pettingzoo.ParallelEnv):
+class SafeParallelEnv(SimulatorFacade, pettingzoo.ParallelEnv):
     """One multi-agent sg_torchrl simulator behind Safety-Gymnasium's ``make_ma`` API (6-tuple step).
 
     Args:
@@ -141,11 +136,6 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         self._closed = False
 
     # ------------------------------------------------------------------ properties
-    @property
-    def torchrl_env(self):
-        """The wrapped TorchRL env (one simulator)."""
-        return self._env
-
     def observation_space(self, agent: str) -> spaces.Box:
         """Agent ``agent``'s observation box (its true size); the same object on every call."""
         return self.observation_spaces[agent]
@@ -160,9 +150,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         """Start an episode; ``seed`` re-seeds the simulator, ``None`` continues its random stream.
         ``options`` (a dict or ``None``) is accepted and ignored."""
-        self._check_open()
-        if options is not None and not isinstance(options, dict):
-            raise TypeError(f"{self.env_id}: reset options must be a dict or None, got {type(options).__name__}")
+        self._check_reset_options(options)
         if seed is not None:
             self._env.set_seed(int(seed), static_seed=True)
         arrays = self._env.reset().numpy()
@@ -179,40 +167,21 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         """The global state after the last ``reset``/``step`` (the env's ``"state"``)."""
         return self._state.copy()
 
-    def render(self) -> np.ndarray | list[np.ndarray] | None:
-        """The frame(s) of :attr:`render_mode` (:mod:`sg_torchrl.render_modes`), or ``None``."""
-        self._check_open()
-        if self._frames is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
-                                  f"(or one of {list(RENDER_MODES)}) to make")
-            return None
-        return self._frames.render()
-
     def close(self) -> None:
         """Release the simulator; calling it twice is allowed."""
         if not self._closed:
-            self._closed = True
             self.agents = []
-            if self._frames is not None:
-                self._frames.close()
-            self._env.close(raise_if_closed=False)
+            self._release()
 
     def __deepcopy__(self, memo: dict) -> SafeParallelEnv:
         """A new env with the same id and options whose simulator continues exactly from this one's
         (:meth:`~sg_torchrl.envs.base.SafeEnv.sim_state` loaded into the copy)."""
-        self._check_open()
-        clone = type(self)(self.env_id, render_mode=self.render_mode, **copy.deepcopy(self._options, memo))
-        memo[id(self)] = clone
-        clone._env.load_sim_state(copy.deepcopy(self._env.sim_state(), memo))
+        clone = self._clone(memo)
         clone.agents = list(self.agents)
         clone._state = self._state.copy()
         return clone
 
     # ------------------------------------------------------------------ internals
-    def _check_open(self) -> None:
-        if self._closed:
-            raise gymnasium.error.ClosedEnvironmentError(f"{self.env_id}: the env is closed")
-
     def _observations(self, arrays: dict) -> dict[str, np.ndarray]:
         """Per-agent ``float64`` observations (true sizes) from the env's output (as nested numpy
         dicts, see :meth:`~sg_torchrl.envs.base.SafeEnv.output_arrays`); records the state."""
@@ -245,11 +214,7 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
 
     def _transition(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict, dict]:
         if not self.agents:
-            self._check_open()
-            raise EpisodeEndedError(
-                f"{self.env_id}: call reset() before step(): the episode has not started or has ended "
-                "(terminated or truncated)"
-            )
+            self._raise_episode_ended()
         env, action = self._env, self._group_action(actions)
         if self._fast:
             out = env.output_arrays(*env.step_arrays(env.robot_control(action)))
@@ -280,9 +245,6 @@ class SafeParallelEnv(pettingzoo.ParallelEnv):
         if self._frames is not None:
             self._frames.after_step()
         return observations, rewards, costs, terminations, truncations, infos
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.env_id!r})"
 
 
 class CostInInfoParallelEnv(SafeParallelEnv):

@@ -7,7 +7,7 @@ renders simulator 0 the way gymnasium (and Safety-Gymnasium) define the mode:
 * ``"depth_array"``: ``render()`` returns the current depth image, ``(height, width)`` ``float32``,
   as MuJoCo's (and so gymnasium's) depth buffer: 0 at the near clipping plane, 1 at the far one,
   growing with distance (``far * (z - near) / (z * (far - near))`` for a point at ``z`` metres along
-  the optical axis; the env's ``render_depth``). :meth:`FrameSource.metric_depth` gives metres.
+  the optical axis; the env's ``render_depth``, which also gives metres).
 * ``"rgb_array_list"`` / ``"depth_array_list"``: a frame is taken after every ``reset`` and ``step``
   (``reset`` first drops what was collected); ``render()`` returns the frames since the last call
   and starts a new list, as gymnasium's ``RenderCollection`` does.
@@ -34,7 +34,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-__all__ = ["RENDER_MODES", "FrameSource", "HumanRenderingUnavailable", "available_render_modes",
+__all__ = ["RENDER_MODES", "FrameSource", "HumanRenderingUnavailable", "available_render_modes", "render_frames",
            "split_render_options"]
 
 RENDER_MODES = ("human", "rgb_array", "depth_array", "rgb_array_list", "depth_array_list")
@@ -62,9 +62,19 @@ def split_render_options(options: dict[str, Any]) -> dict[str, Any]:
     return {key: options.pop(key) for key in RENDER_OPTIONS if key in options}
 
 
-def _check_mode(render_mode: str | None) -> None:
-    if render_mode is not None and render_mode not in RENDER_MODES:
+def _check_mode(render_mode: str) -> None:
+    if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode={render_mode!r} is not one of {list(RENDER_MODES)} (or None)")
+
+
+def render_frames(frames: FrameSource | None) -> np.ndarray | list[np.ndarray] | None:
+    """What a façade's ``render()`` returns: ``frames.render()``, or ``None`` with gymnasium's warning
+    for an env built without a render mode (``frames`` is ``None``)."""
+    if frames is None:
+        gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
+                              f"(or one of {list(RENDER_MODES)}) to make")
+        return None
+    return frames.render()
 
 
 def _camera(options: dict[str, Any]) -> Any:
@@ -88,8 +98,8 @@ class FrameSource:
 
     Args:
         env: a TorchRL env with the rendering interface of :class:`sg_torchrl.envs.rendering.RenderMixin`.
-        render_mode: one of :data:`RENDER_MODES`, or ``None`` (then :meth:`render` warns and returns
-            ``None``, as gymnasium envs do).
+        render_mode: one of :data:`RENDER_MODES` (a façade built without one has no frame source:
+            :func:`render_frames`).
         options: ``width``, ``height``, ``camera`` / ``camera_name`` / ``camera_id``.
         fps: the window's frame rate in ``"human"`` mode.
 
@@ -100,7 +110,7 @@ class FrameSource:
         NotImplementedError: the env cannot render.
     """
 
-    def __init__(self, env: Any, render_mode: str | None, options: dict[str, Any], fps: float = 30.0) -> None:
+    def __init__(self, env: Any, render_mode: str, options: dict[str, Any], fps: float = 30.0) -> None:
         _check_mode(render_mode)
         unknown = sorted(set(options) - set(RENDER_OPTIONS))
         if unknown:
@@ -111,8 +121,6 @@ class FrameSource:
         self._env = env
         self._frames: list[np.ndarray] = []
         self._window = None
-        if render_mode is None:
-            return
         needs = ("render_depth",) if self._depth else ("render",)
         if not all(hasattr(env, name) for name in (*needs, "render_camera")):
             raise NotImplementedError(f"{type(env).__name__} cannot render (render_mode={render_mode!r})")
@@ -129,10 +137,6 @@ class FrameSource:
         if not self._depth:
             return self._env.render(0, self.width, self.height, self.camera)
         return self._env.render_depth(0, self.width, self.height, self.camera, linear=False)
-
-    def metric_depth(self) -> np.ndarray:
-        """The current depth image in metres along the optical axis (``env.depth_range()`` bounds it)."""
-        return self._env.render_depth(0, self.width, self.height, self.camera, linear=True)
 
     def after_reset(self) -> None:
         """Call after every ``reset``: list modes start a new list with this frame; ``human`` shows it."""
@@ -154,10 +158,6 @@ class FrameSource:
 
     def render(self) -> np.ndarray | list[np.ndarray] | None:
         """What the façade's ``render()`` returns in this mode (see the module docstring)."""
-        if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode: pass render_mode='rgb_array' "
-                                  f"(or one of {list(RENDER_MODES)}) when making the env")
-            return None
         if self.render_mode in ("rgb_array_list", "depth_array_list"):
             frames, self._frames = self._frames, []
             return frames

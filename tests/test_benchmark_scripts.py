@@ -39,6 +39,26 @@ def test_group_step_device_cpu_rows(tmp_path):
     assert "| SafetyHalfCheetahVelocity-v1 | cpu | 2 |" in result.stdout
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given when CUDA is missing")
+def test_engine_device_needs_cuda_or_allow_cpu():
+    result = _run("engine_device.py")
+    assert result.returncode != 0
+    assert "no CUDA device" in result.stderr
+
+
+def test_engine_device_cpu_rows(tmp_path):
+    out = tmp_path / "rows.json"
+    result = _run("engine_device.py", "--allow-cpu", "--cpu-seeds", "1", "2", "--steps-per-epoch", "100",
+                  "--num-envs", "2", "--epochs", "1", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [(row["device"], row["seeds"]) for row in rows] == [("cpu", 1), ("cpu", 2)]
+    for row in rows:
+        assert row["wall_per_1k_per_seed"] > 0 and row["cpu_per_1k_per_seed"] > 0 and row["passes"] >= 1
+        assert row["collect_per_1k_per_seed"] + row["update_per_1k_per_seed"] <= row["wall_per_1k_per_seed"]
+    assert "| cpu | 2 |" in result.stdout and "1.00x |" in result.stdout
+
+
 def test_revision_speed_compares_a_revision_with_this_tree():
     """Against HEAD itself: one row, both trees trained in their own process, a ratio printed."""
     result = _run("revision_speed.py", "--base", "HEAD", "--rows", "ppo_lag:1:eager", "--steps-per-epoch", "400",

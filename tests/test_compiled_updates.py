@@ -12,7 +12,7 @@ from torch._dynamo.utils import counters  # noqa: E402
 
 from sg_torchrl.objectives import FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig  # noqa: E402
-from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from test_first_order_losses import make_batch, make_modules  # noqa: E402
 
 

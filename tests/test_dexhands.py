@@ -403,7 +403,7 @@ class TestTraining:
     """``sg-train`` on the two-hand ids: the ``hands`` preset, and both agent layouts end to end."""
 
     def test_hands_preset_follows_safepos_isaac_gym_config_in_whole_episodes(self):
-        from sg_torchrl.train.config import parse_args
+        from sg_torchrl.train.command_line import parse_args
 
         cfg = parse_args(["--preset", "hands"])
         assert (cfg.algo, cfg.env_id) == ("ppo_lag", "ShadowHandOverSafeJoint-v0")

@@ -23,7 +23,7 @@ torch.set_num_threads(1)
 
 from sg_torchrl.train import OffPolicyGroupTrainer, SingleSeedOffPolicyTrainer, main, train, trainer_class  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
-from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

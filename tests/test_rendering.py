@@ -26,7 +26,7 @@ from tensordict import TensorDict
 
 import sg_torchrl
 import sg_torchrl.gym as sg_gym
-from sg_torchrl.envs import rendering
+from sg_torchrl.envs import opengl, rendering
 from sg_torchrl.envs.rendering import CHASE_CAMERA, FollowCamera, RenderingUnavailable, record_video
 
 torch.set_num_threads(1)
@@ -205,7 +205,7 @@ def test_copies_and_pickles_get_their_own_renderer(backend):
 @pytest.mark.parametrize("gl", ["egl", "osmesa"])
 def test_process_exits_cleanly_with_open_and_closed_renderers(gl):
     # OSMesa is the strict one: a context still alive at interpreter shutdown raises there.
-    reason = rendering._probe(gl)
+    reason = opengl._probe(gl)
     if reason is not None:
         pytest.skip(f"{gl} cannot render here: {reason}")
     script = textwrap.dedent(
@@ -266,22 +266,22 @@ def test_facade_render_mode_rgb_array(backend):
 # ---------------------------------------------------------------------------- backend selection (no GL needed)
 @pytest.fixture
 def fresh_selection(monkeypatch):
-    monkeypatch.setattr(rendering, "_backend", None)
-    monkeypatch.setattr(rendering, "_backend_error", None)
+    monkeypatch.setattr(opengl, "_backend", None)
+    monkeypatch.setattr(opengl, "_backend_error", None)
     monkeypatch.delenv("MUJOCO_GL", raising=False)
     monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
     return monkeypatch
 
 
 def test_missing_libraries_name_the_packages(fresh_selection):
-    fresh_selection.setattr(rendering.ctypes.util, "find_library", lambda name: None)
+    fresh_selection.setattr(opengl.ctypes.util, "find_library", lambda name: None)
     with pytest.raises(RenderingUnavailable) as caught:
-        rendering.gl_backend()
+        opengl.gl_backend()
     message = str(caught.value)
     for fact in ("libEGL", "libOSMesa", "libegl1", "libosmesa6", "MUJOCO_GL"):
         assert fact in message
     with pytest.raises(RenderingUnavailable):  # remembered: no second probe
-        rendering.gl_backend()
+        opengl.gl_backend()
 
 
 def test_backend_choice_order_and_overrides(fresh_selection):
@@ -291,12 +291,12 @@ def test_backend_choice_order_and_overrides(fresh_selection):
         tried.append(candidate)
         return "no display" if candidate == "egl" else None
 
-    fresh_selection.setattr(rendering, "_probe", probe)
-    assert rendering.gl_backend() == "osmesa" and tried == ["egl", "osmesa"]  # EGL first, then OSMesa
-    fresh_selection.setattr(rendering, "_backend", None)
+    fresh_selection.setattr(opengl, "_probe", probe)
+    assert opengl.gl_backend() == "osmesa" and tried == ["egl", "osmesa"]  # EGL first, then OSMesa
+    fresh_selection.setattr(opengl, "_backend", None)
     fresh_selection.setenv("MUJOCO_GL", "EGL")
-    assert rendering.gl_backend() == "egl"  # MUJOCO_GL is honoured without probing
-    fresh_selection.setattr(rendering, "_backend", None)
+    assert opengl.gl_backend() == "egl"  # MUJOCO_GL is honoured without probing
+    fresh_selection.setattr(opengl, "_backend", None)
     fresh_selection.setenv("MUJOCO_GL", "disable")
     with pytest.raises(RenderingUnavailable, match="disabled"):
-        rendering.gl_backend()
+        opengl.gl_backend()

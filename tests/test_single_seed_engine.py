@@ -40,7 +40,7 @@ from sg_torchrl.train import (  # noqa: E402
     trainer_class,
 )
 from sg_torchrl.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
-from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.modules.mlp import make_actor_critics  # noqa: E402
 from trainer_checks import assert_same_state, tiny_config  # noqa: E402
 

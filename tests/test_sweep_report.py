@@ -19,68 +19,13 @@ from sg_torchrl.sweep import report
 from sg_torchrl.sweep.report import (
     collect, markdown_table, paper_env_name, paper_rows, plot_env_curves, seed_rows, write_csv, write_report,
 )
+from sweep_dirs import BUDGET, figures, group, single
 
 PROJECT = Path(__file__).resolve().parents[1]
 SINGLE, MULTI = "SafetyHalfCheetahVelocity-v1", "Safety2x3HalfCheetahVelocity-v0"
 TAG = "lr=0.001,num_envs=20"
-BUDGET = 1000  # env steps per seed: four epochs of 250
 PAPER = {("HalfCheetahVel", "PPO"): (3000.0, 900.0), ("HalfCheetahVel", "PPO-Lag"): (1500.0, 5.0),
          ("2x3HalfCheetahVel", "MAPPO"): (5000.0, 975.0), ("2x3HalfCheetahVel", "MAPPO-Lag"): (1750.0, 30.0)}
-
-
-def _progress(path: Path, final_ret: float, final_cost: float, *, epochs: int = 4, update_s: float = 2.0,
-              evaluation: bool = True) -> None:
-    """A progress.csv whose EpRet / EpCost rise linearly to the final figures (epoch e of 4: e/4 of them),
-    with the step-count-only evaluation row a finished run appends."""
-    path.mkdir(parents=True, exist_ok=True)
-    lines = ["Metrics/EpRet,Metrics/EpCost,Train/Epoch,Train/TotalSteps,Time/Update,Time/Total"]
-    lines += [f"{final_ret * e / 4},{final_cost * e / 4},{e},{250 * e},{update_s},{100 * e}"
-              for e in range(1, epochs + 1)]
-    if evaluation:
-        lines.append(f",,,{250 * epochs},,")
-    (path / "progress.csv").write_text("\n".join(lines) + "\n")
-
-
-def _figures(ret: float, cost: float) -> dict[str, float]:
-    return {"Final/EpRetLast10": ret, "Final/EpCostLast10": cost, "Metrics/EvalEpRet": ret + 1,
-            "Metrics/EvalEpCost": cost / 2}
-
-
-def group(root: Path, env_id: str, algo: str, finals: dict[int, tuple[float, float]], *, tag: str = "",
-          cost_limit: float | None = None, finished: bool = True, diverged: tuple[int, ...] = (),
-          time_total: float = 3600.0, attempts: list[dict] | None = None, update_s: float = 2.0) -> Path:
-    """A seed-group cell ``root/env/algo/[tag/]seeds-a-b`` whose seed s ends at ``finals[s] = (J^R, J^C)``."""
-    directory = root / env_id / algo / tag / ("seeds-" + "-".join(map(str, finals)))
-    directory.mkdir(parents=True)
-    config = {"env_id": env_id, "algo": algo, "seeds": list(finals), "total_steps": BUDGET, "compile": True}
-    if cost_limit is not None:
-        config["cost_limit"] = cost_limit
-    (directory / "config.json").write_text(json.dumps(config))
-    for seed, (ret, cost) in finals.items():
-        seed_dir = directory / f"seed-{seed:03d}"
-        _progress(seed_dir, ret, cost, epochs=4 if finished and seed not in diverged else 2,
-                  update_s=update_s + seed, evaluation=finished)
-        if finished:
-            steps = 500 if seed in diverged else BUDGET
-            (seed_dir / "summary.json").write_text(json.dumps({**_figures(ret, cost), "Train/TotalSteps": steps}))
-    if finished:
-        (directory / "summary.json").write_text(json.dumps({
-            "seeds": {str(seed): _figures(*final) for seed, final in finals.items()}, "diverged": list(diverged),
-            "Train/TotalSteps": BUDGET, "Time/Total": time_total}))
-    if attempts is not None:
-        (directory / "attempts.jsonl").write_text("".join(json.dumps(a) + "\n" for a in attempts))
-    return directory
-
-
-def single(root: Path, env_id: str, algo: str, seed: int, ret: float, cost: float) -> Path:
-    """An older benchmark's single-seed cell ``root/env/algo/seed-00s``."""
-    directory = root / env_id / algo / f"seed-{seed:03d}"
-    _progress(directory, ret, cost, update_s=5.0)
-    (directory / "config.json").write_text(json.dumps({"env_id": env_id, "algo": algo, "seed": seed,
-                                                       "seeds": [], "total_steps": BUDGET}))
-    (directory / "summary.json").write_text(json.dumps({**_figures(ret, cost), "Train/TotalSteps": BUDGET,
-                                                        "Time/Total": 1800.0}))
-    return directory
 
 
 @pytest.fixture
@@ -147,7 +92,7 @@ def test_collect_reads_both_layouts_finished_or_not(sweep):
     assert (cpo.attempts, cpo.wall_s, cpo.status) == (1, 200.0, "killed")
     mappo = cells[(MULTI, "mappo", "", (1,))]
     assert not mappo.group and mappo.directory == Path(MULTI, "mappo", "seed-001") and mappo.wall_s == 1800.0
-    assert mappo.per_seed == {1: {**_figures(3000.0, 300.0), "Train/TotalSteps": BUDGET, "Time/Total": 1800.0,
+    assert mappo.per_seed == {1: {**figures(3000.0, 300.0), "Train/TotalSteps": BUDGET, "Time/Total": 1800.0,
                                   "Final/EpRetLast50": 3000.0, "Final/EpCostLast50": 300.0}}  # progress.csv's end
 
 
@@ -274,7 +219,8 @@ def test_write_report_works_on_a_copied_directory(sweep, tmp_path, monkeypatch):
     shutil.copytree(sweep, copy)
     shutil.rmtree(sweep)
     paths = write_report(copy)
-    assert set(paths) == {"table.md", "table.csv", "seeds.csv", f"curves-{SINGLE}.png", f"curves-{MULTI}.png"}
+    assert set(paths) == {"table.md", "table.csv", "seeds.csv", f"curves-{SINGLE}.png", f"curves-{MULTI}.png",
+                          "analysis.md", "analysis.csv", "analysis.png"}
     assert all(path.parent == copy / "report" and path.is_file() for path in paths.values())
     text = paths["table.md"].read_text()
     assert str(tmp_path) not in text  # names cells relative to the output directory

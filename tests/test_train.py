@@ -12,7 +12,8 @@ torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
-from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER, parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
+from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
 

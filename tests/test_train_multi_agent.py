@@ -25,7 +25,8 @@ torch.set_num_threads(1)
 
 from sg_torchrl.train import SingleSeedMultiAgentTrainer, TrainConfig, main, trainer_class  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
-from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES, parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
+from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES  # noqa: E402
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, num_minibatches  # noqa: E402
 
 ENV_ID = "Safety2x3HalfCheetahVelocity-v0"

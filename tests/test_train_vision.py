@@ -30,7 +30,7 @@ from sg_torchrl.envs import rendering  # noqa: E402
 from sg_torchrl.envs.rendering import RenderingUnavailable  # noqa: E402
 from sg_torchrl.train import GroupTrainer, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
-from sg_torchrl.train.config import parse_args  # noqa: E402
+from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.train.fused import SeedBatch  # noqa: E402
 from sg_torchrl.modules.cnn import DEFAULT_CNN  # noqa: E402
 from sg_torchrl.modules.mlp import (  # noqa: E402

@@ -31,7 +31,7 @@ from sg_torchrl.envs import (
 from sg_torchrl.envs.options import CONSTRUCTOR_OPTIONS, signature_options
 from sg_torchrl.envs.registry import _REGISTRY, command_line_env_options
 from sg_torchrl.train import TrainConfig, main
-from sg_torchrl.train.config import parse_args
+from sg_torchrl.train.command_line import parse_args
 
 torch.set_num_threads(1)
 

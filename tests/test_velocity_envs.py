@@ -116,11 +116,13 @@ class TestVelocityCost:
 
     @pytest.mark.parametrize("env_id", sg_torchrl.list_envs(family="velocity"))
     def test_cost_of_velocity(self, env_id):
-        env = make_env(env_id)
-        threshold = env.velocity_threshold
-        costs = env.cost_of_velocity(np.array([0.0, 0.5 * threshold, 1.01 * threshold, 10 * threshold]))
-        np.testing.assert_array_equal(costs, [0.0, 0.0, 1.0, 1.0])
-        assert env.cost_of_velocity(threshold) == 0.0  # strictly above the threshold costs
+        # The cost hook on measured (x, 0) velocities, batched and on one simulator (its own branch).
+        batch, single = make_env(env_id, num_envs=4), make_env(env_id)
+        threshold = batch.velocity_threshold
+        batch._velocity[:] = [[0.0, 0.0], [0.5 * threshold, 0.0], [1.01 * threshold, 0.0], [10 * threshold, 0.0]]
+        np.testing.assert_array_equal(batch._compute_cost()["velocity"], [0.0, 0.0, 1.0, 1.0])
+        single._velocity[:] = [[threshold, 0.0]]
+        assert single._compute_cost()["velocity"].tolist() == [0.0]  # strictly above the threshold costs
 
     @staticmethod
     def step_from_velocity(env_id: str, qvel_entries: dict[int, float]) -> tuple[float, float, float]:

@@ -23,7 +23,7 @@ from torchrl.envs.utils import check_env_specs
 import sg_torchrl
 import sg_torchrl.gym as sg_gym
 from sg_torchrl.envs import registry_entry
-from sg_torchrl.envs import rendering
+from sg_torchrl.envs import opengl, rendering
 from sg_torchrl.envs.navigation import ROBOTS, NavigationEnv
 from sg_torchrl.envs.rendering import RenderingUnavailable
 from sg_torchrl.envs.vision import OBS_MODES, ObservationContent
@@ -102,8 +102,8 @@ def test_sg_train_takes_pixel_envs_and_refuses_images_too_small_for_its_cnn():
 
 
 def test_without_opengl_a_pixel_env_says_why(monkeypatch):
-    monkeypatch.setattr(rendering, "_backend", None)
-    monkeypatch.setattr(rendering, "_backend_error", None)
+    monkeypatch.setattr(opengl, "_backend", None)
+    monkeypatch.setattr(opengl, "_backend_error", None)
     monkeypatch.setenv("MUJOCO_GL", "disable")
     with pytest.raises(RenderingUnavailable, match="disabled"):
         make_env(VISION_ID)

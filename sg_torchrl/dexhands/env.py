@@ -61,7 +61,7 @@ from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_
 from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
 from sg_torchrl.dexhands.tasks import TASKS
 from sg_torchrl.envs.backends import Backend, make_physics
-from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.base import CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.rendering import FollowCamera, RenderMixin
 
@@ -92,8 +92,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
             ``backend="cpu"`` only).
         backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible; thousands
             of envs, ``benchmarks/warp_throughput.py``); see :mod:`sg_torchrl.envs.backends`.
-        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
-        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
+        warp_device, warp_options: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -121,8 +120,7 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         warp_device: str | None = None,
         warp_options: dict[str, Any] | None = None,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)  # before MujocoBatch, for this message
         if safety not in SAFETY_VARIANTS:
             raise ValueError(f"unknown safety variant {safety!r}; choose from {sorted(SAFETY_VARIANTS)}")
         if task not in TASKS:

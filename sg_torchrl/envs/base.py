@@ -13,12 +13,12 @@ class owns everything tasks share:
   truncation;
 * seeding with one generator per simulator (``SeedSequence(seed).spawn``: the ``simulators`` rule
   of :mod:`sg_torchrl.seeding`), so simulator ``i`` with seed ``s`` produces the same trajectory
-  whatever ``N`` is; a list of seeds splits the simulators into equal contiguous blocks, block ``k``
-  seeded as an env of its own with ``seeds[k]`` (the simulators of a seed group,
-  :func:`~sg_torchrl.seeding.block_seeds`, re-exported here);
+  whatever ``N`` is; a list of seeds seeds blocks of simulators (``seed`` of :class:`SafeEnv`);
 * action validation (shape, finiteness) with errors that name the problem, clipping to the
   action bounds as the reference does, and isolation of a diverged simulator or one whose reward
   or cost is not finite (it is reset and reported ``truncated``, the rest of the batch carries on).
+* simulator snapshots and copies (:mod:`sg_torchrl.envs.snapshots`), and the step as numpy arrays
+  for the façades (:mod:`sg_torchrl.envs.numpy_step`).
 
 Where ``cost`` is declared
 --------------------------
@@ -47,14 +47,26 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from sg_torchrl.envs.numpy_step import NumpyStepInterface
+from sg_torchrl.envs import snapshots
+from sg_torchrl.envs.snapshots import SimulatorSnapshots
 from sg_torchrl.envs.transforms import RewardSpec
 from sg_torchrl.seeding import block_seeds, numpy_generators
 
-__all__ = ["SafeEnv", "CostMode", "block_seeds"]
+#: Envs pickled before the snapshot code had a module of its own name their rebuild function here.
+_rebuilt_env = snapshots._rebuilt_env
+
+__all__ = ["SafeEnv", "CostMode", "FLOAT32_MAX", "block_seeds", "check_num_envs", "reject_complex_action"]
 
 CostMode = Literal["indicator", "raw"]
 
-_FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # the largest value an emitted reward or cost can hold
+
+
+def check_num_envs(num_envs: object) -> None:
+    """Raise ``ValueError`` unless ``num_envs`` is a positive integer (tasks call it before building simulators)."""
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
 
 
 def _magnitude(reward: np.ndarray, costs: dict[str, np.ndarray]) -> float:
@@ -81,7 +93,7 @@ def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> Non
                         f"(a floating-point tensor)")
 
 
-class SafeEnv(EnvBase, abc.ABC):
+class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
     """Batched constrained-MDP environment emitting ``reward`` and ``cost``.
 
     Args:
@@ -126,8 +138,7 @@ class SafeEnv(EnvBase, abc.ABC):
         device: torch.device | str = "cpu",
         seed: int | Sequence[int] | None = None,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)
         if max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
         if frame_skip < 1:
@@ -236,7 +247,7 @@ class SafeEnv(EnvBase, abc.ABC):
         sum that overflows only sends the step to the exact test), and the outcome test is
         :meth:`_nonfinite_outcome`'s own whole-batch magnitude.
         """
-        return math.isfinite(np.add.reduce(observation, axis=None)) and _magnitude(reward, costs) <= _FLOAT32_MAX
+        return math.isfinite(np.add.reduce(observation, axis=None)) and _magnitude(reward, costs) <= FLOAT32_MAX
 
     def _nonfinite_outcome(self, reward: np.ndarray, costs: dict[str, np.ndarray]) -> np.ndarray:
         """Which simulators' reward or cost would be emitted non-finite, ``(N,)`` bool.
@@ -254,13 +265,13 @@ class SafeEnv(EnvBase, abc.ABC):
         is finite. One sum over the whole batch decides the common all-finite case (about 3 us, the
         per-step price of this check); only when it fails is the sum taken per simulator.
         """
-        if _magnitude(reward, costs) <= _FLOAT32_MAX:
+        if _magnitude(reward, costs) <= FLOAT32_MAX:
             return np.zeros(self.num_envs, dtype=bool)
         n = self.num_envs
         per_sim = np.abs(np.reshape(reward, (n, -1))).sum(axis=1)
         for value in costs.values():
             per_sim += np.abs(np.reshape(value, (n, -1))).sum(axis=1)
-        return ~(per_sim <= _FLOAT32_MAX)
+        return ~(per_sim <= FLOAT32_MAX)
 
     # ------------------------------------------------------------------ TorchRL API
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
@@ -309,107 +320,6 @@ class SafeEnv(EnvBase, abc.ABC):
             return self._isolate(diverged, observation, reward, costs, terminated, truncated)
         return observation, reward, costs, terminated, truncated
 
-    # ------------------------------------------------------------------ numpy interface (façades)
-    # The gymnasium / PettingZoo façades and sg_torchrl.safety_gymnasium step one simulator at a time,
-    # where building TensorDicts costs more than the physics. These public methods give them the
-    # TorchRL step's own data as numpy arrays; they are thin, documented faces of the private hot
-    # path above, which stays free to change.
-    def step_arrays(self, action: np.ndarray) -> tuple:
-        """One batched step on numpy arrays: the TorchRL ``step`` without TensorDicts.
-
-        Args:
-            action: the ``(N, act_dim)`` float64 action (the caller has checked its shape and that
-                it is finite; it is clipped to the bounds here, as in ``step``).
-
-        Returns:
-            ``(observation, reward, costs, terminated, truncated)``: ``observation`` ``(N, obs_dim)``,
-            ``reward`` ``(N,)`` (or ``(N, A)`` per agent), ``costs`` the raw per-constraint costs
-            (turn them into the emitted ``cost`` / ``cost_info`` with :meth:`aggregate_cost`), the
-            flags ``(N,)`` bool. The values are float64: the TorchRL step emits them as float32.
-            The arrays may be buffers that the next step overwrites: copy what you keep.
-        """
-        return self._transition_arrays(action)
-
-    def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
-        """One step of a one-simulator env as Python values: what a gymnasium env returns.
-
-        Args:
-            action: the ``(act_dim,)`` or ``(1, act_dim)`` action (the caller has checked its shape and
-                that it is finite; it is clipped to the bounds here, as in ``step``).
-
-        Returns:
-            ``(observation, reward, cost, terminated, truncated, cost_info)``: the ``(obs_dim,)`` float64
-            observation, reward and cost as Python floats, the flags as Python bools and ``cost_info``
-            ``{name: float}``. Each value is the float32 value the TorchRL ``step`` emits, widened
-            (the observation a fresh array), so a policy sees the same inputs through either API.
-
-        Why: on one simulator the batched bookkeeping (``(N, 1)`` columns, TensorDicts) costs more
-        than the physics of a small robot; this is the step of the gymnasium façade.
-        """
-        if self.num_envs != 1:
-            raise ValueError(f"step_one steps a one-simulator env; this one has num_envs={self.num_envs}")
-        return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
-
-    def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
-        """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator."""
-        f32 = np.float32
-        cost, cost_info = self._single_cost({name: value.item(0) for name, value in costs.items()})
-        return (
-            observation[0].astype(f32).astype(np.float64),
-            float(f32(reward.item(0))),
-            cost,
-            bool(terminated[0]),
-            bool(truncated[0]),
-            cost_info,
-        )
-
-    def _single_cost(self, raw: dict[str, float]) -> tuple[float, dict[str, float]]:
-        """One simulator's emitted ``(cost, cost_info)`` from its raw costs as Python floats: :meth:`_aggregate_cost`'s
-        values (the same float64 sum from 0 in the same order, the same ``> 0`` indicators, float32 rounding)
-        without one-element arrays per constraint (for single-env speed)."""
-        total = 0.0
-        for value in raw.values():
-            total += value
-        if self.cost_mode == "indicator":
-            return 1.0 if total > 0 else 0.0, {name: 1.0 if value > 0 else 0.0 for name, value in raw.items()}
-        f32 = np.float32
-        return float(f32(total)), {name: float(f32(value)) for name, value in raw.items()}
-
-    def aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """``(cost, cost_info)`` of raw per-constraint ``costs`` under :attr:`cost_mode`: the total the
-        env emits as ``cost`` and the per-constraint entries of ``cost_info`` (indicators by default)."""
-        return self._aggregate_cost(costs)
-
-    def output_arrays(self, observation, reward, costs, terminated, truncated) -> dict:
-        """The step's output, as :meth:`step` would emit it under ``"next"``, as nested numpy arrays.
-
-        Takes :meth:`step_arrays`' tuple (``reward=None``: a reset's output, without ``reward``) and
-        returns what ``env.step(td)["next"].numpy()`` would hold (float32 values, ``(N, 1)`` columns,
-        ``cost_info`` as a nested dict); multi-agent envs add their group and ``state`` in their own
-        layout. Every array is fresh. Envs whose observations are not only the flat vector (pixels,
-        :mod:`sg_torchrl.envs.vision`) emit more entries than this: step those through ``step``.
-        """
-        own_layout = getattr(self, "_output_arrays", None)  # multi-agent envs (AgentGroupMixin)
-        if own_layout is not None:
-            return own_layout(observation, reward, costs, terminated, truncated)
-        cost, cost_info = self._aggregate_cost(costs)
-        n = self.num_envs
-
-        def column(values, dtype: type) -> np.ndarray:
-            return np.array(values, dtype=dtype).reshape(n, -1)
-
-        out = {
-            "observation": column(observation, np.float32),
-            "cost": column(cost, np.float32),
-            "cost_info": {name: column(value, np.float32) for name, value in cost_info.items()},
-            "terminated": column(terminated, np.bool_),
-            "truncated": column(truncated, np.bool_),
-            "done": column(np.logical_or(terminated, truncated), np.bool_),
-        }
-        if reward is not None:
-            out["reward"] = column(reward, np.float32)
-        return out
-
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # EnvBase reshapes the reward to its spec and fills in missing done flags here, walking the
         # specs on every step. ``_pack`` already emits the reward and every done flag with their
@@ -446,61 +356,6 @@ class SafeEnv(EnvBase, abc.ABC):
             rows = reset_rows.reshape(self.num_envs, *([1] * (new.ndim - 1)))
             tensordict.set(key, torch.where(rows, new, old))
         return tensordict
-
-    # ------------------------------------------------------------------ copies
-    def remember_construction(self, constructor, kwargs: dict) -> None:
-        """Record how this env was built (``sg_torchrl.make`` does), so that copies can rebuild it.
-
-        Why: ``copy.deepcopy`` and ``pickle`` copy numpy views as separate arrays, so a copied env's
-        caches, buffers and control views would no longer alias its ``MjData`` and the copy would
-        step wrongly. With the recipe recorded, a copy is a new env built the same way whose
-        simulators continue from this one's :meth:`sim_state` (see :meth:`__reduce_ex__`).
-        """
-        self.__dict__["_construction"] = (constructor, dict(kwargs))
-
-    def __reduce_ex__(self, protocol):
-        """Copies and pickles of an env built by ``sg_torchrl.make``: rebuilt, then :meth:`load_sim_state`.
-
-        The copy's next step, given the same action, equals this env's. Envs built otherwise, or whose
-        task has no simulator snapshot, are copied attribute by attribute as before.
-        """
-        construction = self.__dict__.get("_construction")
-        if construction is not None:
-            try:
-                state = self.sim_state()
-            except NotImplementedError:
-                state = None
-            if state is not None:
-                return _rebuilt_env, (*construction, state)
-        return super().__reduce_ex__(protocol)
-
-    # ------------------------------------------------------------------ snapshots
-    def sim_state(self) -> dict:
-        """Everything needed to continue the simulators exactly: generators, step counters, physics.
-
-        Used by checkpoints so that a resumed run replays the uninterrupted one bit for bit.
-        """
-        return {
-            "rngs": [rng.bit_generator.state for rng in self._rngs],
-            "elapsed": self._elapsed.copy(),
-            "physics": self._physics_state(),
-        }
-
-    def load_sim_state(self, state: dict) -> None:
-        """Restore :meth:`sim_state` output."""
-        if len(state["rngs"]) != self.num_envs:
-            raise ValueError(f"state holds {len(state['rngs'])} simulators, this env has {self.num_envs}")
-        for rng, rng_state in zip(self._rngs, state["rngs"]):
-            rng.bit_generator.state = rng_state
-        self._elapsed[:] = state["elapsed"]
-        self._load_physics_state(state["physics"])
-
-    def _physics_state(self):
-        """Task hook: a picklable snapshot of the simulators (see ``MujocoSafeEnv``)."""
-        raise NotImplementedError(f"{type(self).__name__} does not support simulator snapshots")
-
-    def _load_physics_state(self, state) -> None:
-        raise NotImplementedError(f"{type(self).__name__} does not support simulator snapshots")
 
     # ------------------------------------------------------------------ helpers
     def _validated_action(self, action: torch.Tensor | None) -> np.ndarray:
@@ -585,10 +440,3 @@ class SafeEnv(EnvBase, abc.ABC):
         out = TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self._cpu)
         return out if self.device is None or self.device.type == "cpu" else out.to(self.device)
 
-
-def _rebuilt_env(constructor, kwargs: dict, state: dict) -> SafeEnv:
-    """An env built by ``constructor(**kwargs)`` whose simulators continue from ``state`` (``sim_state``)."""
-    env = constructor(**kwargs)
-    env.remember_construction(constructor, kwargs)
-    env.load_sim_state(state)
-    return env

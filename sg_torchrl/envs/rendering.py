@@ -8,32 +8,15 @@
 What renders
 ------------
 :class:`RenderMixin` gives an env with a :class:`~sg_torchrl.envs.physics.MujocoBatch` ``physics``
-(NavigationEnv, VelocityEnv) ``render(index, width, height, camera)``: simulator ``index`` as an
-``(height, width, 3)`` ``uint8`` RGB array, and ``render_depth(...)``: its depth image, ``(height,
-width)`` ``float32``, in metres or in gymnasium's ``depth_array`` convention. The env owns one
-:class:`Renderer`, created at the first frame and released by ``env.close()`` (or at interpreter
-exit, whichever comes first). Rendering only reads ``MjData``: it never changes a trajectory.
-``camera`` is a name of :attr:`RenderMixin.camera_names` (``None`` / ``"follow"``: the env's
-:attr:`RenderMixin.default_camera`, following the robot; ``"chase"``; ``"world"`` / ``"human"``;
-Safety-Gymnasium's ``"fixednear"``, ``"fixedfar"``, ``"vision"``, ``"track"``), a model camera's
-id, a :class:`FollowCamera` or an ``MjvCamera``: see :mod:`sg_torchrl.envs.cameras`.
+(navigation, velocity and two-hand envs) :meth:`~RenderMixin.render` (RGB) and
+:meth:`~RenderMixin.render_depth` of one simulator, from a camera of :mod:`sg_torchrl.envs.cameras`.
+The env owns one :class:`Renderer`, created at the first frame and released by ``env.close()`` (or
+at interpreter exit, whichever comes first). Rendering only reads ``MjData``: it never changes a
+trajectory.
 
-:meth:`RenderMixin.render_camera` returns the ``MjvCamera`` a frame would use (tests use it to
-check that the camera follows the robot).
-
-OpenGL backend
---------------
-With ``MUJOCO_GL`` set (``egl``, ``osmesa``, ``glfw``) that backend is used. Unset, the first of EGL
-and OSMesa that can actually create a context here is picked, once per process: each candidate is
-tried in a short-lived subprocess (about half a second), because PyOpenGL binds one platform per
-process and a failed EGL attempt would otherwise rule out OSMesa. Both work without a GPU through
-Mesa's software rasteriser (llvmpipe). When neither works, :class:`RenderingUnavailable` names the
-missing system library (Debian/Ubuntu: ``libegl1``, ``libgl1``, ``libosmesa6``; ``make install``
-installs them when it can). By default (``render_fast``) frames have no anti-aliasing, which on a
-software rasteriser costs several times the frame rate, and no shadows; they do have the model's
-skybox and reflections (about 10%: the navigation worlds' floor reflects and their sky has stars, as
-in Safety-Gymnasium, and the pixel observations look the same as ``render``). Frames of
-any size work (the renderer's offscreen buffer is sized for them; the shared model is left as is).
+The OpenGL backend is chosen once per process (:func:`~sg_torchrl.envs.opengl.gl_backend`); frame
+quality is :class:`Renderer`'s ``fast`` / ``effects``. Frames of any size work (the renderer's
+offscreen buffer is sized for them; the shared model is left as is).
 
 Videos
 ------
@@ -60,9 +43,8 @@ models.)
 from __future__ import annotations
 
 import atexit
-import ctypes.util
+import importlib.util
 import os
-import subprocess
 import sys
 import warnings
 import weakref
@@ -82,6 +64,7 @@ from sg_torchrl.envs.cameras import (
     camera_names,
     resolve_camera,
 )
+from sg_torchrl.envs.opengl import INSTALL_HINT, RenderingUnavailable, context_class, gl_backend
 
 __all__ = [
     "CHASE_CAMERA",
@@ -104,109 +87,6 @@ DEFAULT_HEIGHT = 256
 
 #: Alphas one simulator draws some geoms with: ``(geom_ids (K,) int, alphas (K,) float)`` (see the module docstring)
 GeomAlpha = tuple[np.ndarray, np.ndarray]
-
-# Backend -> (library PyOpenGL loads, Debian/Ubuntu packages providing it and what it needs).
-_LIBRARIES = {
-    "egl": ("EGL", "libegl1 (with a driver such as libegl-mesa0) and libgl1"),
-    "osmesa": ("OSMesa", "libosmesa6"),
-}
-_INSTALL_HINT = (
-    "Install the Mesa libraries (Debian/Ubuntu: `apt-get install libegl1 libgl1 libosmesa6`; "
-    "`make install` does this when it runs as root) or set MUJOCO_GL to a backend that works here."
-)
-
-
-class RenderingUnavailable(RuntimeError):
-    """No OpenGL backend can render here (the message says what is missing)."""
-
-
-# ---------------------------------------------------------------------------- backend selection
-_backend: str | None = None
-_backend_error: str | None = None
-
-# Run in a fresh interpreter to test one backend: create a context and MuJoCo's render context.
-_PROBE = """
-import sys
-import mujoco
-backend = sys.argv[1]
-module = __import__("mujoco." + backend, fromlist=["GLContext"])
-context = module.GLContext(16, 16)
-context.make_current()
-render_context = mujoco.MjrContext(mujoco.MjModel.from_xml_string("<mujoco/>"), 100)
-render_context.free()
-context.free()
-"""
-
-
-def _probe(backend: str) -> str | None:
-    """Why ``backend`` cannot render here, or ``None`` if it can."""
-    library, packages = _LIBRARIES[backend]
-    if ctypes.util.find_library(library) is None:
-        return f"lib{library}.so not found (Debian/Ubuntu package: {packages})"
-    env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend}
-    try:
-        result = subprocess.run([sys.executable, "-c", _PROBE, backend], env=env, capture_output=True,
-                                text=True, timeout=120)
-    except (OSError, subprocess.TimeoutExpired) as error:
-        return f"probe failed: {error}"
-    if result.returncode == 0:
-        return None
-    lines = [line for line in result.stderr.strip().splitlines() if line.strip()]
-    return f"{lines[-1] if lines else f'exit code {result.returncode}'} (needs {packages})"
-
-
-def gl_backend() -> str:
-    """The OpenGL backend rendering uses in this process: ``"egl"``, ``"osmesa"`` or ``"glfw"``.
-
-    ``MUJOCO_GL`` when set; otherwise the first of EGL and OSMesa that works (see the module
-    docstring), decided once per process. Raises :class:`RenderingUnavailable` when none works.
-    """
-    global _backend, _backend_error
-    if _backend is not None:
-        return _backend
-    if _backend_error is not None:
-        raise RenderingUnavailable(_backend_error)
-    requested = os.environ.get("MUJOCO_GL", "").strip().lower()
-    if requested in ("disable", "disabled", "off", "false", "0"):
-        _backend_error = f"rendering is disabled (MUJOCO_GL={requested!r})"
-        raise RenderingUnavailable(_backend_error)
-    if requested:
-        _backend = requested if requested in ("egl", "osmesa") else "glfw"
-        return _backend
-    # PyOpenGL binds the platform named by PYOPENGL_PLATFORM: only that backend can work then.
-    platform = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
-    candidates = [platform] if platform in _LIBRARIES else list(_LIBRARIES)
-    reasons = []
-    for candidate in candidates:
-        reason = _probe(candidate)
-        if reason is None:
-            _backend = candidate
-            return _backend
-        reasons.append(f"{candidate}: {reason}")
-    _backend_error = "no headless OpenGL backend works here (" + "; ".join(reasons) + "). " + _INSTALL_HINT
-    raise RenderingUnavailable(_backend_error)
-
-
-def _context_class(backend: str) -> type:
-    """The ``GLContext`` class of ``backend`` (imports the backend's PyOpenGL platform)."""
-    # PyOpenGL reads PYOPENGL_PLATFORM once, when it is first imported (MuJoCo's EGL and OSMesa
-    # modules set it). Put it back afterwards so that child processes choose their own backend.
-    previous = os.environ.get("PYOPENGL_PLATFORM")
-    if backend in _LIBRARIES and previous is None:
-        os.environ["PYOPENGL_PLATFORM"] = backend
-    try:
-        if backend == "egl":
-            from mujoco.egl import GLContext
-        elif backend == "osmesa":
-            from mujoco.osmesa import GLContext
-        else:
-            from mujoco.glfw import GLContext
-    except Exception as error:  # ImportError, or PyOpenGL failing to load the library
-        raise RenderingUnavailable(f"cannot load the {backend!r} OpenGL backend: {error}. {_INSTALL_HINT}") from error
-    finally:
-        if previous is None:
-            os.environ.pop("PYOPENGL_PLATFORM", None)
-    return GLContext
 
 
 # ---------------------------------------------------------------------------- renderer
@@ -256,7 +136,7 @@ class Renderer:
         self._gl = None
         self._context = None
         backend = gl_backend()
-        context_class = _context_class(backend)
+        gl_context = context_class(backend)
         # The render context takes its offscreen buffer's size and multisampling from the model
         # when it is created; set them for this renderer only and restore the (shared) model after.
         buffer, quality = model.vis.global_, model.vis.quality
@@ -266,7 +146,7 @@ class Renderer:
             buffer.offwidth, buffer.offheight = self.max_width, self.max_height
             if fast:
                 quality.offsamples = 0
-            self._gl = context_class(self.max_width, self.max_height)
+            self._gl = gl_context(self.max_width, self.max_height)
             self._gl.make_current()
             self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
             self._context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR  # see render_into
@@ -274,7 +154,7 @@ class Renderer:
         except Exception as error:
             self.close()
             raise RenderingUnavailable(
-                f"cannot create an OpenGL context with the {backend!r} backend: {error}. {_INSTALL_HINT}"
+                f"cannot create an OpenGL context with the {backend!r} backend: {error}. {INSTALL_HINT}"
             ) from error
         finally:
             buffer.offwidth, buffer.offheight, quality.offsamples = saved
@@ -520,11 +400,7 @@ class RenderMixin:
 
 # ---------------------------------------------------------------------------- videos
 def _ffmpeg_available() -> bool:
-    try:
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return importlib.util.find_spec("imageio_ffmpeg") is not None
 
 
 def _frame_rate(env) -> float:

@@ -285,7 +285,9 @@ class StackedActorCritic(nn.Module):
         """Actions for ``obs`` (``(S, B, obs_dim)``, or :meth:`read_observation`'s TensorDict), seed ``s``'s noise drawn from ``generators[s]``.
 
         Each seed draws ``randn(B, A)`` from its own generator, so its random stream (and, for the
-        same weights and observations, its actions) is the same whatever the group size.
+        same weights and observations, its actions) is the same whatever the group size. The
+        noise is drawn on each generator's device and moved to the networks' in one copy: a trainer's
+        generators are CPU ones on every device, so its run draws the same numbers on a GPU as on the CPU.
 
         Returns:
             ``(action, log_prob, loc, scale)``: ``(S, B, A)``, ``(S, B)``, ``(S, B, A)``,
@@ -300,8 +302,9 @@ class StackedActorCritic(nn.Module):
             action = loc
         else:
             batch, dim = loc.shape[1:]
-            noise = torch.stack([torch.randn(batch, dim, generator=g, device=loc.device, dtype=loc.dtype)
+            noise = torch.stack([torch.randn(batch, dim, generator=g, device=g.device, dtype=loc.dtype)
                                  for g in generators])
+            noise = noise.to(loc.device, non_blocking=True)
             action = loc + scale * noise
         return action, gaussian_log_prob(action, loc, scale), loc, scale
 
@@ -356,16 +359,18 @@ class StackedActorCritic(nn.Module):
             net.copy_seed_to(seed, module if isinstance(net, StackedEncodedMLP) else _find(module, MLP))
         scale.state_independent_scale.copy_(self.log_std[seed])
 
-    def export_seed(self, seed: int, action_spec: TensorSpec) -> tuple[nn.Module, nn.Module, nn.Module]:
+    def export_seed(self, seed: int, action_spec: TensorSpec, device: torch.device | str | None = None
+                    ) -> tuple[nn.Module, nn.Module, nn.Module]:
         """Seed ``seed`` as fresh single-seed ``(actor, critic, cost_critic)`` from ``make_actor_critics``.
 
         The modules are built without touching the global RNG state (their random initialisation is
-        overwritten at once).
+        overwritten at once), on ``device`` (default: this group's; a trainer exports to the CPU for its
+        checkpoints and evaluation).
         """
         with torch.random.fork_rng(devices=[]):
             triple = make_actor_critics(self.layout, action_spec, list(self.hidden_sizes))
         weight = self.flat_actor
-        triple = tuple(module.to(weight.device).to(weight.dtype) for module in triple)
+        triple = tuple(module.to(weight.device if device is None else device).to(weight.dtype) for module in triple)
         self.copy_seed_to(seed, *triple)
         return triple
 

@@ -5,12 +5,16 @@ setup) or on a running cluster (``--address``). The same command after a Ctrl-C,
 node continues: finished cells are skipped, unfinished ones resume from their checkpoints. Once the
 cells are done the report is written to ``<output-dir>/report/`` (the paper-format table as Markdown
 and CSV, one row per seed, one curve figure per env); ``--report-only`` writes it from whatever has
-finished, also in a copy of the output directory on another machine.
+finished, also in a copy of the output directory on another machine. The report includes the paper's
+analysis figure (``report/analysis.png``, ``.csv``, ``.md``): J^R normalised by PPO-Lag's (MAPPO-Lag's for
+the multi-agent algorithms) and the share of training epochs in each cost region around the limit
+(``--cost-regions``, after a ``--warmup-share`` of the budget; :mod:`sg_torchrl.sweep.analysis`).
 
     sg-sweep --algos ppo ppo_lag cppo_pid cpo --envs SafetyPointGoal1-v0 --seeds 0 1 2 \\
         --total-steps 10000000 --output-dir runs/pointgoal1 -- --compile true
     sg-sweep --algos ppo_lag --envs SafetyPointGoal1-v0 --seeds 0 1 2 --grid lagrangian_lr=0.01,0.035
     sg-sweep --report-only --output-dir runs/pointgoal1
+    sg-sweep --report-only --output-dir runs/pointgoal1 --cost-regions 0.25,1,2 --warmup-share 0.5
     sg-sweep ... --address auto          # join the cluster started with `ray start --head` on this machine
 
 Flags after ``--`` go to every cell's ``sg-train`` (``sg-train --help`` lists them). Exit status: 0 when
@@ -27,6 +31,7 @@ import sys
 from pathlib import Path
 
 from sg_torchrl.algorithms import manifest
+from sg_torchrl.sweep.analysis import COST_REGIONS, WARMUP_SHARE, parse_cost_regions, parse_warmup_share
 from sg_torchrl.sweep.records import SWEEP_RECORD
 from sg_torchrl.sweep.grid import SweepGrid, SweepGridError, parse_grid_option
 from sg_torchrl.sweep.runner import ClusterUnreachable, run_sweep  # imports Ray only when a sweep runs
@@ -57,9 +62,27 @@ def build_parser() -> argparse.ArgumentParser:
     ray.add_argument("--max-retries", type=int, default=3,
                      help="resubmissions of a cell whose worker died or whose sg-train was killed (default 3)")
     ray.add_argument("--progress-every", type=float, default=30.0, help="seconds between status lines")
+    report = parser.add_argument_group("the report's analysis figure")
+    report.add_argument("--cost-regions", type=_option(parse_cost_regions), default=COST_REGIONS, metavar="A,B,C",
+                        help="bounds of the cost regions as fractions of the cost limit d: Strongly Safe <= A d < "
+                             "Safe <= B d < Unsafe <= C d < Strongly Unsafe (default 0.5,1.0,1.5)")
+    report.add_argument("--warmup-share", type=_option(parse_warmup_share), default=WARMUP_SHARE, metavar="SHARE",
+                        help="leave out the training epochs of this first share of each cell's budget from the "
+                             f"cost regions (default {WARMUP_SHARE:g}; 0: the whole run)")
     parser.add_argument("--report-only", action="store_true", help="only write the report of --output-dir")
     parser.add_argument("extra", nargs="*", help="sg-train flags for every cell, after --")
     return parser
+
+
+def _option(parse):
+    """An argparse ``type`` from a parser that raises ``ValueError``: its message becomes the usage error."""
+    def convert(text: str):
+        try:
+            return parse(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    convert.__name__ = parse.__name__
+    return convert
 
 
 def grid_from_args(args: argparse.Namespace) -> SweepGrid:
@@ -78,14 +101,14 @@ def grid_from_args(args: argparse.Namespace) -> SweepGrid:
                                 extra=tuple(args.extra))
 
 
-def _report(output_dir: Path) -> int:
+def _report(output_dir: Path, args: argparse.Namespace) -> int:
     from sg_torchrl.sweep.report import write_report
 
     if not output_dir.is_dir():
         print(f"sg-sweep: error: {output_dir} does not exist", file=sys.stderr)
         return 2
     try:
-        paths = write_report(output_dir)
+        paths = write_report(output_dir, cost_regions=args.cost_regions, warmup_share=args.warmup_share)
     except RunWriteError as error:
         print(f"sg-sweep: error: {error}", file=sys.stderr)
         return EXIT_WRITE_FAILED
@@ -104,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         return stop.code if isinstance(stop.code, int) else 2
     output_dir = Path(args.output_dir)
     if args.report_only:
-        return _report(output_dir)
+        return _report(output_dir, args)
     # A cluster scheduler stops a job with SIGTERM: treat it as Ctrl-C (cells checkpoint, then the sweep stops).
     previous_sigterm = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
@@ -130,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous_sigterm)
     if (output_dir / SWEEP_RECORD).exists():
-        _report(output_dir)
+        _report(output_dir, args)
     if outcome.failed:
         print(f"sg-sweep: {len(outcome.failed)} cell(s) failed: "
               + "; ".join(cell.label for cell in outcome.failed), file=sys.stderr)

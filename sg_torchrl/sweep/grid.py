@@ -159,7 +159,7 @@ class SweepGrid:
         Raises:
             SweepGridError: naming the first bad cell and ``sg-train``'s complaint.
         """
-        from sg_torchrl.train.config import parse_args
+        from sg_torchrl.train.command_line import parse_args
 
         for cell in self.cells:
             errors = io.StringIO()

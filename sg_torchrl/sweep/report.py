@@ -45,8 +45,8 @@ from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
     "CellResult", "MULTI_AGENT", "PAPER_NAMES", "PAPER_RESULTS", "baseline", "cell_histories", "collect",
-    "load_paper_results", "markdown_table", "paper_env_name", "paper_rows", "plot_env_curves", "read_progress",
-    "seed_rows", "write_csv", "write_report",
+    "load_paper_results", "markdown_table", "paper_env_name", "paper_rows", "plot_env_curves", "pool_cells",
+    "read_progress", "seed_rows", "write_csv", "write_report",
 ]
 
 #: The Safety-Gymnasium paper's published J^R / J^C tables (Ji et al. 2023), shipped as package data.
@@ -260,7 +260,7 @@ def paper_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
     J^C <= limit (``None`` where the paper has no number).
     """
     paper = load_paper_results()
-    groups = _pool(cell for cell in results if cell.finished)
+    groups = pool_cells(cell for cell in results if cell.finished)
     rows = []
     for (env_id, algo, tag, budget, limit), cells in groups.items():
         base = [cell for (e, a, t, b, _), pooled in groups.items()
@@ -359,7 +359,7 @@ def plot_env_curves(results: Iterable[CellResult], env_id: str, path: str | os.P
     from sg_torchrl.train.plot import PANELS, figure_panels, finish_figure, training_rows
 
     path = Path(path)
-    groups = _pool(cell for cell in results if cell.env_id == env_id)
+    groups = pool_cells(cell for cell in results if cell.env_id == env_id)
     varies = [len({key[i] for key in groups}) > 1 for i in range(5)]
     palette = colormaps["tab10" if len(groups) <= 10 else "tab20"]
     fig, axes = figure_panels(f"{env_id}: mean over seeds, band from min to max")
@@ -388,11 +388,16 @@ def plot_env_curves(results: Iterable[CellResult], env_id: str, path: str | os.P
     return path
 
 
-def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
+def write_report(output_dir: str | os.PathLike, *, cost_regions: Sequence[float] | None = None,
+                 warmup_share: float | None = None) -> dict[str, Path]:
     """Collect ``output_dir``'s cells and write ``output_dir/report/``: ``table.md`` (the paper table,
     the per-seed table and one line per unfinished cell with its progress), ``table.csv``,
-    ``seeds.csv`` and ``curves-<env_id>.png`` per env (characters other than letters, digits, ``.``,
-    ``-`` and ``_`` in the id become ``_``). Returns ``{file name: path}``."""
+    ``seeds.csv``, ``curves-<env_id>.png`` per env (characters other than letters, digits, ``.``,
+    ``-`` and ``_`` in the id become ``_``) and the analysis figure with its numbers
+    (:func:`sg_torchrl.sweep.analysis.write_analysis`, given ``cost_regions`` and ``warmup_share``; ``None``:
+    its defaults). Returns ``{file name: path}``."""
+    from sg_torchrl.sweep.analysis import write_analysis  # it reads cells through this module
+
     root = Path(output_dir)
     report = root / REPORT_DIR
     make_dirs(report)
@@ -408,6 +413,7 @@ def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
         "over the cell's cost limit. J^R (50), J^C (50): the same over the last 50 episodes (the curves' end, "
         "steadier than 10 episodes). wall h: per cell. paper: Ji et al. 2023 at 10M steps, normalised the same way.",
         "", markdown_table(table) or "No finished cell yet.", "",
+        "Normalised reward (by PPO-Lag / MAPPO-Lag) and cost regions: analysis.md, analysis.png, analysis.csv.", "",
         "## Per seed", "", markdown_table(seeds) or "No finished seed yet.", "",
         "## Unfinished cells", "",
     ]
@@ -419,6 +425,7 @@ def write_report(output_dir: str | os.PathLike) -> dict[str, Path]:
     for env_id in sorted({cell.env_id for cell in results}):
         name = f"curves-{re.sub(r'[^A-Za-z0-9._-]', '_', env_id)}.png"
         paths[name] = plot_env_curves(results, env_id, report / name)
+    paths.update(write_analysis(results, report, cost_regions, warmup_share, title=root.resolve().name))
     return paths
 
 
@@ -432,7 +439,7 @@ def _progress_line(cell: CellResult) -> str:
             f"{cell.steps:,}{budget} steps, {cell.attempts} attempt(s){wall}{status}")
 
 
-def _pool(cells: Iterable[CellResult]) -> dict[tuple[str, str, str, int, float], list[CellResult]]:
+def pool_cells(cells: Iterable[CellResult]) -> dict[tuple[str, str, str, int, float], list[CellResult]]:
     """Cells by (env, algo, tag, budget, cost limit), in table order (env, the paper's algorithm order, tag)."""
     groups: dict[tuple[str, str, str, int, float], list[CellResult]] = {}
     for cell in sorted(cells, key=_order):

@@ -19,6 +19,10 @@ Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every opt
 in earlier versions) is refused (:func:`refuse_retired_checkpoint`), saying how to go on.
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 
+``--device cuda`` (``TrainConfig.device``; :mod:`sg_torchrl.train.devices`) puts a single-agent run's networks,
+optimiser state and updates on a GPU while the simulators stay on their backend; a machine without the
+device is refused with the option checks (exit status 2), and multi-agent runs train on the CPU only so far.
+
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
 parses and checks the whole command line first, so a bad flag or option fails in about a second. The
 trainers and the algorithm tables (:data:`_HEAVY`) are imported by their
@@ -40,8 +44,9 @@ from sg_torchrl.train.config import (
     PRESETS,
     RETIRED_FIELDS,
     TrainConfig,
-    command_line_values,
 )
+from sg_torchrl.train.command_line import command_line_values
+from sg_torchrl.train.devices import check_device_available
 from sg_torchrl.train.interrupt import TrainingInterrupted
 from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError, make_dirs
 
@@ -252,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         cfg = _resolve_resume(argv)  # a new run's config is checked whole here, before any heavy import
+        check_device_available(cfg.device)  # this machine has it (a resumed run's saved device too)
         from sg_torchrl.train.checkpoint import CheckpointError, RunDirectoryError, check_new_run_dir
 
         if not cfg.resume:

@@ -215,7 +215,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     data = path.read_bytes()
     payload = _verified_payload(path, data)
     try:
-        tree = torch.load(io.BytesIO(payload), weights_only=True)
+        tree = torch.load(io.BytesIO(payload), weights_only=True, map_location="cpu")  # whatever wrote it
     except Exception as error:  # noqa: BLE001 - any unpickling failure means: refuse the file
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise CheckpointError(

@@ -37,23 +37,22 @@ match.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import UnionType
-from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+from typing import Any, Literal, get_type_hints
 
 from sg_torchrl.algorithms import manifest
+from sg_torchrl.train.devices import check_device_name
 from sg_torchrl.train.presets import PRESETS
 from sg_torchrl.train.writes import check_run_name, write_atomic
-from sg_torchrl.validation import describe, fits, parse_bool
+from sg_torchrl.validation import describe, fits
 
 __all__ = [
     "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "OFF_POLICY_ALGORITHM_NAMES",
     "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER",
-    "TrainConfig", "PRESETS", "parse_args",
+    "TrainConfig", "PRESETS",
 ]
 
 #: Fields that configs saved by earlier versions hold and this one reads past: ``engine`` chose between the
@@ -190,6 +189,10 @@ class TrainConfig:
     alpha: float | None = _opt(None, "SAC: the fixed entropy weight (0.2)")
     cost_critic_reduction: Literal["max", "mean", "min"] | None = _opt(
         None, "off-policy: reduction of the twin cost critics (max: pessimistic for cost)")
+    device: str = _opt(
+        "cpu", "where the networks, optimiser state and updates live: cpu, cuda or cuda:N (the simulators stay on "
+        "their backend; single-agent algorithms; a resumed run may change it)")
+
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
             if getattr(self, name) is None:
@@ -223,6 +226,7 @@ class TrainConfig:
         self._validate_env_kind()
         self._validate_seeds()
         self._validate_off_policy()
+        self._validate_device()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
         for name in positive:
@@ -321,6 +325,16 @@ class TrainConfig:
         if self.compile:
             raise ValueError("config: --compile applies to the on-policy algorithms; the off-policy steps run eagerly")
 
+    def _validate_device(self) -> None:
+        """``device``'s form (:func:`~sg_torchrl.train.devices.check_device_name`); the multi-agent engine trains
+        on the CPU only so far, as do the off-policy algorithms. Whether this machine has the device is checked where training starts
+        (:func:`~sg_torchrl.train.devices.check_device_available`), so a saved config reads anywhere."""
+        check_device_name(self.device)
+        if (self.multi_agent or self.off_policy) and self.device != "cpu":
+            family = "multi-agent" if self.multi_agent else "off-policy"
+            raise ValueError(f"config: device {self.device!r}: {family} training runs on cpu only so far "
+                             f"({self.algo!r}); give --device cpu")
+
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""
         if not (isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1):
@@ -347,7 +361,10 @@ class TrainConfig:
         that a bad option fails before anything is built."""
         from sg_torchrl.envs.registry import validate_env_options
 
-        reserved = sorted(set(self.env_options) & {"num_envs", "device", "seed"})
+        if "device" in self.env_options:
+            raise ValueError("config: env_options cannot set device: the simulators run on their backend (the "
+                             "backend option); --device places the networks and updates")
+        reserved = sorted(set(self.env_options) & {"num_envs", "seed"})
         if reserved:
             raise ValueError(
                 f"config: env_options cannot set {', '.join(reserved)}; use --{reserved[0].replace('_', '-')}"
@@ -470,114 +487,14 @@ class TrainConfig:
         write_atomic(path, json.dumps(self.to_dict(), indent=2), sync=False)
 
 
-def _flag_type(hint: Any):
-    optional = [a for a in get_args(hint) if a is not type(None)] if get_origin(hint) in (Union, UnionType) else []
-    if len(optional) == 1:  # ``X | None``: parse as X
-        hint = optional[0]
-    origin = get_origin(hint)
-    if hint is bool:  # strictly one of true/false/1/0/yes/no; argparse names the flag in its error
-        return _command_line_bool
-    if origin is Literal:
-        return str
-    if origin is list:
-        return int
-    if origin is dict:
-        return parse_env_option
-    args = [a for a in get_args(hint) if a is not type(None)]
-    return args[0] if args else hint
+
+def __getattr__(name: str) -> Any:
+    """The command-line helpers, which moved to :mod:`sg_torchrl.train.command_line`, still import from here."""
+    if name in _COMMAND_LINE:
+        from sg_torchrl.train import command_line
+
+        return getattr(command_line, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def _command_line_bool(text: str) -> bool:
-    try:
-        return parse_bool(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="sg-train",
-        description="Train a safe RL agent on a Safety-Gymnasium task (sg_torchrl).",
-        epilog="exit status: 0 trained to the end; 1 the run diverged (a seed group: every seed); 2 a bad command "
-               "line, run directory or checkpoint, refused before anything runs; 3 a file could not be written (a "
-               "full disk or quota, a read-only or vanished directory, an output directory that is a file): the "
-               "last checkpoint is intact and --resume continues from it; 128+N stopped by signal N (130 Ctrl-C, "
-               "143 SIGTERM) after a checkpointed epoch.",
-    )
-    parser.add_argument("--preset", choices=sorted(PRESETS), help="start from a named preset, then apply flags")
-    hints = get_type_hints(TrainConfig)
-    for f in dataclasses.fields(TrainConfig):
-        hint = hints[f.name]
-        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        # argparse default stays None so that explicitly given flags can be told apart (--resume).
-        help_text = f"{f.metadata.get('help', '')} (default: {f.metadata.get('shown_default', default)})"
-        kwargs: dict[str, Any] = {"type": _flag_type(hint), "help": help_text, "default": None}
-        literal = next((a for a in (hint, *get_args(hint)) if get_origin(a) is Literal), None)  # also X | None
-        if literal is not None:
-            kwargs["choices"] = list(get_args(literal))
-        if "choices" in f.metadata:  # a str field checked against a table (--algo: the algorithm manifest)
-            kwargs["choices"] = list(f.metadata["choices"])
-        if get_origin(hint) in (list, dict):
-            kwargs["nargs"] = "+"
-        if f.name == "seeds":
-            kwargs["metavar"] = "SEED"
-        if get_origin(hint) is dict:
-            kwargs["metavar"] = "KEY=VALUE"
-        if f.metadata.get("bare_flag"):  # ``--overwrite`` alone means true
-            kwargs.update(nargs="?", const=True, metavar="BOOL")
-        parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
-    return parser
-
-
-def command_line_values(argv: list[str] | None = None) -> dict[str, Any]:
-    """The field values a command line gives: its ``--preset``'s, then its flags' (unset fields absent).
-
-    Nothing is validated against the defaults here: a resumed run (``--resume``) validates these
-    merged over its saved config (:func:`sg_torchrl.train._resolve_resume`), a new run as they are.
-    ``"preset"`` holds the preset's name when one was given.
-    """
-    parser = build_parser()
-    namespace = parser.parse_args(argv)
-    if namespace.seed is not None and namespace.seeds is not None:
-        parser.error("--seed and --seeds cannot be given together: --seed 3 trains one run, --seeds 3 4 5 a group "
-                     "of runs (whose first seed is the group's)")
-    values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
-    values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
-    if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag
-        values["env_options"] = _command_line_env_options(values, dict(values["env_options"]))
-    if namespace.preset:
-        values["preset"] = namespace.preset
-    return values
-
-
-def _command_line_env_options(values: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
-    """``--env-options`` values (read as JSON) with the words true/false/1/0/yes/no of the env's bool
-    options turned into bools: JSON reads ``compass=False`` as the string ``"False"``, which as a bool is
-    true. The env id is the flag's, else the algorithm's default; a resumed run without ``--env-id`` keeps
-    the strings, which the config check then refuses (never reads as true)."""
-    from sg_torchrl.envs.registry import command_line_env_options
-
-    env_id = values.get("env_id")
-    if env_id is None and not values.get("resume"):
-        env_id = ALGORITHM_DEFAULTS.get(values.get("algo", TrainConfig.algo), {}).get("env_id")
-    return command_line_env_options(env_id, options) if env_id else options
-
-
-def parse_args(argv: list[str] | None = None) -> TrainConfig:
-    """Build a :class:`TrainConfig` from a preset and command-line overrides."""
-    values = command_line_values(argv)
-    values.pop("preset", None)
-    return TrainConfig(**values)
-
-
-def parse_env_option(text: str) -> tuple[str, Any]:
-    """``"velocity_threshold=1.5"`` -> ``("velocity_threshold", 1.5)``: the value as JSON where it
-    parses (numbers, ``true`` / ``false``, ``null``), else the string itself (``lidar=natural``)."""
-    key, sep, raw = text.partition("=")
-    if not sep or not key.strip().isidentifier():
-        raise argparse.ArgumentTypeError(f"env option {text!r} is not KEY=VALUE (e.g. velocity_threshold=1.5)")
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    return key.strip(), value
+_COMMAND_LINE = ("build_parser", "command_line_values", "parse_args", "parse_env_option")

@@ -198,12 +198,16 @@ class SeedShuffler:
         return torch.stack([torch.randperm(n, generator=g) if on else torch.arange(n)
                             for g, on in zip(self.generators, active, strict=True)])
 
-    def minibatches(self, n: int, size: int, active: Sequence[bool] | None = None) -> Iterator[Tensor]:
+    def minibatches(self, n: int, size: int, active: Sequence[bool] | None = None, *,
+                    device: torch.device | str | None = None) -> Iterator[Tensor]:
         """A shuffled pass: ``(S, size)`` index blocks (the last one shorter when ``size`` does not divide ``n``).
 
-        ``active``: which seeds draw their order (:meth:`permutation`); ``None``: all.
+        ``active``: which seeds draw their order (:meth:`permutation`); ``None``: all. ``device``: where
+        the blocks are used (the batch's); the pass's order is drawn on the CPU and copied there once.
         """
         order = self.permutation(n, active)
+        if device is not None:
+            order = order.to(device, non_blocking=True)
         for start in range(0, n, size):
             yield order[:, start : start + size]
 

@@ -30,8 +30,11 @@ update (parameters, Adam moments, step counts: :class:`SeedSnapshot`); the train
 for the rest of the run. Seeds share no parameter and no reduction, so the others train exactly as
 they would without it.
 
-Host syncs: one per pass (which seeds are still active); metrics come back as ``(S,)`` tensors,
-which the trainer reads once per epoch.
+Host syncs: none per minibatch step (the losses, the masked Adam and the metric sums stay on the
+networks' device), one per pass (which seeds are still active, :class:`SeedStops`) and, for the
+trust-region step, its own few per epoch (conjugate-gradient residuals, line-search trials, the
+per-seed proposals); metrics come back as ``(S,)`` tensors, which the trainer reads once per epoch.
+``tests/test_device.py`` counts them.
 """
 
 from __future__ import annotations
@@ -271,7 +274,7 @@ def seed_passes(
     stops = SeedStops(model, means, active, kl, parts.target_kl)
 
     def order(size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
-        return parts.shuffler.minibatches(size, parts.minibatch_size, stops.flags)
+        return parts.shuffler.minibatches(size, parts.minibatch_size, stops.flags, device=batch.data.device)
 
     report = run_passes(batch, MaskedSeedStep(step, lam, stops), passes=parts.passes if any(stops.flags) else 0,
                         order=order, metrics=means, go_on=stops.go_on)

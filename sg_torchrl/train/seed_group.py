@@ -57,6 +57,14 @@ non-finite, is frozen (no more updates, multiplier or logs; its simulators idle 
 and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
 when none is left the run ends early.
 
+**Device** (``--device``, :mod:`sg_torchrl.train.devices`). The networks, the masked Adam's state,
+the multiplier values the losses read, GAE, the epoch's batch and the whole update live on
+``cfg.device``; the simulators, the observation normaliser (it runs in the env's transform during
+collection, never in the update) and the multipliers' own state (each follows a host-side
+:math:`J_c` once per epoch) stay on the host. :class:`StackedPolicy` copies each step's observation
+to the device and its outputs back once; the batch crosses once per epoch; the update reads back
+once per pass and per epoch (:mod:`sg_torchrl.train.group_updates`). Checkpoints hold CPU tensors.
+
 **One seed** (``sg-train --seed s``): :class:`SingleSeedGroupTrainer` is this engine with the one seed,
 in the single-seed layout. It trains exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1:
 progress rows but their timings, parameters, the seed's checkpoint entry) and writes a single run's
@@ -81,6 +89,7 @@ from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.objectives import make_cost_gae, make_gae
 from sg_torchrl.train.algorithms import ALGORITHMS
 from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.devices import training_device
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
@@ -106,6 +115,9 @@ class StackedPolicy(TensorDictModuleBase):
     (:meth:`~sg_torchrl.modules.stacked.StackedActorCritic.sample`). Under a deterministic exploration
     type it returns the means. Seeds in :attr:`frozen` act with zeros (a diverged seed's actions may
     not be finite, which the env refuses).
+
+    With the networks on another device than the env's observations (``--device cuda``), a step
+    copies the observation to the networks' device once and its four outputs back in one tensor.
     """
 
     def __init__(self, model: StackedActorCritic, generators: list[torch.Generator]) -> None:
@@ -114,23 +126,51 @@ class StackedPolicy(TensorDictModuleBase):
         self.generators = generators
         self.in_keys = ["observation"]
         self.out_keys = ["loc", "scale", "action", "action_log_prob"]
-        #: ``(S,)`` bool of the seeds acting with zeros, or ``None`` when every seed acts.
-        self.frozen: Tensor | None = None
+        self._frozen: Tensor | None = None
+        self._frozen_mask: Tensor | None = None  # on the networks' device, copied once per change
+
+    @property
+    def frozen(self) -> Tensor | None:
+        """``(S,)`` bool of the seeds acting with zeros, or ``None`` when every seed acts."""
+        return self._frozen
+
+    @frozen.setter
+    def frozen(self, value: Tensor | None) -> None:
+        self._frozen = value
+        self._frozen_mask = None if value is None else value.to(self.model.flat_actor.device).view(-1, 1, 1)
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = self.model.read_observation(tensordict)
         rows = obs.shape[0] * obs.shape[1]
+        device, host = self.model.flat_actor.device, _device_of(obs)
+        if device != host:
+            obs = obs.to(device, non_blocking=True)
         deterministic = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE,
                                                ExplorationType.MEAN)
         action, log_prob, loc, scale = self.model.sample(obs, self.generators, deterministic=deterministic)
-        if self.frozen is not None:
-            action = torch.where(self.frozen.view(-1, 1, 1), torch.zeros_like(action), action)
+        if self._frozen_mask is not None:
+            action = torch.where(self._frozen_mask, torch.zeros_like(action), action)
+        if device != host:  # the step's one copy back: what the env steps with and the batch keeps
+            width = action.shape[-1]
+            packed = torch.cat((action, loc, scale, log_prob.unsqueeze(-1)), dim=-1).to(host)
+            action, loc, scale, log_prob = packed.split((width, width, width, 1), dim=-1)
+            log_prob = log_prob.squeeze(-1)
         tensordict.set("loc", loc.reshape(rows, -1))
         tensordict.set("scale", scale.reshape(rows, -1))
         tensordict.set("action", action.reshape(rows, -1))
         tensordict.set("action_log_prob", log_prob.reshape(rows))
         return tensordict
+
+
+def _host_copy(value: Tensor) -> Tensor:
+    """A CPU copy of ``value`` (a checkpoint's)."""
+    return value.detach().to("cpu", copy=True)
+
+
+def _device_of(value: Tensor | TensorDictBase) -> torch.device:
+    """Where a tensor, or the first entry of a TensorDict (the env's observations), lives."""
+    return value.device if isinstance(value, Tensor) else next(iter(value.values(True, True))).device
 
 
 class GroupTrainer(SeedGroupTrainer):
@@ -150,6 +190,7 @@ class GroupTrainer(SeedGroupTrainer):
         if cfg.multi_agent:
             raise ValueError(f"GroupTrainer trains the single-agent algorithms, not {cfg.algo!r} "
                              f"(use MultiAgentGroupTrainer)")
+        self.device = training_device(cfg)  # refuses a device this machine lacks before anything is built
         super().__init__(cfg)
         # glibc would hand the updates' MB-sized temporaries back to the OS after every use and fault them
         # in again: S = 3, 20,000 steps per seed, 350,000-600,000 minor faults per CPO update, 300,000 per
@@ -172,12 +213,12 @@ class GroupTrainer(SeedGroupTrainer):
         for seed in self.seeds:  # each seed's networks as make_actor_critics initialises them after seed_torch(seed)
             seeding.seed_torch(seed)
             singles.append(make_actor_critics(layout, self.base_env.action_spec, cfg.network_sizes))
-        self.model = StackedActorCritic.from_single(singles, layout=layout)
+        self.model = StackedActorCritic.from_single(singles, layout=layout, device=self.device)
         self.multipliers = [self.algorithm.make_multiplier(cfg) for _ in self.seeds]
         # One seed's single-seed loss names the objective and its hyper-parameters for the group update.
         loss = self.algorithm.make_loss(*singles[0], self.multipliers[0], cfg)
-        self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda)
-        self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda)
+        self.reward_gae = make_gae(None, gamma=cfg.gamma, lmbda=cfg.gae_lambda).to(self.device)
+        self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda).to(self.device)
         # Second order has no actor learning rate (SafePO's Adam holds the critics alone): the actor's
         # group is kept at lr 0 and never stepped, its trust-region step moves it.
         actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
@@ -195,7 +236,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     # ------------------------------------------------------------------ seeds and epochs
     def _finite_seeds(self) -> Tensor:
-        return finite_seeds(self.model)
+        return finite_seeds(self.model).cpu()
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float]], list[bool]]:
         """Multipliers, advantages and the group update; each seed's learned metrics and whether it diverged.
@@ -203,21 +244,23 @@ class GroupTrainer(SeedGroupTrainer):
         Every live seed's multiplier follows its own mean episode cost (before the update, as SafePO),
         the actor learning rate is annealed as the single-seed trainer's scheduler does (first order;
         second order has none and logs 0), and the algorithm's group update moves the live seeds, each
-        with its :math:`J_{c,s} - d` from its multiplier (``Multiplier.violation``). One host read of
-        the metrics per epoch.
+        with its :math:`J_{c,s} - d` from its multiplier (``Multiplier.violation``). The multipliers
+        follow their host-side :math:`J_c` and hand the update their values on the networks' device
+        (with the batch and the live-seed mask, one copy each per epoch); :math:`J_c - d` stays on the
+        host, where the trust-region proposals read it. One host read of the metrics per epoch.
         """
-        cfg = self.cfg
-        alive = self.alive
+        cfg, device = self.cfg, self.device
+        alive = self.alive.to(device)
         lagrange = [float(m.update(run.last_mean_cost) if run.alive else m.value)
                     for m, run in zip(self.multipliers, self.runs)]
-        data, raw_advantages = self._seed_data(batch)
+        data, raw_advantages = self._seed_data(batch.to(device, non_blocking=True))
         actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
         self.optimizer.param_groups[0]["lr"] = actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
         violation = torch.tensor([m.violation(run.last_mean_cost) for m, run in zip(self.multipliers, self.runs)],
                                  dtype=torch.float64)
-        result = self.group_update(data, multiplier_values(self.multipliers), violation, alive)
+        result = self.group_update(data, multiplier_values(self.multipliers).to(device), violation, alive)
         names = list(result.metrics)
-        values = torch.stack([result.metrics[name].to(torch.float64) for name in names]
+        values = torch.stack([result.metrics[name].to(device, torch.float64) for name in names]
                              + [raw_advantages[0].double(), raw_advantages[1].double()]).tolist()
         next_lr = actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
         rows = []
@@ -264,7 +307,7 @@ class GroupTrainer(SeedGroupTrainer):
     def _evaluate_seed(self, index: int) -> dict[str, float]:
         """Seed ``index``'s deterministic evaluation, its actor and normaliser, env seed + 10_000."""
         cfg, seed = self.cfg, self.seeds[index]
-        actor = self.model.export_seed(index, self.base_env.action_spec)[0]
+        actor = self.model.export_seed(index, self.base_env.action_spec, device="cpu")[0]
         norm = None if self.obs_norm is None else self.obs_norm.group_copy(index)
         return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes,
                                seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norm,
@@ -272,15 +315,17 @@ class GroupTrainer(SeedGroupTrainer):
 
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:
-        """Seed ``index``'s networks (as single-seed modules' state dicts), Adam rows, multiplier, normaliser row, generators."""
-        actor, critic, cost_critic = self.model.export_seed(index, self.base_env.action_spec)
+        """Seed ``index``'s networks (as single-seed modules' state dicts), Adam rows, multiplier, normaliser row, generators.
+
+        CPU tensors whatever ``cfg.device``: a checkpoint loads, and continues, on any device."""
+        actor, critic, cost_critic = self.model.export_seed(index, self.base_env.action_spec, device="cpu")
         return {
             "networks": {"actor": actor.state_dict(), "critic": critic.state_dict(),
                          "cost_critic": cost_critic.state_dict()},
             # Adam's rows of the flat groups (actor, critics): per group the step count and both moments.
-            "optimizer": [{"step": state["step"][index].clone(),
-                           "exp_avg": [t[index].clone() for t in state["exp_avg"]],
-                           "exp_avg_sq": [t[index].clone() for t in state["exp_avg_sq"]]}
+            "optimizer": [{"step": _host_copy(state["step"][index]),
+                           "exp_avg": [_host_copy(t[index]) for t in state["exp_avg"]],
+                           "exp_avg_sq": [_host_copy(t[index]) for t in state["exp_avg_sq"]]}
                           for state in self.optimizer.state],
             "multiplier": self.multipliers[index].state_dict(),
             "obs_norm": None if self.obs_norm is None else self.obs_norm.group_state_dict(index),
@@ -290,7 +335,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     @torch.no_grad()
     def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
-        triple = self.model.export_seed(index, self.base_env.action_spec)
+        triple = self.model.export_seed(index, self.base_env.action_spec, device="cpu")
         for module, name in zip(triple, ("actor", "critic", "cost_critic")):
             module.load_state_dict(entry["networks"][name])
         self.model.load_seed(index, *triple)

@@ -42,7 +42,7 @@ class AgentLayout:
         observation_sizes: true observation length of each agent.
         action_sizes: number of actuators of each agent.
         observation_index: ``(A, max observation size)`` columns of the source row; padding slots
-            hold :attr:`zero_column`.
+            hold its last column, the constant 0.
         observation_mask: ``(A, max observation size)`` bool, ``True`` on real entries.
         action_actuators: ``(A, max action size)`` actuator driven by each action slot, ``-1`` on
             padding slots.
@@ -68,10 +68,6 @@ class AgentLayout:
     @property
     def num_agents(self) -> int:
         return len(self.observation_sizes)
-
-    @property
-    def zero_column(self) -> int:
-        return self.source_dim - 1
 
 
 def neighbourhoods(scenario: Scenario, agent: tuple[Node, ...], obsk: int) -> list[list[Node]]:

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torchrl.data import Composite
 
-from sg_torchrl.envs.base import CostMode
+from sg_torchrl.envs.base import CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.navigation.layout import LayoutSampler
 from sg_torchrl.envs.navigation.lidar import (LidarMode, NaturalLidar, compass_vector, lidar_block, pseudo_lidars,
@@ -99,8 +99,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         physics_threads: int = 1,
     ) -> None:
         content = ObservationContent.parse(obs_mode)  # before building anything, for this message
-        if not isinstance(num_envs, int) or num_envs < 1:  # before building the scene, for this message
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)  # before building the scene, for this message
         if robot not in ROBOTS:
             raise ValueError(f"unknown navigation robot {robot!r}; choose from {sorted(ROBOTS)}")
         self.task = task if isinstance(task, Task) else make_task(task, level)

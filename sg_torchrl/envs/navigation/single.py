@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sg_torchrl.envs.base import _FLOAT32_MAX
+from sg_torchrl.envs.base import FLOAT32_MAX
 from sg_torchrl.envs.physics import MujocoBatch
 
 if TYPE_CHECKING:
@@ -127,7 +127,7 @@ class SingleNavigationStep:
         # The row's sum is finite only when every entry is (in any order: an overflow only sends the step to
         # the exact test below, which finds the same values).
         row = self._row
-        if not unstable and math.isfinite(np.add.reduce(row)) and magnitude <= _FLOAT32_MAX:
+        if not unstable and math.isfinite(np.add.reduce(row)) and magnitude <= FLOAT32_MAX:
             cost, cost_info = env._single_cost(raw)
             return (row.astype(np.float32).astype(np.float64), float(np.float32(reward)), cost,
                     terminated, truncated, cost_info)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from sg_torchrl.envs.backends import Backend, make_physics
-from sg_torchrl.envs.base import _FLOAT32_MAX, CostMode
+from sg_torchrl.envs.base import FLOAT32_MAX, CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
@@ -118,8 +118,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         warp_device: str | None = None,
         warp_options: dict[str, Any] | None = None,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:  # before MujocoBatch, for this message
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_num_envs(num_envs)  # before MujocoBatch, for this message
         if robot not in ROBOTS:
             raise ValueError(f"unknown velocity robot {robot!r}; choose from {sorted(ROBOTS)}")
         spec: LocomotionRobot = ROBOTS[robot]
@@ -406,7 +405,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         elapsed[0] = steps
         truncated = steps >= self.max_episode_steps
         # _fault_free's screen: a finite sum proves every entry finite (an overflow only takes the exact path)
-        if not unstable and math.isfinite(sum(observation[0].tolist())) and abs(reward) + abs(cost) <= _FLOAT32_MAX:
+        if not unstable and math.isfinite(sum(observation[0].tolist())) and abs(reward) + abs(cost) <= FLOAT32_MAX:
             return (
                 observation[0].astype(np.float32).astype(np.float64),
                 float(np.float32(reward)),
@@ -511,7 +510,3 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         plan = (tuple(codes), any(code == 3 for _, code in codes))
         self.__dict__["_info_plan_cache"] = plan  # not through nn.Module.__setattr__
         return plan
-
-    def cost_of_velocity(self, velocity: np.ndarray | float) -> np.ndarray:
-        """The cost this task assigns to a measured velocity (for documentation and tests)."""
-        return (np.asarray(velocity) > self.velocity_threshold).astype(np.float64)

@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.robots.base import Robot
     from sg_torchrl.envs.navigation.world import ResetBuffers, Scene
 
-__all__ = ["FreeObject", "NavObject", "StaticObject", "yaw_quat"]
+__all__ = ["FreeObject", "NamedCost", "NavObject", "StaticObject", "yaw_quat"]
 
 Kind = Literal["static", "free", "mover"]
 _KIND_RANK = {"static": 0, "free": 1, "mover": 2}
@@ -174,6 +174,34 @@ class NavObject(abc.ABC):
 
     def load_state_dict(self, state: dict) -> None:
         pass
+
+
+class NamedCost(abc.ABC):
+    """Mixin for a :class:`NavObject` whose one cost entry is named after it (``"hazards"``, ``"pillars"``,
+    ...) and exists only when constrained. Subclasses give its value: :meth:`cost` over the batch and
+    :meth:`cost_one`, the same value for one simulator on Python floats (the one-simulator step's form)."""
+
+    name: str
+    constrained: bool
+
+    @property
+    def cost_names(self) -> tuple[str, ...]:
+        return (self.name,) if self.constrained else ()
+
+    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
+        return {self.name: self.cost(scene)} if self.constrained else {}
+
+    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
+        if self.constrained:
+            out[self.name][0, 0] = self.cost_one(scene)
+
+    @abc.abstractmethod
+    def cost(self, scene: Scene) -> np.ndarray:
+        """The raw cost of the current state, ``(N,)``."""
+
+    @abc.abstractmethod
+    def cost_one(self, scene: Scene) -> float:
+        """:meth:`cost` of simulator 0 (of a one-simulator scene), bit for bit."""
 
 
 class StaticObject(NavObject):

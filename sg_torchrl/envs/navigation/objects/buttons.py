@@ -14,14 +14,14 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import StaticObject
+from sg_torchrl.envs.navigation.objects.base import NamedCost, StaticObject
 from sg_torchrl.envs.navigation.objects.goal import Goal
 from sg_torchrl.envs.navigation.world import Scene
 
 __all__ = ["Buttons", "GoalMarker"]
 
 
-class Buttons(StaticObject):
+class Buttons(NamedCost, StaticObject):
     """``num`` immovable spheres of radius ``size`` (default 4, 0.1) resting on the floor, keep-out 0.2.
 
     Per simulator, :attr:`goal_button` is the button to press and :attr:`timer` counts the steps
@@ -96,31 +96,23 @@ class Buttons(StaticObject):
         """:meth:`goal_pressed` of one simulator, as a bool (from :meth:`touches_one`'s counts)."""
         return scene.robot_contacts_one().get(self._geom_list[self.goal_button.item(0)], 0.0) > 0
 
-    @property
-    def cost_names(self) -> tuple[str, ...]:
-        return (self.name,) if self.constrained else ()
-
-    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
-        if not self.constrained:
-            return {}
+    def cost(self, scene: Scene) -> np.ndarray:
         touches = self.touches(scene)
         # Every contact with a button (one geom each) minus those with the goal button; the counts are
         # whole numbers, so summing the touches equals summing the buttons' geom columns in model order.
         wrong = touches.sum(axis=1) - touches[self._rows, self.goal_button]
-        return {self.name: np.where(self.timer == 0, wrong, 0.0)}
+        return np.where(self.timer == 0, wrong, 0.0)
 
-    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
-        """:meth:`costs` of one simulator on Python floats (:meth:`touches_one`): the same whole-number sum
-        (exact in any order) minus the goal button's count, 0.0 while the timer runs."""
-        if not self.constrained:
-            return
+    def cost_one(self, scene: Scene) -> float:
+        """On Python floats (:meth:`touches_one`): the same whole-number sum (exact in any order) minus the
+        goal button's count, 0.0 while the timer runs."""
         wrong = 0.0
         if not self.timer.item(0):
             touches = self.touches_one(scene)
             for count in touches:
                 wrong += count
             wrong -= touches[self.goal_button.item(0)]
-        out[self.name][0, 0] = wrong
+        return wrong
 
     # ------------------------------------------------------------------ snapshots
     def state_dict(self) -> dict:

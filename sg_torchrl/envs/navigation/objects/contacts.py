@@ -6,6 +6,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sg_torchrl.envs.navigation.objects.base import NamedCost
+
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.world import Scene
 
@@ -17,37 +19,26 @@ def robot_contacts(scene: Scene, geom_mask: np.ndarray) -> np.ndarray:
     return scene.robot_contacts()[:, geom_mask].sum(axis=1)
 
 
-class ContactCost:
+class ContactCost(NamedCost):
     """Mixin for a :class:`~sg_torchrl.envs.navigation.objects.base.NavObject`: when constrained, one cost
     entry named after the object, the number of MuJoCo contacts between its geoms and the robot's
     (reference section 3: ``cost_pillars``, ``cost_gremlins``; coefficient 1)."""
 
-    name: str
-    constrained: bool
     geom_mask: np.ndarray
-
-    @property
-    def cost_names(self) -> tuple[str, ...]:
-        return (self.name,) if self.constrained else ()
 
     def bind(self, scene: Scene) -> None:
         super().bind(scene)
-        self._contact_geoms = frozenset(np.flatnonzero(self.geom_mask).tolist())  # see agent_costs_one
+        self._contact_geoms = frozenset(np.flatnonzero(self.geom_mask).tolist())  # see cost_one
 
-    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
-        if not self.constrained:
-            return {}
-        return {self.name: robot_contacts(scene, self.geom_mask)}
+    def cost(self, scene: Scene) -> np.ndarray:
+        return robot_contacts(scene, self.geom_mask)
 
-    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
-        """:meth:`costs` of one simulator and one robot on Python floats (the one-simulator step's form):
-        the contact counts of this object's geoms among the robot's few contacts
+    def cost_one(self, scene: Scene) -> float:
+        """The contact counts of this object's geoms among the robot's few contacts
         (:meth:`Scene.robot_contacts_one <sg_torchrl.envs.navigation.world.Scene.robot_contacts_one>`),
         summed from 0: whole numbers, the same sum as the array form's in any order."""
-        if not self.constrained:
-            return
         total, geoms = 0.0, self._contact_geoms
         for geom, count in scene.robot_contacts_one().items():
             if geom in geoms:
                 total += count
-        out[self.name][0, 0] = total
+        return total

@@ -7,13 +7,13 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects.base import StaticObject
+from sg_torchrl.envs.navigation.objects.base import NamedCost, StaticObject
 from sg_torchrl.envs.navigation.world import Scene
 
 __all__ = ["Hazards"]
 
 
-class Hazards(StaticObject):
+class Hazards(NamedCost, StaticObject):
     """``num`` hazard discs of radius ``size`` (default 0.2), keep-out 0.4 unless a level says otherwise.
 
     Cost named after the object (``"hazards"``; reference section 3): the sum over hazards whose centre is within planar
@@ -34,33 +34,24 @@ class Hazards(StaticObject):
         body.add_geom(name=self.body_name(i), type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[self.size, 0.01, 0.0],
                       contype=0, conaffinity=0, group=0, rgba=list(self.rgba))
 
-    @property
-    def cost_names(self) -> tuple[str, ...]:
-        return (self.name,) if self.constrained else ()
-
-    def costs(self, scene: Scene) -> dict[str, np.ndarray]:
-        if not self.constrained:
-            return {}
+    def cost(self, scene: Scene) -> np.ndarray:
         depth = self.size - scene.planar_distance(self.positions(scene))
-        return {self.name: np.where(depth >= 0.0, depth, 0.0).sum(axis=1)}
+        return np.where(depth >= 0.0, depth, 0.0).sum(axis=1)
 
-    def agent_costs_one(self, scene: Scene, out: dict[str, np.ndarray]) -> None:
-        """:meth:`costs` of one simulator on Python floats (for single-env speed): the same depths ``size - d``
+    def cost_one(self, scene: Scene) -> float:
+        """On Python floats (for single-env speed): the same depths ``size - d``
         (:meth:`Scene.planar_distances_one <sg_torchrl.envs.navigation.world.Scene.planar_distances_one>`),
         the same ``>= 0`` test (NaN fails it). The array sum adds the other hazards' ``+0.0`` in numpy's
         pairwise order; with at most two positive depths every order gives the same sum, so this adds
-        them from 0. A robot inside three or more hazards at once takes :meth:`costs` itself."""
-        if not self.constrained:
-            return
+        them from 0. A robot inside three or more hazards at once takes :meth:`cost` itself."""
         size, inside = self.size, []
         for distance in scene.planar_distances_one(self.positions(scene)):
             depth = size - distance
             if depth >= 0.0:
                 inside.append(depth)
         if len(inside) > 2:
-            super().agent_costs_one(scene, out)
-            return
+            return self.cost(scene).item(0)
         total = 0.0
         for depth in inside:
             total += depth
-        out[self.name][0, 0] = total
+        return total
