@@ -13,7 +13,11 @@ simulator of an env seeded ``env_seed(run seed, EVALUATION)`` (run seed + 10,000
 from the run's checkpoint, and it runs the same rollout code
 (:func:`~sg_torchrl.train.evaluate.evaluate_episodes`), so without options its ``Metrics/EvalEpRet``,
 ``Metrics/EvalEpCost``, ... equal those of the run's ``summary.json``, to the last bit. ``--seed``,
-``--episodes``, ``--env-id``, ``--env-options`` and ``--stochastic`` evaluate otherwise.
+``--episodes``, ``--env-id``, ``--env-options`` and ``--stochastic`` evaluate otherwise. Episode ``k`` starts
+from the same layout whatever ``--episodes`` (simulator ``k``'s seed does not depend on their number), but its
+figures are bit-identical only for the same number: the policy acts on all episodes in one batch, and a
+matmul over another batch size rounds differently (about 1e-7 per action, 1e-3 in a 1000-step return of
+PointGoal1).
 
 ``--video out.mp4`` (or ``.gif``) records the first ``--video-episodes`` evaluated episodes, tiled, each
 with its running return and cost (:mod:`~sg_torchrl.evaluation.video`); ``--export policy.pt2`` writes

@@ -23,6 +23,7 @@ exported actions are the library policy's bit for bit (``tests/test_evaluation.p
 
 from __future__ import annotations
 
+import copy
 import io
 import json
 import os
@@ -73,7 +74,7 @@ def export_policy(policy: TrainedPolicy, path: str | os.PathLike) -> Path:
         RunWriteError: ``path`` could not be written.
     """
     path = Path(path)
-    module = _MeanAction(policy.network).to("cpu").eval()
+    module = _MeanAction(copy.deepcopy(policy.network)).to("cpu").eval()  # the policy itself stays on its device
     batch = torch.export.Dim("batch")
     examples = _example_inputs(policy, batch=2)
     with torch.no_grad():
