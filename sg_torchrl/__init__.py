@@ -16,7 +16,15 @@ from sg_torchrl.envs import list_envs, make
 from sg_torchrl.gym_registration import register_when_gymnasium_loads
 
 __version__ = "0.1.0"
-__all__ = ["make", "list_envs", "__version__"]
+__all__ = ["make", "list_envs", "load_policy", "__version__"]
+
+
+def load_policy(run_dir, seed=None, device="cpu"):
+    """A trained run's policy with its observation normaliser folded in
+    (:func:`sg_torchrl.evaluation.policy.load_policy`; imported here on first use)."""
+    from sg_torchrl.evaluation.policy import load_policy as load
+
+    return load(run_dir, seed=seed, device=device)
 
 # gymnasium.make / torchrl's GymEnv find the ids (and their "...Gymnasium-v<k>" twins) from here on.
 register_when_gymnasium_loads()

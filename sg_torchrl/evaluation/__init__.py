@@ -1,0 +1,45 @@
+"""Evaluate, watch and export a trained agent: ``sg-eval`` and :func:`load_policy`.
+
+* :func:`load_policy` (also ``sg_torchrl.load_policy``): a run's trained policy, observation
+  normaliser folded in, as a TorchRL ``TensorDictModule`` with ``act(obs)`` for numpy
+  (:mod:`~sg_torchrl.evaluation.policy`);
+* :func:`export_policy`: that policy's mean action as a ``torch.export`` file that runs with torch
+  alone (:mod:`~sg_torchrl.evaluation.export`);
+* :func:`record_evaluation`: the frames of evaluation episodes with their running cost drawn on
+  them (:mod:`~sg_torchrl.evaluation.video`);
+* ``sg-eval RUN_DIR`` (:mod:`~sg_torchrl.evaluation.cli`): N episodes per seed, a table, per-episode
+  CSV and a summary JSON; its defaults reproduce the evaluation ``sg-train`` ran at the end of
+  training, figure for figure.
+
+Importing this package loads no torch (``sg-eval`` checks its command line first); the names below
+are imported from their module on first access (PEP 562).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: Public name -> the module of this package that defines it.
+_HOMES = {
+    "PolicyLoadError": "policy",
+    "PolicyNetwork": "policy",
+    "TrainedPolicy": "policy",
+    "load_policy": "policy",
+    "read_run": "policy",
+    "export_policy": "export",
+    "record_evaluation": "video",
+}
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        value = globals()[name] = getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOMES))
