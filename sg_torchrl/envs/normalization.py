@@ -31,7 +31,13 @@ import torch
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-__all__ = ["RunningObservationNorm"]
+__all__ = ["RunningObservationNorm", "standardize"]
+
+
+def standardize(values: torch.Tensor, mean: torch.Tensor, var: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """``(values - mean) / sqrt(var + epsilon)`` in float64: the normalisation every observation normaliser
+    applies (the env transform, and a trained policy's folded-in copy: the same operations, the same bits)."""
+    return (values.to(torch.float64) - mean) / torch.sqrt(var + epsilon)
 
 
 class RunningObservationNorm(Transform):
@@ -147,11 +153,9 @@ class RunningObservationNorm(Transform):
 
     def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
         if self.groups is None:
-            normalised = (obs.to(torch.float64) - self.mean) / torch.sqrt(self.var + self.epsilon)
-            return normalised.to(obs.dtype)
+            return standardize(obs, self.mean, self.var, self.epsilon).to(obs.dtype)
         mean, var = self.mean.unsqueeze(1), self.var.unsqueeze(1)
-        normalised = (self._blocks(obs) - mean) / torch.sqrt(var + self.epsilon)
-        return normalised.reshape(obs.shape).to(obs.dtype)
+        return standardize(self._blocks(obs), mean, var, self.epsilon).reshape(obs.shape).to(obs.dtype)
 
     def _reset(self, tensordict, tensordict_reset):
         return self._call(tensordict_reset)

@@ -39,7 +39,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import IndependentNormal
 
 import sg_torchrl
-from sg_torchrl.envs.normalization import RunningObservationNorm
+from sg_torchrl.envs.normalization import RunningObservationNorm, standardize
 from sg_torchrl.modules.mlp import ObservationLayout, make_actor
 from sg_torchrl.train import refuse_retired_checkpoint
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, CheckpointError, checkpoint_file, load_checkpoint
@@ -59,7 +59,7 @@ class PolicyLoadError(ValueError):
 
 class ObservationScaler(nn.Module):
     """A frozen :class:`~sg_torchrl.envs.normalization.RunningObservationNorm` (one set of statistics) as a
-    tensor module: ``((x in float64) - mean) / sqrt(var + epsilon)``, back in ``x``'s dtype, as the
+    tensor module: :func:`~sg_torchrl.envs.normalization.standardize`, back in ``x``'s dtype, as the
     transform computes it (the same operations in the same order, so the same bits)."""
 
     def __init__(self, mean: Tensor, var: Tensor, epsilon: float = 1e-8) -> None:
@@ -69,7 +69,7 @@ class ObservationScaler(nn.Module):
         self.epsilon = float(epsilon)
 
     def forward(self, x: Tensor) -> Tensor:
-        return ((x.to(torch.float64) - self.mean) / torch.sqrt(self.var + self.epsilon)).to(x.dtype)
+        return standardize(x, self.mean, self.var, self.epsilon).to(x.dtype)
 
 
 class PolicyNetwork(nn.Module):
