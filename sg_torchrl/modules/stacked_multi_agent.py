@@ -107,6 +107,10 @@ class StackedMultiAgentNetworks:
         head = heads[0][0]
         self.std_x_coef, self.std_y_coef = head.std_x_coef, head.std_y_coef
         self.mask = teams[0].policy.mask  # (A, Da): True on each agent's real action slots
+        # (bias, weight.t()) views of every actor layer per seed and agent, taken once (the stacks stay in place)
+        policy = list(zip(self.biases["policy"], self.weights["policy"]))
+        self._actor_layers = [[[(bias[s, a], weight[s, a].t()) for bias, weight in policy]
+                               for a in range(self.n_agents)] for s in range(self.num_seeds)]
 
     @property
     def num_seeds(self) -> int:
@@ -135,18 +139,15 @@ class StackedMultiAgentNetworks:
         Seed ``s``'s agent ``a`` reads ``observation[s, :, a]``; rows of seeds not in ``seeds`` are zeros.
         Padding slots are 0. Bit for bit the per-agent module's output (see the module docstring).
         """
-        weights, biases = self.weights["policy"], self.biases["policy"]
         num, n, agents = observation.shape[0], observation.shape[1], observation.shape[2]
-        out = observation.new_zeros(num, agents, n, weights[-1].shape[-2])
-        last = len(weights) - 1
+        out = observation.new_zeros(num, agents, n, self.weights["policy"][-1].shape[-2])
+        outputs = out.unbind(0)
         for s in seeds:
-            for a in range(agents):
-                x = observation[s, :, a]
-                for index, (weight, bias) in enumerate(zip(weights, biases)):
-                    if index == last:
-                        torch.addmm(bias[s, a], x, weight[s, a].t(), out=out[s, a])
-                    else:
-                        x = torch.addmm(bias[s, a], x, weight[s, a].t()).relu_()
+            for x, layers, result in zip(observation[s].unbind(1), self._actor_layers[s], outputs[s].unbind(0)):
+                for bias, weight_t in layers[:-1]:
+                    x = torch.addmm(bias, x, weight_t).relu_()
+                bias, weight_t = layers[-1]
+                torch.addmm(bias, x, weight_t, out=result)
         return out.transpose(1, 2).masked_fill(~self.mask, 0.0)
 
     @torch.no_grad()
