@@ -9,10 +9,15 @@ epochs with one torch thread and reports the CPU seconds (``time.process_time``)
 
 Reported per configuration: CPU seconds per 1,000 env steps per seed over the epochs after the first
 (steady state: no compiling, warm caches), for the base and for this tree (the best of
-``--repeats``), and their ratio (this tree / base: <= 1 is no slower).
+``--repeats``), and their ratio (this tree / base: <= 1 is no slower). A row of mode ``single`` trains one
+seed as ``sg-train --seed 0`` does (``TrainConfig(seed=0)``: whatever single-seed trainer the tree has);
+with such a row, every row of the same algorithm also gets the base's single-seed figure over this tree's
+(the speed-up per seed against one run of the base).
 
     python benchmarks/revision_speed.py --base bccbadc                     # PPO-Lag S = 1, 3, 8 eager and compiled, CPO S = 3
     python benchmarks/revision_speed.py --base HEAD~3 --rows ppo_lag:1:eager --steps-per-epoch 4000 --epochs 2
+    python benchmarks/revision_speed.py --base bccbadc --env-id Safety2x3HalfCheetahVelocity-v0 --steps-per-epoch 10000 \
+        --epochs 3 --rows mappo_lag:1:single mappo_lag:1:eager mappo_lag:8:eager   # multi-agent, the paper's epochs
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: algo:S:mode rows measured by default (mode: eager or compiled).
+#: algo:S:mode rows measured by default (mode: eager or compiled; single: one seed as ``sg-train --seed 0``).
 DEFAULT_ROWS = ("ppo_lag:1:eager", "ppo_lag:3:eager", "ppo_lag:8:eager", "ppo_lag:1:compiled", "ppo_lag:3:compiled",
                 "ppo_lag:8:compiled", "cpo:3:eager")
 
@@ -37,11 +42,12 @@ import json, sys, tempfile, time
 import torch
 torch.set_num_threads(1)
 from sg_torchrl.train import TrainConfig, trainer_class
-algo, seeds, compiled, env_id, steps, num_envs, epochs = json.loads(sys.argv[1])
+algo, seeds, mode, env_id, steps, num_envs, epochs = json.loads(sys.argv[1])
 with tempfile.TemporaryDirectory() as tmp:
-    cfg = TrainConfig(algo=algo, env_id=env_id, seeds=list(range(seeds)), total_steps=epochs * steps,
+    runs = dict(seed=0) if mode == "single" else dict(seeds=list(range(seeds)))
+    cfg = TrainConfig(algo=algo, env_id=env_id, **runs, total_steps=epochs * steps,
                       steps_per_epoch=steps, num_envs=num_envs, wandb="disabled", eval_episodes=0, progress=False,
-                      output_dir=tmp, compile=compiled)
+                      output_dir=tmp, compile=mode == "compiled")
     trainer = trainer_class(cfg)(cfg)
     cpu = []
     for _ in range(epochs):
@@ -56,17 +62,19 @@ print(json.dumps(cpu))
 class RowSpec:
     algo: str
     seeds: int
-    compiled: bool
+    mode: str
 
     @classmethod
     def parse(cls, text: str) -> RowSpec:
         algo, seeds, mode = text.split(":")
-        if mode not in ("eager", "compiled"):
-            raise ValueError(f"row {text!r}: mode must be eager or compiled")
-        return cls(algo, int(seeds), mode == "compiled")
+        if mode not in ("eager", "compiled", "single"):
+            raise ValueError(f"row {text!r}: mode must be eager, compiled or single")
+        if mode == "single" and int(seeds) != 1:
+            raise ValueError(f"row {text!r}: a single-seed run has S = 1")
+        return cls(algo, int(seeds), mode)
 
     def __str__(self) -> str:
-        return f"{self.algo} S={self.seeds} {'compiled' if self.compiled else 'eager'}"
+        return f"{self.algo} single seed (--seed 0)" if self.mode == "single" else f"{self.algo} S={self.seeds} {self.mode}"
 
 
 def export(revision: str, into: Path) -> Path:
@@ -80,7 +88,7 @@ def export(revision: str, into: Path) -> Path:
 def measure(tree: Path, row: RowSpec, env_id: str, steps: int, num_envs: int, epochs: int) -> list[float]:
     """CPU seconds of each epoch of ``row`` trained by the ``sg_torchrl`` of ``tree``."""
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
-    args = json.dumps([row.algo, row.seeds, row.compiled, env_id, steps, num_envs, epochs])
+    args = json.dumps([row.algo, row.seeds, row.mode, env_id, steps, num_envs, epochs])
     result = subprocess.run([sys.executable, "-c", _CHILD, args], env=env, cwd=tree, capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"{row} on {tree} failed:\n{result.stderr[-3000:]}")
@@ -96,7 +104,7 @@ def per_seed_k(cpu: list[float], seeds: int, steps: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", required=True, help="the git revision to compare with (e.g. a commit hash)")
-    parser.add_argument("--rows", nargs="+", default=list(DEFAULT_ROWS), help="algo:S:eager|compiled")
+    parser.add_argument("--rows", nargs="+", default=list(DEFAULT_ROWS), help="algo:S:eager|compiled|single")
     parser.add_argument("--env-id", default="SafetyHalfCheetahVelocity-v1")
     parser.add_argument("--steps-per-epoch", type=int, default=20_000, help="per seed (the paper's 20,000)")
     parser.add_argument("--num-envs", type=int, default=10, help="simulators per seed (the paper's 10)")
@@ -112,7 +120,8 @@ def main() -> None:
         print(f"base {args.base} against this tree (HEAD {head}, with its uncommitted changes); {args.env_id}, "
               f"{args.steps_per_epoch} steps per epoch per seed from {args.num_envs} simulators, {args.epochs} "
               f"epochs, best of {args.repeats}; CPU s per 1k env steps per seed after the first epoch")
-        print(f"| row | base | this tree | this tree / base |\n|---|---:|---:|---:|")
+        single = {}  # algo -> the base's single-seed figure, once measured
+        print("| row | base | this tree | this tree / base | base single seed / this tree |\n|---|---:|---:|---:|---:|")
         for row in rows:
             best = {name: float("inf") for name in trees}
             for repeat in range(args.repeats):
@@ -120,8 +129,11 @@ def main() -> None:
                 for name, tree in order:
                     cpu = measure(tree, row, args.env_id, args.steps_per_epoch, args.num_envs, args.epochs)
                     best[name] = min(best[name], per_seed_k(cpu, row.seeds, args.steps_per_epoch))
-            print(f"| {row} | {best['base']:.3f} | {best['this tree']:.3f} | {best['this tree'] / best['base']:.3f} |",
-                  flush=True)
+            if row.mode == "single":
+                single[row.algo] = best["base"]
+            speedup = f"{single[row.algo] / best['this tree']:.2f}x" if row.algo in single else ""
+            print(f"| {row} | {best['base']:.3f} | {best['this tree']:.3f} | {best['this tree'] / best['base']:.3f} "
+                  f"| {speedup} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -39,8 +39,9 @@ Multi-agent rows (``--multi-agent``) compare the single-seed run (``sg-train --s
 :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, the multi-agent engine with
 S = 1 in the single-seed layout, so the ``group S=1`` row is the same code writing the group layout) with
 multi-agent seed groups (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: simulators
-and collection batched over the seeds, each seed's round run after the others'), eager, at the paper's
-multi-agent settings.
+batched over the seeds, the seeds' networks stacked and acting in one call per step, each seed's round run
+after the others'), eager, at the paper's multi-agent settings. ``benchmarks/revision_speed.py`` measures
+them against an earlier revision's single-seed trainer.
 """
 
 from __future__ import annotations

@@ -8,10 +8,11 @@ What is compared, and how closely:
   S = 1, ``SingleSeedMultiAgentTrainer``, whose runs ``tests/test_golden_equivalence.py`` holds to the
   recorded numbers; MAPPO-Lag, MACPO, HAPPO), two epochs: every entry of both epochs' batches (observations, actions, log-probs,
   rewards, costs, dones, state) bit for bit, every ``progress.csv`` column but the timings, the
-  evaluation and the parameters after the run **exactly** (tolerance 0). The group keeps one team and
-  one round per seed (nothing stacked), swaps each seed's torch RNG state in around its actor, update
-  and evaluation, and runs each seed's actor and round on its own block of the batch, so nothing is
-  rounded differently;
+  evaluation and the parameters after the run **exactly** (tolerance 0). The group stacks the seeds'
+  networks and acts for every seed in one call, each seed's noise from its own generator, and runs each
+  seed's round on its own block of the batch, so nothing is rounded differently;
+* **the stacked networks**: the one-call policy against each seed's team actor (noise from the global
+  RNG at the same state) bit for bit, frozen seeds idle; each team's parameters are views of the stack;
 * **resume**: a group checkpointed after epoch 1 and continued equals the uninterrupted group bit for
   bit (rows, parameters, rounds' state, normalisers, RNG states);
 * **divergence**: a seed made non-finite (before an epoch, or inside its update) is frozen, idles with
@@ -26,6 +27,7 @@ episodes finish and cost accrues in epoch 1), 2 simulators per seed, 200-step ep
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 
@@ -34,7 +36,11 @@ import torch
 
 torch.set_num_threads(1)
 
+from tensordict import TensorDict  # noqa: E402
+
 from sg_torchrl.envs.normalization import RunningObservationNorm  # noqa: E402
+from sg_torchrl.modules import make_multi_agent_networks  # noqa: E402
+from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, StackedMultiAgentPolicy  # noqa: E402
 from sg_torchrl.train import (  # noqa: E402
     GroupTrainer, MultiAgentGroupTrainer, SingleSeedMultiAgentTrainer, TrainConfig, main, trainer_class,
 )
@@ -100,6 +106,56 @@ def test_grouped_per_agent_normaliser_rows_follow_their_blocks_bit_for_bit():
             assert torch.equal(grouped.group_state_dict(g)[name], value), name
 
 
+# --------------------------------------------------------------------------- stacked networks
+@pytest.mark.parametrize("hidden, sizes, n", [((16, 16), [3, 3], 2), ((32, 32), [3, 1, 2], 1), ((128, 128), [3, 3], 10)])
+def test_the_stacked_policy_is_each_seeds_team_actor_bit_for_bit(hidden, sizes, n):
+    seeds = 3
+    teams, states = [], []
+    for seed in range(seeds):  # as the engine builds them: each team after manual_seed(seed)
+        torch.manual_seed(seed)
+        teams.append(make_multi_agent_networks(12, sizes, 17, hidden_sizes=hidden))
+        states.append(torch.get_rng_state())
+    alone = copy.deepcopy(teams)
+    stacked = StackedMultiAgentNetworks(teams)
+    policy = StackedMultiAgentPolicy(stacked, [torch.Generator().set_state(state) for state in states], n)
+    observation = torch.randn(seeds * n, len(sizes), 12)
+    for step in range(3):
+        if step == 2:  # seed 1 frozen (its actions might not be finite): zeros, no noise drawn
+            policy.frozen = torch.tensor([False, True, False])
+        td = policy(TensorDict({"agents": {"observation": observation}}, [seeds * n]))
+        for seed in range(seeds):
+            block = td["agents"][seed * n:(seed + 1) * n]
+            if step == 2 and seed == 1:
+                assert (block["action"] == 0).all() and (block["scale"] == 1).all() and (block["action_log_prob"] == 0).all()
+                continue
+            torch.set_rng_state(states[seed])  # the single-seed run draws its noise from the global RNG
+            single = alone[seed].actor(TensorDict({"agents": {"observation": observation[seed * n:(seed + 1) * n]}}, [n]))
+            states[seed] = torch.get_rng_state()
+            for key in ("loc", "scale", "action", "action_log_prob"):
+                assert torch.equal(block[key], single["agents", key]), (seed, step, key)
+        observation = observation + 0.1
+
+
+def test_each_team_is_a_view_of_the_stack():
+    torch.manual_seed(0)
+    teams = [make_multi_agent_networks(12, [3, 2], 17, hidden_sizes=(16, 16)) for _ in range(2)]
+    copies = copy.deepcopy(teams)
+    stacked = StackedMultiAgentNetworks(teams)
+    for team, before in zip(teams, copies):
+        assert all(torch.equal(a, b) for a, b in zip(team.state_dict().values(), before.state_dict().values()))
+    optimizer = torch.optim.Adam(teams[1].agent_actor(0).parameters(), lr=0.1)
+    teams[1].agent_actor(0).module[0].module.net[0].weight.sum().backward()  # the first layer of seed 1, agent 0
+    optimizer.step()
+    moved = stacked.weights["policy"][0]
+    assert not torch.equal(moved[1, 0], copies[1].policy.mlp.agent_networks[0][0].weight)
+    assert torch.equal(moved[0], torch.stack([net[0].weight for net in copies[0].policy.mlp.agent_networks]))
+    teams[0].load_state_dict(copies[1].state_dict())  # a checkpoint loads into the stack's rows
+    assert torch.equal(stacked.log_std[0, 1, :2], copies[1].policy.heads[1].log_std)
+    with torch.no_grad():
+        teams[1].cost_value.mlp.agent_networks[1][2].bias[0] = float("nan")
+    assert stacked.finite_seeds().tolist() == [True, False]
+
+
 # --------------------------------------------------------------------------- equivalence
 @pytest.mark.parametrize("algo", ["mappo_lag", "macpo", "happo"])
 def test_each_seed_of_a_group_is_its_single_seed_run_bit_for_bit(tmp_path, algo):
@@ -147,7 +203,7 @@ def test_resume_continues_the_group_bit_for_bit(tmp_path, algo):
     for index, seed in enumerate([0, 1]):
         for mine, theirs in zip(parameters(resumed.teams[index]), parameters(uninterrupted.teams[index])):
             assert torch.equal(mine, theirs)
-        assert torch.equal(resumed.streams.states[index], uninterrupted.streams.states[index])
+        assert torch.equal(resumed.policy.generators[index].get_state(), uninterrupted.policy.generators[index].get_state())
         update, reference = resumed.teams[index].policy_update, uninterrupted.teams[index].policy_update
         assert torch.equal(update.generator.get_state(), reference.generator.get_state())
         for mine, theirs in zip(update.multipliers.state_dict().values(), reference.multipliers.state_dict().values()):

@@ -262,6 +262,23 @@ class TestSequentialUpdate:
         torch.testing.assert_close(received[1], hand)
         assert (hand - 1).abs().max() > 1e-2  # agent 0 really moved: the check is not trivial
 
+    @pytest.mark.parametrize("target_kl", [None, 1e9], ids=["KL after the last pass", "KL after every pass"])
+    def test_a_stage_evaluates_the_agents_policy_once_before_and_once_after_its_steps(self, target_kl):
+        # The factor's log-probabilities before and after the agent's update are read from the policy the
+        # epochs' KL reference and the KL after the last pass evaluate (nothing moves the agent in between).
+        nets = make_nets([2, 3])
+        td = make_rollout(nets)
+        update = HAPPOUpdate(nets, epochs=3, target_kl=target_kl)
+        calls = [0, 0]
+        for i in range(2):
+            actor = nets.agent_actor(i)
+            inner = actor.get_dist
+            actor.get_dist = lambda *args, _i=i, _inner=inner, **kwargs: calls.__setitem__(_i, calls[_i] + 1) or _inner(
+                *args, **kwargs)
+        update(td, 10.0)
+        kl_checks = 3 if target_kl else 1
+        assert calls == [1 + 3 + kl_checks] * 2  # reference, the loss in each epoch, the KL checks
+
     def test_mappo_is_independent_per_agent_ppo(self):
         nets = make_nets([3, 2, 1], seed=2)
         td = make_rollout(nets, seed=2)

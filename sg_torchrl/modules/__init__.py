@@ -12,6 +12,9 @@
   (:class:`StackedMLP`, :class:`StackedActorCritic`), for seed groups;
 * :mod:`~sg_torchrl.modules.multi_agent`: per-agent actors and centralised critics for the safe
   multi-agent algorithms (:func:`make_multi_agent_networks`, :class:`MultiAgentNetworks`);
+* :mod:`~sg_torchrl.modules.stacked_multi_agent`: S seeds' teams in ``(S, A, ...)`` tensors and their
+  actors as one collection policy (:class:`StackedMultiAgentNetworks`, :class:`StackedMultiAgentPolicy`),
+  for multi-agent seed groups;
 * :mod:`~sg_torchrl.modules.gaussian`: :func:`gaussian_log_prob`, the diagonal Gaussian policy's
   log-density that the stacked actor and the seed-batched objectives share.
 
@@ -50,6 +53,8 @@ _HOMES = {
     "MultiAgentStateValue": "multi_agent",
     "PerAgentMLP": "multi_agent",
     "make_multi_agent_networks": "multi_agent",
+    "StackedMultiAgentNetworks": "stacked_multi_agent",
+    "StackedMultiAgentPolicy": "stacked_multi_agent",
     "gaussian_log_prob": "gaussian",
 }
 

@@ -12,22 +12,27 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
   GAEs, the algorithm's round with its optimisers, multipliers, value normalisers and generator),
   built by :meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.build` after ``torch.manual_seed(s)``
   (:func:`~sg_torchrl.seeding.seed_torch`);
+* **stacked networks**: the teams' parameters then move into ``(S, A, ...)`` tensors, one per layer
+  (:class:`~sg_torchrl.modules.stacked_multi_agent.StackedMultiAgentNetworks`, :attr:`networks`); each
+  team's parameters are views of its rows, so its round and its checkpoint entry work on the stack;
 * **observation normalisers**: one row of running statistics per seed for ``("agents",
   "observation")`` (per agent and feature) and ``"state"`` (``RunningObservationNorm(groups=S)``);
-* **action noise**: the team's actors draw from the global torch RNG (the networks' initialisation
-  too, which is why ``manual_seed(s)`` comes first). The engine keeps one torch RNG state per seed
-  (:class:`SeedStreams`) and swaps it in around everything of that seed's that could draw from the
-  global RNG: its actor's call in collection (:class:`SeedBlockPolicy`), its update and its
-  evaluation. Nothing else in a multi-agent run draws from it (the simulators and the rounds use
-  generators of their own);
+* **action noise**: one actor call per collection step for every seed
+  (:class:`~sg_torchrl.modules.stacked_multi_agent.StackedMultiAgentPolicy`), seed ``s``'s noise
+  from a ``torch.Generator`` of its own started at the state its global RNG has once its team is
+  built, drawing what its single-seed actor drew from the global RNG. Nothing else in a multi-agent
+  run draws random numbers from the global RNG (the simulators and the rounds use generators of
+  their own, the evaluation is deterministic);
 * **update**: per live seed, its GAEs on its block of the batch and its round,
-  ``round(block, mean_episode_cost)`` (:meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.learn`).
+  ``round(block, mean_episode_cost)`` (:meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.learn`),
+  one seed after another.
 
-Unlike the single-agent group (:mod:`sg_torchrl.train.seed_group`), the seeds' networks are not
-stacked: **the per-seed rounds run one after another**, while simulation and collection are
-batched. (A round updates one agent at a time in a random order with a line search or KL stop per
-agent, which does not stack as the single-agent minibatch step does.) So a seed's trajectories,
-metrics and parameters are bit for bit those of its single-seed run (S = 1), for every epoch.
+The rounds are not seed-batched: a round updates one agent at a time in a random order with a KL stop
+(or a line search) per agent, through the TorchRL loss modules and ``torch.optim.Adam`` of its single-seed
+run. At the paper's settings the update is bound by its matrix products (10,000 samples through
+[128, 128] networks, 5 epochs per agent), not by per-operator overhead, so running the seeds' rounds
+one after another costs little more than batching them would. A seed's trajectories, metrics and
+parameters are bit for bit those of its single-seed run (S = 1), for every epoch.
 
 Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
 update turn non-finite is put back to its parameters before that update and frozen; its simulators
@@ -41,14 +46,11 @@ entries at its top level, no ``"seeds"``) is read as the one-seed group's (:func
 
 from __future__ import annotations
 
-import contextlib
 import copy
-from collections.abc import Iterator, Sequence
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
@@ -56,99 +58,22 @@ import sg_torchrl
 from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
+from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, StackedMultiAgentPolicy
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTeam, observation_norms
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout
 
-__all__ = [
-    "MultiAgentGroupTrainer", "SeedBlockPolicy", "SeedStreams", "SingleSeedMultiAgentTrainer",
-    "team_checkpoint_as_group",
-]
-
-
-class SeedStreams:
-    """One global-torch-RNG state per seed, swapped in around that seed's work (:meth:`use`).
-
-    ``states[s]`` is seed ``s``'s ``torch.get_rng_state()`` between its uses; the global state
-    outside any :meth:`use` is left as it was.
-    """
-
-    def __init__(self, states: Sequence[Tensor]) -> None:
-        self.states = [state.clone() for state in states]
-
-    @contextlib.contextmanager
-    def use(self, index: int) -> Iterator[None]:
-        """Run the block with seed ``index``'s RNG state as the global one; keep what it drew."""
-        outer = torch.get_rng_state()
-        torch.set_rng_state(self.states[index])
-        try:
-            yield
-        finally:
-            self.states[index] = torch.get_rng_state()
-            torch.set_rng_state(outer)
-
-
-class SeedBlockPolicy(TensorDictModuleBase):
-    """The seeds' team actors as one TensorDict policy of the group's batched env (what the collector calls).
-
-    Splits the ``S * N`` simulators into the S seed blocks of ``num_envs`` along dim 0, runs seed
-    ``s``'s actor on block ``s`` (its noise from the global RNG swapped to seed ``s``'s state,
-    :class:`SeedStreams`), and writes every block's ``(group, "loc" | "scale" | "action" |
-    "action_log_prob")`` back in order. Seeds in :attr:`frozen` act with zeros (``loc`` 0, ``scale``
-    1, log-probability 0) and their actors are not called: a diverged seed's actions may not be
-    finite, which the env refuses. One seed acting alone (``--seed s``) runs on the whole batch, its one
-    block, without the split and the concatenation (the same numbers, less copying per step).
-    """
-
-    def __init__(self, actors: Sequence[TensorDictModuleBase], streams: SeedStreams, num_envs: int,
-                 action_shape: Sequence[int], group: str = GROUP) -> None:
-        super().__init__()
-        self._actors = tuple(actors)  # the teams' modules, not registered here
-        self.streams = streams
-        self.num_envs = num_envs
-        self.action_shape = tuple(action_shape)  # (n_agents, padded action size)
-        self.in_keys = [(group, "observation")]
-        self.out_keys = [(group, name) for name in ("loc", "scale", "action", "action_log_prob")]
-        #: ``(S,)`` bool of the seeds acting with zeros, or ``None`` when every seed acts.
-        self.frozen: Tensor | None = None
-
-    @torch.no_grad()
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        inputs = tensordict.select(*self.in_keys)
-        if len(self._actors) == 1 and self.frozen is None:  # one seed acting (--seed s): its block is the batch
-            with self.streams.use(0):
-                outputs_td = self._actors[0](inputs)
-            for key in self.out_keys:
-                tensordict.set(key, outputs_td.get(key))
-            return tensordict
-        outputs: list[list[Tensor]] = [[] for _ in self.out_keys]
-        for index, actor in enumerate(self._actors):
-            block = inputs[index * self.num_envs:(index + 1) * self.num_envs]
-            if self.frozen is not None and bool(self.frozen[index]):
-                values = self._idle(block.get(self.in_keys[0]))
-            else:
-                with self.streams.use(index):
-                    block = actor(block)
-                values = [block.get(key) for key in self.out_keys]
-            for out, value in zip(outputs, values):
-                out.append(value)
-        for key, blocks in zip(self.out_keys, outputs):
-            tensordict.set(key, torch.cat(blocks))
-        return tensordict
-
-    def _idle(self, observation: Tensor) -> list[Tensor]:
-        """A frozen seed's outputs: zero means and actions, unit scales, zero log-probabilities."""
-        zeros = observation.new_zeros(observation.shape[0], *self.action_shape)
-        return [zeros, torch.ones_like(zeros), zeros.clone(), zeros.new_zeros(zeros.shape[:-1])]
+__all__ = ["MultiAgentGroupTrainer", "SingleSeedMultiAgentTrainer", "team_checkpoint_as_group"]
 
 
 class MultiAgentGroupTrainer(SeedGroupTrainer):
     """Build and run a seed group (``cfg.seeds``) of a multi-agent algorithm; see the module docstring.
 
     Attributes: ``teams`` (one :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` per seed),
-    ``obs_norms`` (grouped normalisers, a row per seed), ``streams`` (each seed's torch RNG state),
-    ``policy``, ``collector``, ``env`` / ``base_env``, ``runs``.
+    ``networks`` (their parameters stacked), ``obs_norms`` (grouped normalisers, a row per seed),
+    ``policy`` (every seed's actor in one call, with each seed's noise generator), ``collector``,
+    ``env`` / ``base_env``, ``runs``.
 
     Args:
         cfg: the group's config (a multi-agent ``algo``, ``seeds`` set; ``num_envs``,
@@ -176,21 +101,20 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
                              stats=EpisodeStats(reward_key=("next", GROUP, "reward"), agent_dim=-2))
                      for seed in self.seeds]
         self.teams: list[MultiAgentTeam] = []
-        states = []
+        generators = []
         for run in self.runs:  # each seed's team from torch.manual_seed(seed), as the group of that seed alone
             seeding.seed_torch(run.seed)
             self.teams.append(MultiAgentTeam.build(self.base_env, run.cfg))
-            states.append(torch.get_rng_state())  # where that run's action noise starts
-        self.streams = SeedStreams(states)
-        action_shape = self.base_env.full_action_spec[GROUP, "action"].shape[-2:]
-        self.policy = SeedBlockPolicy([team.networks.actor for team in self.teams], self.streams, cfg.num_envs,
-                                      action_shape)
+            # where that run's action noise starts: its global RNG's state once its team is built
+            generators.append(torch.Generator().set_state(torch.get_rng_state()))
+        self.networks = StackedMultiAgentNetworks([team.networks for team in self.teams])
+        self.policy = StackedMultiAgentPolicy(self.networks, generators, cfg.num_envs)
         self.collector = RolloutCollector(self.env, self.policy, steps=cfg.steps_per_epoch // cfg.num_envs)
         self._start(checkpoint)
 
     # ------------------------------------------------------------------ seeds and epochs
     def _finite_seeds(self) -> Tensor:
-        return torch.tensor([_finite(list(team.networks.parameters())) for team in self.teams])
+        return self.networks.finite_seeds()
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float] | None], list[bool]]:
         """Each live seed's GAEs and round on its block, one seed after another.
@@ -207,8 +131,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
                 diverged.append(False)
                 continue
             before = _team_state(team)
-            with self.streams.use(index):
-                rows.append(team.learn(block, run.last_mean_cost, self.cfg.actor_lr))
+            rows.append(team.learn(block, run.last_mean_cost, self.cfg.actor_lr))
             bad = not _finite(_team_state(team, copy_=False))
             if bad:
                 team.networks.load_state_dict(before["networks"])
@@ -221,10 +144,9 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         """Seed ``index``'s deterministic evaluation: its actor and normaliser rows, env seed + 10_000."""
         cfg, seed = self.cfg, self.seeds[index]
         norms = [norm.group_copy(index) for norm in self.obs_norms]
-        with self.streams.use(index):
-            return evaluate_policy(cfg.env_id, self.teams[index].networks.actor, cfg.eval_episodes,
-                                   seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norms,
-                                   env_options=cfg.env_options)
+        return evaluate_policy(cfg.env_id, self.teams[index].networks.actor, cfg.eval_episodes,
+                               seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norms,
+                               env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:
@@ -234,7 +156,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
             "networks": team.networks.state_dict(),
             "update": team.policy_update.state_dict(),
             "obs_norms": [norm.group_state_dict(index) for norm in self.obs_norms],
-            "torch_rng": self.streams.states[index].clone(),
+            "torch_rng": self.policy.generators[index].get_state(),
         }
 
     def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
@@ -243,7 +165,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         team.policy_update.load_state_dict(entry["update"])
         for norm, state in zip(self.obs_norms, entry["obs_norms"], strict=True):
             norm.load_group_state_dict(index, state)
-        self.streams.states[index] = entry["torch_rng"].clone()
+        self.policy.generators[index].set_state(entry["torch_rng"])
 
 
 class SingleSeedMultiAgentTrainer(SingleSeedLayout, MultiAgentGroupTrainer):

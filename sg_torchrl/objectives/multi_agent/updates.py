@@ -54,7 +54,7 @@ from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
-from torch import nn, Tensor
+from torch import distributions as D, nn, Tensor
 from torchrl.modules import PopArtValueNorm
 
 from sg_torchrl import seeding
@@ -181,6 +181,7 @@ class MultiAgentUpdate(abc.ABC):
             was updated).
         """
         costs = self._episode_costs(mean_episode_cost)
+        self._policy_now = None
         keys = self._view_keys()
         views = [agent_view(data, i, group=self.group, keys=keys) for i in range(self.n_agents)]
         size = views[0].batch_size[0]
@@ -209,8 +210,12 @@ class MultiAgentUpdate(abc.ABC):
         return value.tolist()
 
     def _log_prob(self, agent: int, view: TensorDictBase) -> Tensor:
+        return self._dist(agent, view).log_prob(view.get("action"))
+
+    def _dist(self, agent: int, view: TensorDictBase) -> D.Distribution:
+        """The agent's policy on its view, as its parameters are now."""
         actor = self.networks.agent_actor(agent)
-        return actor.get_dist(view.select(*actor.in_keys)).log_prob(view.get("action"))
+        return actor.get_dist(view.select(*actor.in_keys))
 
     def _aggregate(self, result: SequentialResult) -> dict[str, float]:
         per_name: dict[str, list[float]] = defaultdict(list)
@@ -312,14 +317,27 @@ class MultiAgentPPOUpdate(MultiAgentUpdate):
         actor = {"params": list(self.networks.agent_actor(agent).parameters()), "lr": self.actor_lr}
         return [actor, *super()._param_groups(agent, critic_lr)]
 
+    #: ``(agent, distribution)``: the agent's policy on its view at its current parameters, last evaluated by
+    #: the sequential update's log-probability before the agent's update or by the KL after its last pass
+    #: (nothing moves the agent in between), read once instead of a second forward pass; ``None`` otherwise.
+    _policy_now: tuple[int, D.Distribution] | None = None
+
+    def _dist(self, agent: int, view: TensorDictBase) -> D.Distribution:
+        cached, self._policy_now = self._policy_now, None
+        if cached is not None and cached[0] == agent:
+            return cached[1]
+        dist = super()._dist(agent, view)
+        self._policy_now = (agent, dist)  # the policy before the agent's update: its epochs' reference
+        return dist
+
     def _update_agent(self, agent: int, view: TensorDictBase, factor: Tensor, episode_cost: float) -> dict[str, float]:
         loss, multiplier = self.losses[agent], self.multipliers[agent]
         if self.weighted:
             view.set(loss.tensor_keys.factor, factor)
-        actor = self.networks.agent_actor(agent)
         with torch.no_grad():
-            old = actor.get_dist(view.select(*actor.in_keys))
+            old = self._dist(agent, view)
             old_loc, old_scale = old.mean, old.stddev
+        self._policy_now = None  # the steps below move the agent
         # the loss has a ``loss_entropy`` output exactly when its entropy bonus is on
         terms = ("loss_objective", "loss_critic", "loss_cost_critic", *(("loss_entropy",) if loss.entropy_bonus else ()))
         after_step = None
@@ -341,10 +359,14 @@ class MultiAgentPPOUpdate(MultiAgentUpdate):
         return metrics
 
     def _kl(self, agent: int, view: TensorDictBase, old_loc: Tensor, old_scale: Tensor) -> float:
-        """Mean KL(old || current) of the agent's policy, summed over action dims (padding adds 0)."""
-        actor = self.networks.agent_actor(agent)
+        """Mean KL(old || current) of the agent's policy, summed over action dims (padding adds 0).
+
+        The policy evaluated is kept for the sequential update's log-probability after the agent's update
+        (the KL runs after every pass, the last one included, and nothing moves the agent after it).
+        """
         with torch.no_grad():
-            new = actor.get_dist(view.select(*actor.in_keys))
+            self._policy_now = None
+            new = self._dist(agent, view)
             return gaussian_kl(old_loc, old_scale, new.mean, new.stddev).mean().item()
 
 

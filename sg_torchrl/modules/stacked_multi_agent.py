@@ -1,0 +1,212 @@
+"""Seed-stacked multi-agent networks: S seeds' teams held in ``(S, A, ...)`` tensors, acting in one call.
+
+A multi-agent seed group (:mod:`sg_torchrl.train.multi_agent_group`) trains S runs of a team whose every
+agent has its own actor, reward critic and cost critic (:class:`~sg_torchrl.modules.MultiAgentNetworks`).
+:class:`StackedMultiAgentNetworks` keeps every parameter of the S teams in one tensor per layer with a
+leading seed and agent dimension: layer ``l`` of the actors is a weight ``(S, A, out, in)`` and a bias
+``(S, A, out)``, the Gaussian heads' ``log_std`` one ``(S, A, Da)`` tensor (an agent with fewer actuators
+leaves its padding slots unused), and likewise for both critics. Each seed's
+:class:`~sg_torchrl.modules.MultiAgentNetworks` (:attr:`StackedMultiAgentNetworks.teams`) stays a module
+of its own whose parameters are **views** of its rows, so what a seed's round or checkpoint does to its
+team is done to the stack, and a seed is still its single-seed run's module (same names, same state dict).
+The teams are built one per seed after ``torch.manual_seed(seed)`` (:func:`sg_torchrl.seeding.seed_torch`),
+so seed ``s`` starts from its single-seed initialisation; :meth:`StackedMultiAgentNetworks.from_teams`
+moves their values into the stack.
+
+:class:`StackedMultiAgentPolicy` is every seed's team actor as the one TensorDict policy of the group's
+batched env: one call per collection step for all ``S * N`` simulators. Seed ``s``'s action noise is
+drawn from its own ``torch.Generator`` (:attr:`StackedMultiAgentPolicy.generators`) with the shape and in
+the order its single-seed run draws from the global RNG (``IndependentNormal.rsample``:
+``empty((N, A, Da)).normal_()``), started from the state that run's global RNG has after its networks
+are built, so the numbers are the same. Everything but the matrix products is computed on the
+stacked ``(S, N, A, Da)`` tensors at once, with the formulas of the per-agent modules (``masked_fill``
+of the padding, the head's ``sigmoid`` scale, ``Normal.log_prob`` summed over action dims).
+
+**Why the matrix products go slice by slice.** Each ``(seed, agent)`` layer is applied with
+``torch.addmm`` on its slice, the call ``nn.Linear`` makes in the per-agent module. A batched
+``torch.baddbmm`` over the ``S * A`` slices rounds differently for small layers (measured on the
+2-core CPU kind: 16-unit layers at 2 samples, 1 or 3 outputs at 1 sample, about 1e-7 apart), and a run
+must stay its single-seed run and the recorded golden numbers bit for bit; the simulators are chaotic,
+so 1e-7 in an action becomes a different trajectory. The loop is the few ``addmm`` calls per layer; the
+TensorDict plumbing, distribution and random-state work it replaces was the per-seed cost.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn, Tensor
+
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks
+
+__all__ = ["StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
+
+#: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
+NETWORKS = ("policy", "reward_value", "cost_value")
+_HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def _linear_layers(net: nn.Module) -> list[nn.Linear]:
+    return [module for module in net.modules() if isinstance(module, nn.Linear)]
+
+
+def _stack_into(params: Sequence[Sequence[nn.Parameter]], pad_to: int | None = None) -> Tensor:
+    """One ``(S, A, *shape)`` tensor holding ``params[s][a]``; each parameter becomes a view of its row.
+
+    ``pad_to``: the last dim of the stack when the agents' parameters differ in length there (``log_std``);
+    the parameter is then a view of its first slots, the rest stays zero.
+    """
+    first = params[0][0]
+    shape = (*first.shape[:-1], pad_to) if pad_to is not None else tuple(first.shape)
+    stack = first.new_zeros(len(params), len(params[0]), *shape)
+    with torch.no_grad():
+        for s, row in enumerate(params):
+            for a, param in enumerate(row):
+                view = stack[s, a] if pad_to is None else stack[s, a, ..., : param.shape[-1]]
+                if view.shape != param.shape:
+                    raise ValueError(f"seed {s} agent {a}: parameter of shape {tuple(param.shape)}, the others "
+                                     f"{tuple(view.shape)}")
+                view.copy_(param)
+                param.data = view  # the same Parameter (optimisers keep it), now a view of the stack
+    return stack
+
+
+class StackedMultiAgentNetworks:
+    """S seeds' team networks in ``(S, A, ...)`` tensors; see the module docstring.
+
+    Attributes:
+        teams: seed ``s``'s :class:`~sg_torchrl.modules.MultiAgentNetworks`, its parameters views of the stack.
+        weights, biases: per network of :data:`NETWORKS`, per ``Linear`` layer, ``(S, A, out, in)`` and
+            ``(S, A, out)``.
+        log_std: ``(S, A, Da)``, the actors' heads (padding slots unused).
+    """
+
+    def __init__(self, teams: Sequence[MultiAgentNetworks]) -> None:
+        if not teams:
+            raise ValueError("StackedMultiAgentNetworks needs at least one team")
+        sizes = {team.action_sizes for team in teams}
+        if len(sizes) != 1:
+            raise ValueError(f"the teams differ in their agents' action sizes: {sorted(sizes)}")
+        self.teams = list(teams)
+        self.weights: dict[str, list[Tensor]] = {}
+        self.biases: dict[str, list[Tensor]] = {}
+        for name in NETWORKS:
+            layers = [[_linear_layers(net) for net in getattr(team, name).mlp.agent_networks] for team in teams]
+            depth = len(layers[0][0])
+            self.weights[name] = [_stack_into([[agent[l].weight for agent in seed] for seed in layers])
+                                  for l in range(depth)]
+            self.biases[name] = [_stack_into([[agent[l].bias for agent in seed] for seed in layers])
+                                 for l in range(depth)]
+        heads = [team.policy.heads for team in teams]
+        self.log_std = _stack_into([[head.log_std for head in seed] for seed in heads],
+                                   pad_to=max(teams[0].action_sizes))
+        head = heads[0][0]
+        self.std_x_coef, self.std_y_coef = head.std_x_coef, head.std_y_coef
+        self.mask = teams[0].policy.mask  # (A, Da): True on each agent's real action slots
+        # (bias, weight.t()) views of every actor layer per seed and agent, taken once (the stacks stay in place)
+        policy = list(zip(self.biases["policy"], self.weights["policy"]))
+        self._actor_layers = [[[(bias[s, a], weight[s, a].t()) for bias, weight in policy]
+                               for a in range(self.n_agents)] for s in range(self.num_seeds)]
+
+    @property
+    def num_seeds(self) -> int:
+        return len(self.teams)
+
+    @property
+    def n_agents(self) -> int:
+        return self.teams[0].n_agents
+
+    def tensors(self) -> list[Tensor]:
+        """Every stacked tensor (each seed's parameters are its rows)."""
+        return [*(t for name in NETWORKS for t in (*self.weights[name], *self.biases[name])), self.log_std]
+
+    @torch.no_grad()
+    def finite_seeds(self) -> Tensor:
+        """``(S,)`` bool: which seeds' parameters are all finite (one check per stacked tensor)."""
+        finite = torch.ones(self.num_seeds, dtype=torch.bool)
+        for tensor in self.tensors():
+            finite &= torch.isfinite(tensor.reshape(self.num_seeds, -1)).all(1)
+        return finite
+
+    @torch.no_grad()
+    def actor_loc(self, observation: Tensor, seeds: Sequence[int]) -> Tensor:
+        """The actors' means of the seeds ``seeds``: ``observation`` ``(S, N, A, D)`` to ``(S, N, A, Da)``.
+
+        Seed ``s``'s agent ``a`` reads ``observation[s, :, a]``; rows of seeds not in ``seeds`` are zeros.
+        Padding slots are 0. Bit for bit the per-agent module's output (see the module docstring).
+        """
+        num, n, agents = observation.shape[0], observation.shape[1], observation.shape[2]
+        out = observation.new_zeros(num, agents, n, self.weights["policy"][-1].shape[-2])
+        outputs = out.unbind(0)
+        for s in seeds:
+            for x, layers, result in zip(observation[s].unbind(1), self._actor_layers[s], outputs[s].unbind(0)):
+                for bias, weight_t in layers[:-1]:
+                    x = torch.addmm(bias, x, weight_t).relu_()
+                bias, weight_t = layers[-1]
+                torch.addmm(bias, x, weight_t, out=result)
+        return out.transpose(1, 2).masked_fill(~self.mask, 0.0)
+
+    @torch.no_grad()
+    def actor_scale(self) -> Tensor:
+        """The heads' scales, ``(S, 1, A, Da)``: :math:`\\mathrm{sigmoid}(\\ell / x)\\, y`, 1 on padding slots."""
+        std = torch.sigmoid(self.log_std / self.std_x_coef) * self.std_y_coef
+        return torch.where(self.mask, std, 1.0).unsqueeze(1)
+
+
+class StackedMultiAgentPolicy(TensorDictModuleBase):
+    """Every seed's team actor as one TensorDict policy of the group's batched env (what the collector calls).
+
+    Reads ``(group, "observation")`` of the ``S * N`` simulators (seed ``s``'s the ``s``-th block of
+    ``num_envs``) and writes ``(group, "loc" | "scale" | "action" | "action_log_prob")``, seed ``s``'s noise
+    from ``generators[s]`` (see the module docstring). Seeds in :attr:`frozen` act with zeros (``loc`` 0,
+    ``scale`` 1, action 0, log-probability 0), draw no noise and are not computed: a diverged seed's
+    actions may not be finite, which the env refuses.
+
+    Args:
+        networks: the seeds' stacked teams.
+        generators: one per seed, each at the state its seed's global RNG has after its team is built.
+        num_envs: simulators per seed.
+        group: the agents' group key.
+    """
+
+    def __init__(self, networks: StackedMultiAgentNetworks, generators: Sequence[torch.Generator], num_envs: int,
+                 group: str = "agents") -> None:
+        super().__init__()
+        if len(generators) != networks.num_seeds:
+            raise ValueError(f"expected {networks.num_seeds} generators (one per seed), got {len(generators)}")
+        self.networks = networks
+        self.generators = list(generators)
+        self.num_envs = int(num_envs)
+        self.in_keys = [(group, "observation")]
+        self.out_keys = [(group, name) for name in ("loc", "scale", "action", "action_log_prob")]
+        #: ``(S,)`` bool of the seeds acting with zeros, or ``None`` when every seed acts.
+        self.frozen: Tensor | None = None
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observation = tensordict.get(self.in_keys[0])
+        seeds = self.networks.num_seeds
+        observation = observation.reshape(seeds, self.num_envs, *observation.shape[1:])
+        live = list(range(seeds)) if self.frozen is None else [s for s in range(seeds) if not bool(self.frozen[s])]
+        loc = self.networks.actor_loc(observation, live)
+        scale = self.networks.actor_scale().expand_as(loc)
+        idle = None
+        if len(live) < seeds:
+            idle = torch.ones(seeds, dtype=torch.bool)
+            idle[live] = False
+            scale = torch.where(idle.view(-1, 1, 1, 1), 1.0, scale)
+        shape = loc.shape[1:]
+        noise = torch.stack([torch.empty(shape, dtype=loc.dtype).normal_(generator=self.generators[s])
+                             if s in live else loc.new_zeros(shape) for s in range(seeds)])
+        action = loc + noise * scale  # Normal.rsample: loc + eps * scale
+        # Normal.log_prob, summed over the action dims (Independent)
+        log_prob = (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI).sum(-1)
+        if idle is not None:
+            log_prob = torch.where(idle.view(-1, 1, 1), 0.0, log_prob)
+        for key, value in zip(self.out_keys, (loc, scale, action, log_prob)):
+            tensordict.set(key, value.reshape(-1, *value.shape[2:]))
+        return tensordict
