@@ -43,6 +43,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from sg_torchrl.envs.base import reject_complex_action
+from sg_torchrl.envs.step_hooks import numpy_faced
 
 __all__ = ["GROUP", "AgentGroupMixin", "JointVectorAgentsMixin", "agent_column", "root_column"]
 
@@ -206,6 +207,7 @@ class AgentGroupMixin(abc.ABC):
         return self.robot_control(action)
 
     # ------------------------------------------------------------------ TorchRL hooks
+    @numpy_faced("agent_group")
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._validated_action(tensordict.get((GROUP, "action"), None))
         return self._pack(*self._transition_arrays(action))

@@ -18,11 +18,11 @@ import mujoco
 import numpy as np
 import torch
 
-from sg_torchrl.envs.backends import Backend, make_physics
+from sg_torchrl.envs.backends import Backend, SimulatorOptions, make_physics
 from sg_torchrl.envs.base import FLOAT32_MAX, CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
-from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
+from sg_torchrl.envs.step_hooks import step_hook
 from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
 
 __all__ = ["INFO_TERMS", "VelocityEnv", "normalize_quaternions", "quaternion_addresses"]
@@ -86,12 +86,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         planar_cost: override the version's velocity measure: ``True`` prices the planar speed
             ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
             velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
-        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
-            2 pays when a core is idle, see its module docstring; ``backend="cpu"`` only).
-        backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
-            see :mod:`sg_torchrl.envs.backends`.
-        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
-        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
+        physics_threads, backend, warp_device, warp_options: how the simulators run, the fields of
+            :class:`~sg_torchrl.envs.options.SimulatorOptions` (:attr:`simulator_options`).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. Diagnostics of the last step:
@@ -119,6 +115,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         warp_options: dict[str, Any] | None = None,
     ) -> None:
         check_num_envs(num_envs)  # before MujocoBatch, for this message
+        #: how the simulators run (built from the four simulator keywords)
+        self.simulator_options = SimulatorOptions(physics_threads, backend, warp_device, warp_options)
         if robot not in ROBOTS:
             raise ValueError(f"unknown velocity robot {robot!r}; choose from {sorted(ROBOTS)}")
         spec: LocomotionRobot = ROBOTS[robot]
@@ -130,16 +128,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         if not np.isfinite(self.velocity_threshold):  # NaN compares false with every speed: the cost never fires
             raise ValueError(f"velocity_threshold must be a finite number, got {velocity_threshold!r}")
         position_field = {"qpos": (), "torso": ("xpos",), "mass_center": ("xipos",)}[spec.position_source]
-        self.physics = make_physics(
-            backend,
-            load_model(spec.xml_file),
-            num_envs,
-            post_constraint="cfrc_ext" in spec.extra_observations,
-            fields=position_field + spec.extra_observations,
-            threads=physics_threads,
-            warp_device=warp_device,
-            warp_options=warp_options,
-        )
+        self.physics = make_physics(load_model(spec.xml_file), num_envs, self.simulator_options,
+                                    post_constraint="cfrc_ext" in spec.extra_observations,
+                                    fields=position_field + spec.extra_observations)
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
         self._quaternions = quaternion_addresses(model)
@@ -209,6 +200,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         normalize_quaternions(qpos, self._quaternions)
         self.physics.reset(indices, qpos, qvel)
 
+    @step_hook
     def _position(self) -> np.ndarray:
         """The position whose finite difference is the robot's velocity, ``(N, 1 or 2)``."""
         width = 2 if self.robot.planar else 1
@@ -306,20 +298,16 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         return ~health(self.physics.qpos(), self.physics.qvel())
 
     # ------------------------------------------------------------------ one simulator (gymnasium façade)
-    # The hooks whose work :meth:`step_one`'s own path does: a subclass overriding one steps through SafeEnv's.
-    _SINGLE_HOOKS = ("_before_step", "_advance", "_observe", "_compute_reward", "_compute_cost",
-                     "_compute_terminated", "_transition_arrays", "_fault_free", "_aggregate_cost",
-                     "_single_outputs", "_position")
 
     def _single_plan(self) -> tuple | None:
         """What :meth:`step_one`'s own path reads, taken once (views of the buffers and of the one
-        ``MjData``), or ``None`` where it does not apply: more than one simulator, another backend,
-        a position other than joint ``qpos`` (Ant, Humanoid) or extra observation fields, or hooks
-        that a subclass overrides."""
+        ``MjData``), or ``None`` where it does not apply: more than one simulator, a backend without the
+        aliased single step, a position other than joint ``qpos`` (Ant, Humanoid) or extra observation
+        fields, or step hooks that a subclass redefines (:mod:`sg_torchrl.envs.step_hooks`)."""
         physics, robot = self.physics, self.robot
-        if (self.num_envs != 1 or not isinstance(physics, MujocoBatch) or not physics.aliased
+        if (self.num_envs != 1 or not physics.supports_aliased_single_step
                 or robot.position_source != "qpos" or robot.extra_observations
-                or any(getattr(type(self), name) is not getattr(VelocityEnv, name) for name in self._SINGLE_HOOKS)):
+                or type(self).hooks_overridden_since(VelocityEnv)):
             return None
         qpos_part, qvel_part, _ = self._parts
         qvel_clip = None
