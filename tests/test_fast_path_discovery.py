@@ -41,15 +41,15 @@ class OwnStep(VelocityEnv):
 
 
 def test_navigation_subclass_redefining_a_hook_gets_no_fast_path():
-    assert SingleNavigationStep.of(NavigationEnv("Point", "Goal", 1)) is not None
+    assert SingleNavigationStep.of(NavigationEnv("Point", "Goal", 1), NavigationEnv) is not None
     assert ObserveTwice.hooks_overridden_since(NavigationEnv) == {"_observe"}
-    assert SingleNavigationStep.of(ObserveTwice("Point", "Goal", 1)) is None
-    assert SingleNavigationStep.of(ObservedGrandchild("Point", "Goal", 1)) is None  # inherited redefinition
+    assert SingleNavigationStep.of(ObserveTwice("Point", "Goal", 1), NavigationEnv) is None
+    assert SingleNavigationStep.of(ObservedGrandchild("Point", "Goal", 1), NavigationEnv) is None  # inherited redefinition
 
 
 def test_a_method_that_is_not_a_hook_keeps_the_fast_path():
     assert Renamed.hooks_overridden_since(NavigationEnv) == frozenset()
-    assert SingleNavigationStep.of(Renamed("Point", "Goal", 1)) is not None
+    assert SingleNavigationStep.of(Renamed("Point", "Goal", 1), NavigationEnv) is not None
 
 
 def test_velocity_subclass_redefining_its_own_hook_gets_no_fast_path():
@@ -108,5 +108,5 @@ def test_hooks_marked_in_a_new_class_are_discovered():
 
 
 def test_registered_envs_keep_their_fast_paths():
-    assert SingleNavigationStep.of(sg_torchrl.make("SafetyCarButton1-v0")) is not None
+    assert SingleNavigationStep.of(sg_torchrl.make("SafetyCarButton1-v0"), NavigationEnv) is not None
     assert sg_torchrl.make("SafetyHopperVelocity-v1")._single_plan() is not None

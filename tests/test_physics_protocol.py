@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import sg_torchrl
+from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.single import SingleNavigationStep
 from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.physics_protocol import PhysicsBatch
@@ -57,9 +58,9 @@ def test_warp_batch_keeps_the_protocol_defaults_for_the_single_step():
 def test_fast_paths_follow_the_capability_not_the_class(monkeypatch):
     """An env on a physics without the capability steps through SafeEnv's path, with the same values."""
     nav = sg_torchrl.make("SafetyPointGoal1-v0", seed=3)
-    assert SingleNavigationStep.of(nav) is not None
+    assert SingleNavigationStep.of(nav, NavigationEnv) is not None
     monkeypatch.setattr(MujocoBatch, "supports_aliased_single_step", property(lambda self: False))
-    assert SingleNavigationStep.of(nav) is None
+    assert SingleNavigationStep.of(nav, NavigationEnv) is None
     velocity = sg_torchrl.make("SafetyHalfCheetahVelocity-v1", seed=3)
     assert velocity._single_plan() is None
 

@@ -167,8 +167,8 @@ CONSTRUCTOR_OPTIONS: dict[str, dict[str, Option]] = {
         "compass": Option(bool),
         "physics_threads": _COUNT,
     },
-    "sg_torchrl.dexhands.env:ShadowHandEnv": _SHADOW_HAND,
-    "sg_torchrl.dexhands.multi_agent:MultiAgentShadowHandEnv": _SHADOW_HAND,
+    "sg_torchrl.envs.hands.env:ShadowHandEnv": _SHADOW_HAND,
+    "sg_torchrl.envs.hands.multi_agent:MultiAgentShadowHandEnv": _SHADOW_HAND,
 }
 
 #: Constructor parameters that are ``make``'s own arguments, never options.

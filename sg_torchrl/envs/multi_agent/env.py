@@ -41,7 +41,7 @@ import torch
 
 from sg_torchrl.envs.backends import Backend
 from sg_torchrl.envs.base import CostMode
-from sg_torchrl.envs.multi_agent.group import GROUP, AgentGroupMixin, agent_column, root_column
+from sg_torchrl.envs.agent_group import GROUP, AgentGroupMixin, agent_column, root_column
 from sg_torchrl.envs.multi_agent.layout import AgentLayout, agent_layout
 from sg_torchrl.envs.multi_agent.partitions import Scenario, scenario_of
 from sg_torchrl.envs.velocity.env import VelocityEnv

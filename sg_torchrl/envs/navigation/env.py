@@ -218,7 +218,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             self._declare_pixels()
         self.task.bind(self)
         #: the one-simulator step of :meth:`step_one` (``None``: SafeEnv's, see :mod:`.single`)
-        self._single = SingleNavigationStep.of(self)
+        self._single = SingleNavigationStep.of(self, NavigationEnv)
 
     def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>`, through

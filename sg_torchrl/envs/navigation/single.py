@@ -75,11 +75,11 @@ class SingleNavigationStep:
         self._row = env._observation[0]  # the one simulator's observation row (NavigationEnv._observe's buffer)
 
     @classmethod
-    def of(cls, env: NavigationEnv) -> SingleNavigationStep | None:
-        from sg_torchrl.envs.navigation.env import NavigationEnv
-
+    def of(cls, env: NavigationEnv, written_for: type[NavigationEnv]) -> SingleNavigationStep | None:
+        """This step for ``env``, or ``None`` where it does not apply; ``written_for`` is the env class whose
+        hooks it reproduces (:class:`~sg_torchrl.envs.navigation.env.NavigationEnv`, which passes itself)."""
         if (env.num_envs != 1 or len(env.robots) != 1 or env.vision is not None
-                or not env.physics.supports_aliased_single_step or type(env).hooks_overridden_since(NavigationEnv)):
+                or not env.physics.supports_aliased_single_step or type(env).hooks_overridden_since(written_for)):
             return None
         return cls(env)
 

@@ -23,7 +23,8 @@ from sg_torchrl.envs.base import FLOAT32_MAX, CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
 from sg_torchrl.envs.step_hooks import step_hook
-from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
+from sg_torchrl.envs.velocity.robots import (ROBOTS, LocomotionRobot, load_model, normalize_quaternions,
+                                             quaternion_addresses)
 
 __all__ = ["INFO_TERMS", "VelocityEnv", "normalize_quaternions", "quaternion_addresses"]
 
@@ -46,33 +47,6 @@ INFO_TERMS: dict[str, str] = {
     "reward_alive": "healthy reward (Humanoid)",
 }
 _FORWARD = ("forward_reward", "reward_run", "reward_fwd", "reward_forward", "reward_linvel")
-
-
-def quaternion_addresses(model: mujoco.MjModel) -> np.ndarray:
-    """Where each free or ball joint's quaternion starts in ``qpos``, ``(K,)`` (empty for planar robots)."""
-    free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
-    kinds = model.jnt_type.astype(int)
-    starts = [int(model.jnt_qposadr[j]) + (3 if kinds[j] == free else 0)
-              for j in range(model.njnt) if kinds[j] in (free, ball)]
-    return np.asarray(starts, dtype=np.int64)
-
-
-def normalize_quaternions(qpos: np.ndarray, starts: np.ndarray) -> None:
-    """Scale the quaternions of ``qpos`` (``(N, nq)``, in place) starting at ``starts`` to unit length.
-
-    Why: gymnasium's v4 ``reset_model`` adds uniform noise to every ``qpos`` entry, the torso
-    quaternion included, and MuJoCo 2.3.3 (what Safety-Gymnasium 1.0.0 runs on) normalised
-    quaternions inside ``qpos`` during ``mj_forward``, so the original's first observation holds a
-    unit quaternion ``q / |q|`` (checked against safety-gymnasium 1.0.0: norm 1 to 1e-16 over 200
-    seeds, the other coordinates untouched). Current MuJoCo normalises only a copy, so we do it
-    here. A quaternion of (near) zero length becomes the identity, as MuJoCo's ``mju_normalize4``.
-    """
-    for start in starts:
-        quat = qpos[:, start : start + 4]
-        norm = np.linalg.norm(quat, axis=1, keepdims=True)
-        tiny = norm[:, 0] < 1e-15
-        quat /= np.where(norm < 1e-15, 1.0, norm)
-        quat[tiny] = (1.0, 0.0, 0.0, 0.0)
 
 
 class VelocityEnv(RenderMixin, MujocoSafeEnv):

@@ -1,9 +1,9 @@
 """``ShadowHand{Over,CatchOver2Underarm}{SafeJoint,SafeFinger}-v0``: pass a ball between two Shadow Hands, safely.
 
 Safety-Gymnasium paper, section 4.4 ("Safe Isaac Gym"): the Isaac Gym tasks ShadowHandOver and
-ShadowHandCatchOver2Underarm (:mod:`sg_torchrl.dexhands.tasks`), with a constraint on the
-forefinger (:mod:`sg_torchrl.dexhands.constraints`), rebuilt on MuJoCo with ``N`` simulators
-sharing one compiled two-hand model per task (:mod:`sg_torchrl.dexhands.scene`). Model
+ShadowHandCatchOver2Underarm (:mod:`sg_torchrl.envs.hands.tasks`), with a constraint on the
+forefinger (:mod:`sg_torchrl.envs.hands.constraints`), rebuilt on MuJoCo with ``N`` simulators
+sharing one compiled two-hand model per task (:mod:`sg_torchrl.envs.hands.scene`). Model
 derived from gymnasium-robotics' Shadow Hand assets (Apache-2.0, (C) Vikash Kumar, CSE, UW; see
 ``NOTICE`` in this package).
 
@@ -56,10 +56,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from sg_torchrl.dexhands.constraints import SAFETY_VARIANTS, CostSource, JointRangeConstraint
-from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
-from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
-from sg_torchrl.dexhands.tasks import TASKS
+from sg_torchrl.envs.hands.constraints import SAFETY_VARIANTS, CostSource, JointRangeConstraint
+from sg_torchrl.envs.hands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
+from sg_torchrl.envs.hands.scene import FINGERTIPS, HandLayout, build_scene
+from sg_torchrl.envs.hands.tasks import TASKS
 from sg_torchrl.envs.backends import Backend, SimulatorOptions, make_physics
 from sg_torchrl.envs.base import CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
@@ -80,10 +80,10 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
     """Two Shadow Hands pass a ball from one to the other under a forefinger constraint.
 
     Args:
-        task: a key of :data:`~sg_torchrl.dexhands.tasks.TASKS` (``"HandOver"``, ``"CatchOver2Underarm"``).
-        safety: ``"SafeJoint"`` or ``"SafeFinger"`` (:data:`~sg_torchrl.dexhands.constraints.SAFETY_VARIANTS`).
+        task: a key of :data:`~sg_torchrl.envs.hands.tasks.TASKS` (``"HandOver"``, ``"CatchOver2Underarm"``).
+        safety: ``"SafeJoint"`` or ``"SafeFinger"`` (:data:`~sg_torchrl.envs.hands.constraints.SAFETY_VARIANTS`).
         cost_source: ``"joints"`` (default: measured joint angles) or ``"actions"`` (the original
-            code's normalised actions); see :mod:`sg_torchrl.dexhands.constraints`.
+            code's normalised actions); see :mod:`sg_torchrl.envs.hands.constraints`.
         distance_scale: ``alpha`` of the reward.
         fall_height: the episode terminates when the ball's centre is below this height (m);
             default: the task's.

@@ -7,7 +7,8 @@ controls, partial resets asked per agent, and packing the step's numpy arrays in
 The envs supply what differs: the per-agent arrays (:meth:`AgentGroupMixin._output_arrays`), the
 sizes and the action slots. Users: :class:`~sg_torchrl.envs.multi_agent.MultiAgentVelocityEnv`
 (MaMuJoCo partitions of one robot) and :class:`~sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv`
-(several robots in one navigation world).
+(several robots in one navigation world) and :class:`~sg_torchrl.envs.hands.MultiAgentShadowHandEnv` (one agent
+per hand), which is why it sits beside :mod:`~sg_torchrl.envs.base` rather than in one family's package.
 
 TensorDict layout (``N`` simulators, ``A`` agents ``agent_0 .. agent_{A-1}``, ``D`` / ``Da`` the
 largest agent's observation / action size):
