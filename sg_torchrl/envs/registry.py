@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 __all__ = [
     "EnvEntry", "EnvOptionTypeError", "InvalidEnvOptionError", "MULTI_AGENT_FAMILIES", "UnknownEnvError",
     "UnknownEnvOptionError", "VISION_FAMILY", "command_line_env_options", "env_option_types", "env_options",
-    "list_envs", "make", "register", "registry_entry", "validate_env_options",
+    "list_envs", "make", "register", "registry_entry", "unregister", "validate_env_options",
 ]
 
 #: The family of the ``...Vision-v0`` ids: navigation tasks observed through the robot's camera.
@@ -140,6 +140,12 @@ def register(entry: EnvEntry) -> None:
     if entry.env_id in _REGISTRY:
         raise ValueError(f"env id {entry.env_id!r} is already registered")
     _REGISTRY[entry.env_id] = entry
+
+
+def unregister(env_id: str) -> EnvEntry:
+    """Remove a registered id (a user's, to register it again with other settings); returns its entry."""
+    registry_entry(env_id)  # an unknown id: UnknownEnvError with the closest ids
+    return _REGISTRY.pop(env_id)
 
 
 def registry_entry(env_id: str) -> EnvEntry:

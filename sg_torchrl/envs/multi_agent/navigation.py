@@ -59,7 +59,7 @@ class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
 
     Args:
         robot: the robot of every agent, a key of :data:`~sg_torchrl.envs.navigation.robots.ROBOTS`.
-        task: a multi-agent task of :data:`~sg_torchrl.envs.navigation.tasks.MULTI_AGENT_TASKS`
+        task: a multi-agent task of :data:`~sg_torchrl.envs.navigation.levels.MULTI_AGENT_TASKS`
             (``"MultiGoal"``) or a fresh task instance.
         level: the task level (0, 1, 2).
         agent_view: ``"joint"`` (default, the reference's: every agent observes the joint vector) or
