@@ -38,4 +38,5 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--total-steps", type=int, default=20_000)
     metrics = train(parser.parse_args().total_steps)
-    print(f"EpRet {metrics.get('Metrics/EpRet', float('nan')):.2f}  EpCost {metrics.get('Metrics/EpCost', float('nan')):.2f}")
+    nan = float("nan")
+    print(f"EpRet {metrics.get('Metrics/EpRet', nan):.2f}  EpCost {metrics.get('Metrics/EpCost', nan):.2f}")
