@@ -16,7 +16,10 @@ from sg_torchrl.envs import list_envs, make
 from sg_torchrl.gym_registration import register_when_gymnasium_loads
 
 __version__ = "0.1.0"
-__all__ = ["make", "list_envs", "load_policy", "__version__"]
+__all__ = ["make", "list_envs", "load_policy", "register_cost_env", "register_task", "TaskSpec", "__version__"]
+
+#: Names of :mod:`sg_torchrl.tasks` (users' own tasks), imported on first use: it loads the simulation stack.
+_TASK_API = frozenset({"register_cost_env", "register_task", "TaskSpec"})
 
 
 def load_policy(run_dir, seed=None, device="cpu"):
@@ -25,6 +28,14 @@ def load_policy(run_dir, seed=None, device="cpu"):
     from sg_torchrl.evaluation.policy import load_policy as load
 
     return load(run_dir, seed=seed, device=device)
+
+
+def __getattr__(name: str):
+    if name in _TASK_API:
+        from sg_torchrl import tasks
+
+        return getattr(tasks, name)
+    raise AttributeError(f"module 'sg_torchrl' has no attribute {name!r}")
 
 # gymnasium.make / torchrl's GymEnv find the ids (and their "...Gymnasium-v<k>" twins) from here on.
 register_when_gymnasium_loads()

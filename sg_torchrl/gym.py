@@ -78,7 +78,7 @@ a 6-tuple env fails with "too many values to unpack"). Hence:
 
 Speed
 -----
-For a plain :class:`~sg_torchrl.envs.base.SafeEnv` the step runs the env's public numpy interface
+For a :class:`~sg_torchrl.envs.base.SafeEnv` whose ``_step`` is SafeEnv's own the step runs the env's public numpy interface
 (:meth:`~sg_torchrl.envs.base.SafeEnv.step_one`: the body of its TorchRL step without building
 TensorDicts, on Python values), several times cheaper than ``env.step(td)`` on one simulator
 (``benchmarks/single_env_speed.py`` sets it beside bare MuJoCo and Safety-Gymnasium 1.0.0); envs
@@ -98,7 +98,6 @@ import torch
 from gymnasium import spaces
 from tensordict import TensorDict
 
-from sg_torchrl.envs.base import SafeEnv
 from sg_torchrl.envs.info import numpy_scalar_info
 from sg_torchrl.envs.vision.layout import DictLayout
 from sg_torchrl.envs.registry import env_options, list_envs, registry_entry
@@ -236,10 +235,11 @@ class SafetyGymnasiumEnv(SimulatorFacade, gymnasium.Env):
         self._info_keys = tuple(f"cost_{name}" for name in self._constraints)
         # Gymnasium's info terms (x_velocity, reward_ctrl, ...) where the env reports them (velocity ids).
         self._step_info = getattr(env, "step_info", None)
-        # Numpy fast path: only where the step is SafeEnv's own, so every hook it calls is the one
-        # SafeEnv._step would call. Anything else goes through the public TorchRL step.
-        # Pixel observations are emitted by the TorchRL step only.
-        self._fast = isinstance(env, SafeEnv) and type(env)._step is SafeEnv._step and not self._pixels
+        # Numpy fast path: only where the env's _step is marked as the one its flat numpy interface
+        # reproduces (sg_torchrl.envs.step_hooks), so every hook it calls is the one the TorchRL step would
+        # call. Anything else goes through the public TorchRL step. Pixel observations are emitted by the
+        # TorchRL step only.
+        self._fast = getattr(env, "numpy_step_interface", None) == "flat" and not self._pixels
         self._needs_reset = True
         self._closed = False
 

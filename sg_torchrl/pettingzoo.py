@@ -48,7 +48,7 @@ For the envs built on :class:`~sg_torchrl.envs.multi_agent.AgentGroupMixin` (eve
 multi-agent env) the step runs the env's public numpy interface (``robot_control``,
 :meth:`~sg_torchrl.envs.base.SafeEnv.step_arrays`, ``output_arrays``: the mixin's TorchRL step
 without building TensorDicts), as the gymnasium façade does; other multi-agent envs (or subclasses
-that override ``_step``) go through the public TorchRL ``step``. Both give identical data.
+that override ``_step`` without marking it, :mod:`sg_torchrl.envs.step_hooks`) go through the public TorchRL ``step``. Both give identical data.
 """
 
 from __future__ import annotations
@@ -62,7 +62,6 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from sg_torchrl.envs.multi_agent import GROUP as _GROUP
-from sg_torchrl.envs.multi_agent import AgentGroupMixin
 from sg_torchrl.envs.registry import registry_entry
 from sg_torchrl.envs.registry import make as make_torchrl_env
 from sg_torchrl.facade import SimulatorFacade
@@ -131,8 +130,8 @@ class SafeParallelEnv(SimulatorFacade, pettingzoo.ParallelEnv):
         self._action_buffer = np.zeros(tuple(env.full_action_spec[_GROUP, "action"].shape), dtype=np.float32)
         self._constraints = tuple(env.observation_spec["cost_info"].keys())
         self._state = np.zeros(env.state_dim)
-        # Numpy fast path only where the step is AgentGroupMixin's own (see the module docstring).
-        self._fast = isinstance(env, AgentGroupMixin) and type(env)._step is AgentGroupMixin._step
+        # Numpy fast path only where the env's _step is marked as its agent-group numpy interface's (module docstring).
+        self._fast = getattr(env, "numpy_step_interface", None) == "agent_group"
         self._closed = False
 
     # ------------------------------------------------------------------ properties

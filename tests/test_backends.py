@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from sg_torchrl.envs import make
-from sg_torchrl.envs.backends import make_physics
+from sg_torchrl.envs.backends import SimulatorOptions, make_physics
 from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.registry import env_options
 from sg_torchrl.envs.velocity.robots import load_model
@@ -56,4 +56,4 @@ def test_warp_without_mujoco_warp_says_how_to_install_it(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install 'sg_torchrl\[warp\]'"):
         make("SafetyHalfCheetahVelocity-v1", num_envs=2, backend="warp")
     with pytest.raises(ImportError, match=r"sg_torchrl\[warp\]"):
-        make_physics("warp", load_model("half_cheetah.xml"), 2)
+        make_physics(load_model("half_cheetah.xml"), 2, SimulatorOptions(backend="warp"))

@@ -18,7 +18,7 @@ from sg_torchrl.envs import registry_entry
 from sg_torchrl.envs.navigation import NavigationEnv
 from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins
 from sg_torchrl.envs.navigation.scenery import ConstructionSite, Prop, Village
-from sg_torchrl.envs.navigation.tasks import make_task
+from sg_torchrl.envs.navigation.levels import make_task
 from sg_torchrl.envs.navigation.tasks.formula_one import NUM_CHECKPOINTS
 
 from layout_checks import assert_layouts_respect_keepouts

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import sg_torchrl
-from sg_torchrl.envs import physics as physics_module
+from sg_torchrl.envs import contacts as contacts_module
 from sg_torchrl.envs.navigation.objects import Buttons, Gremlins
 
 
@@ -57,7 +57,7 @@ def test_contact_counts_one_equal_the_array_form(env_id, monkeypatch):
         assert all(type(value) is float for value in counts.values())
         touched += any(geom != floor for geom in counts)  # a contact besides the floor
         with monkeypatch.context() as patch:  # the (N, ngeom) bincount path, whatever the number of contacts
-            patch.setattr(physics_module, "_FEW_CONTACTS", 0)
+            patch.setattr(contacts_module, "_FEW_CONTACTS", 0)
             assert env.physics.contact_counts(scene.robot_geoms)[0].tobytes() == scene.robot_contacts()[0].tobytes()
     assert touched > 20
 

@@ -1,4 +1,4 @@
-"""Shadow-Hand safety tasks (sg_torchrl.dexhands): scene, sizes, costs per variant and source, reward, seeding."""
+"""Shadow-Hand safety tasks (sg_torchrl.envs.hands): scene, sizes, costs per variant and source, reward, seeding."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import torch
 from tensordict import TensorDict
 
 import sg_torchrl
-from sg_torchrl.dexhands import PAPER_JOINTS, SAFETY_VARIANTS, ShadowHandEnv, build_scene
-from sg_torchrl.dexhands.rotations import quat_multiply, rotation_distance
-from sg_torchrl.dexhands.scene import hand_assets_dir
+from sg_torchrl.envs.hands import PAPER_JOINTS, SAFETY_VARIANTS, ShadowHandEnv, build_scene
+from sg_torchrl.envs.hands.rotations import quat_multiply, rotation_distance
+from sg_torchrl.envs.hands.scene import hand_assets_dir
 from seeding_checks import assert_sim0_same_for_any_batch
 
 torch.set_num_threads(1)
@@ -93,7 +93,7 @@ class TestScene:
         assert np.all(np.linalg.norm(ball[:, :2] - env.task.ball_start[:2], axis=1) < 0.05)
 
     def test_license_notice_travels_with_the_package(self):
-        package = os.path.dirname(sg_torchrl.dexhands.__file__)
+        package = os.path.dirname(sg_torchrl.envs.hands.__file__)
         notice = open(os.path.join(package, "NOTICE")).read()
         assert "Apache" in notice and "Vikash Kumar" in notice
         assert filecmp.cmp(os.path.join(package, "LICENSE-gymnasium-robotics-assets.md"),

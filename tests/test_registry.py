@@ -121,7 +121,7 @@ REFERENCE_SIZES_BY_ID.update({
     for level, groups in enumerate(per_level)
 })
 
-# Dexterous hands (the paper's section 4.4; sg_torchrl.dexhands): ShadowHandOver 398 / 40, CatchOver2Underarm 422 / 52.
+# Dexterous hands (the paper's section 4.4; sg_torchrl.envs.hands): ShadowHandOver 398 / 40, CatchOver2Underarm 422 / 52.
 REFERENCE_SIZES_BY_ID.update({
     f"ShadowHand{task}{safety}-v0": size
     for task, size in (("Over", (398, 40)), ("CatchOver2Underarm", (422, 52))) for safety in ("SafeJoint", "SafeFinger")

@@ -297,7 +297,7 @@ def test_importing_the_package_and_the_registry_loads_no_simulation_stack():
 # ------------------------------------------------------------------ the light metadata equals the env modules
 def registry_from_env_modules() -> dict[str, tuple]:
     """Every id as the env modules define it (the registry's table restates this as plain data)."""
-    from sg_torchrl.dexhands import SAFETY_VARIANTS, TASKS as HAND_TASKS, MultiAgentShadowHandEnv, ShadowHandEnv
+    from sg_torchrl.envs.hands import SAFETY_VARIANTS, TASKS as HAND_TASKS, MultiAgentShadowHandEnv, ShadowHandEnv
     from sg_torchrl.envs.multi_agent import SCENARIOS, MultiAgentNavigationEnv, MultiAgentVelocityEnv
     from sg_torchrl.envs.navigation import MULTI_AGENT_TASKS, ROBOTS as NAV_ROBOTS, TASKS, NavigationEnv
     from sg_torchrl.envs.velocity import ROBOTS as VELOCITY_ROBOTS, VelocityEnv

@@ -1,14 +1,22 @@
-"""Safe dexterous-hand tasks on MuJoCo (Safety-Gymnasium paper, section 4.4, "Safe Isaac Gym").
+"""The safe dexterous-hand tasks' former home: an alias of :mod:`sg_torchrl.envs.hands`.
 
-``ShadowHandOver{SafeJoint,SafeFinger}-v0`` and ``ShadowHandCatchOver2Underarm{SafeJoint,SafeFinger}-v0``:
-two Shadow Hands pass a ball under a forefinger constraint; ``MultiAgent`` + each id: one agent per hand. Model derived from gymnasium-robotics' Shadow Hand assets
-(Apache-2.0, (C) Vikash Kumar, CSE, UW): see ``NOTICE`` and ``LICENSE-gymnasium-robotics-assets.md``.
+The package moved under ``sg_torchrl.envs`` with the other env families. Importing ``sg_torchrl.dexhands``
+(or one of its submodules, ``sg_torchrl.dexhands.env``, ...) gives the same objects as before: the names are
+re-exported and each submodule name refers to the module of :mod:`sg_torchrl.envs.hands`, so code and
+pickles that name the old paths keep working.
 """
 
-from sg_torchrl.dexhands.constraints import PAPER_JOINTS, SAFETY_VARIANTS, JointRangeConstraint
-from sg_torchrl.dexhands.env import ShadowHandEnv
-from sg_torchrl.dexhands.multi_agent import MultiAgentShadowHandEnv
-from sg_torchrl.dexhands.scene import build_scene
-from sg_torchrl.dexhands.tasks import TASKS, HandTask
+import importlib
+import sys
 
-__all__ = ["PAPER_JOINTS", "SAFETY_VARIANTS", "JointRangeConstraint", "MultiAgentShadowHandEnv", "ShadowHandEnv", "TASKS", "HandTask", "build_scene"]
+from sg_torchrl.envs import hands as _hands
+
+__all__ = list(_hands.__all__)
+globals().update({name: getattr(_hands, name) for name in __all__})
+
+#: Submodules reachable under the old name (``import sg_torchrl.dexhands.env``).
+SUBMODULES = ("constraints", "env", "multi_agent", "rotations", "scene", "tasks")
+for _name in SUBMODULES:
+    sys.modules[f"{__name__}.{_name}"] = module = importlib.import_module(f"sg_torchrl.envs.hands.{_name}")
+    globals()[_name] = module
+del _name, module

@@ -50,6 +50,7 @@ from torchrl.envs import EnvBase
 from sg_torchrl.envs.numpy_step import NumpyStepInterface
 from sg_torchrl.envs import snapshots
 from sg_torchrl.envs.snapshots import SimulatorSnapshots
+from sg_torchrl.envs.step_hooks import StepHooks, numpy_faced, step_hook
 from sg_torchrl.envs.transforms import RewardSpec
 from sg_torchrl.seeding import block_seeds, numpy_generators
 
@@ -93,7 +94,7 @@ def reject_complex_action(env: object, action: torch.Tensor | np.ndarray) -> Non
                         f"(a floating-point tensor)")
 
 
-class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
+class SafeEnv(StepHooks, NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
     """Batched constrained-MDP environment emitting ``reward`` and ``cost``.
 
     Args:
@@ -209,25 +210,31 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         """Reset the simulators ``indices``, drawing randomness from ``self._rngs[i]`` only."""
 
     @abc.abstractmethod
+    @step_hook
     def _advance(self, action: np.ndarray) -> None:
         """Apply the (clipped) ``(N, act_dim)`` action and step every simulator ``frame_skip`` times."""
 
     @abc.abstractmethod
+    @step_hook
     def _observe(self) -> np.ndarray:
         """Current observations, ``(N, obs_dim)`` (may be a buffer the next call reuses: it is copied)."""
 
     @abc.abstractmethod
+    @step_hook
     def _compute_reward(self, action: np.ndarray) -> np.ndarray:
         """Reward of the step just taken, ``(N,)``; ``action`` is the action as given."""
 
     @abc.abstractmethod
+    @step_hook
     def _compute_cost(self) -> dict[str, np.ndarray]:
         """Raw non-negative cost of each constraint for the step just taken, each ``(N,)``."""
 
+    @step_hook
     def _compute_terminated(self) -> np.ndarray:
         """Which simulators reached a terminal state, ``(N,)`` bool. Default: never."""
         return np.zeros(self.num_envs, dtype=bool)
 
+    @step_hook
     def _before_step(self) -> None:
         """Record anything the reward or cost needs from the pre-step state (e.g. positions)."""
 
@@ -238,6 +245,7 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         """
         return ~np.isfinite(observation).all(axis=1)
 
+    @step_hook
     def _fault_free(self, observation: np.ndarray, reward: np.ndarray, costs: dict[str, np.ndarray]) -> bool:
         """A screen before :meth:`_diverged` and :meth:`_nonfinite_outcome`: ``True`` only when neither
         would flag any simulator, so the step can skip building their ``(N,)`` masks.
@@ -293,10 +301,12 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
                           terminated=np.zeros(self.num_envs, dtype=bool),
                           truncated=np.zeros(self.num_envs, dtype=bool))
 
+    @numpy_faced("flat")
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._validated_action(tensordict.get("action"))
         return self._pack(*self._transition_arrays(action))
 
+    @step_hook
     def _transition_arrays(self, action: np.ndarray) -> tuple:
         """One batched step on numpy arrays, the body of ``_step`` without TensorDicts.
 
@@ -401,6 +411,7 @@ class SafeEnv(NumpyStepInterface, SimulatorSnapshots, EnvBase, abc.ABC):
         """
         return {"observation": torch.from_numpy(np.array(observation, dtype=np.float32).reshape(self.num_envs, -1))}
 
+    @step_hook
     def _aggregate_cost(self, costs: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The total cost and the ``cost_info`` entries for raw per-constraint ``costs``, each ``(N,)``
         (or ``(N, A)``, one value per agent: then per agent), under :attr:`cost_mode`."""

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from sg_torchrl.envs.base import SafeEnv
-from sg_torchrl.envs.backends import PhysicsBatch
+from sg_torchrl.envs.physics_protocol import PhysicsBatch
 
 __all__ = ["MujocoSafeEnv"]
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sg_torchrl.envs.step_hooks import step_hook
+
 __all__ = ["NumpyStepInterface"]
 
 
@@ -50,6 +52,7 @@ class NumpyStepInterface:
             raise ValueError(f"step_one steps a one-simulator env; this one has num_envs={self.num_envs}")
         return self._single_outputs(*self._transition_arrays(np.asarray(action, dtype=np.float64).reshape(1, -1)))
 
+    @step_hook
     def _single_outputs(self, observation, reward, costs, terminated, truncated) -> tuple:
         """:meth:`step_one`'s values from :meth:`_transition_arrays`' arrays of one simulator."""
         f32 = np.float32
@@ -63,6 +66,7 @@ class NumpyStepInterface:
             cost_info,
         )
 
+    @step_hook
     def _single_cost(self, raw: dict[str, float]) -> tuple[float, dict[str, float]]:
         """One simulator's emitted ``(cost, cost_info)`` from its raw costs as Python floats: :meth:`_aggregate_cost`'s
         values (the same float64 sum from 0 in the same order, the same ``> 0`` indicators, float32 rounding)

@@ -12,6 +12,11 @@ annotations of the built-in constructors here, in a module that imports neither;
 ``tests/test_validation.py`` checks it against the real signatures (``typing.get_type_hints``), so the
 two cannot drift apart. A constructor not in the table (registered by a user) is read from its own
 signature (:func:`signature_options`).
+
+How an env's simulators run (threads, backend, Warp device and buffer sizes) is one frozen object,
+:class:`SimulatorOptions`: the velocity, multi-agent velocity and two-hand constructors take its fields
+as keywords, build it once and hand it to :func:`~sg_torchrl.envs.backends.make_physics`; their rows of
+:data:`CONSTRUCTOR_OPTIONS` are read from its fields (:data:`SIMULATOR_OPTIONS`).
 """
 
 from __future__ import annotations
@@ -20,14 +25,14 @@ import inspect
 import numbers
 import typing
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Literal
 
 from sg_torchrl.validation import BOOL_WORDS, describe, fits
 
 __all__ = [
-    "CONSTRUCTOR_OPTIONS", "EnvOptionTypeError", "InvalidEnvOptionError", "Option", "UnknownEnvOptionError",
-    "check_options", "command_line_options", "signature_options",
+    "BACKENDS", "CONSTRUCTOR_OPTIONS", "EnvOptionTypeError", "InvalidEnvOptionError", "Option", "SIMULATOR_OPTIONS",
+    "SimulatorOptions", "UnknownEnvOptionError", "check_options", "command_line_options", "signature_options",
 ]
 
 
@@ -54,6 +59,7 @@ class UnknownEnvOptionError(EnvOptionTypeError):
 # (``sg_torchrl.envs.base.CostMode``, ``...navigation.lidar.LidarMode``, ...; tests/test_validation.py).
 CostMode = Literal["indicator", "raw"]
 Backend = Literal["cpu", "warp"]
+BACKENDS: tuple[str, ...] = typing.get_args(Backend)
 LidarMode = Literal["pseudo", "natural"]
 ObsMode = Literal["vector", "rgb", "rgbd", "vector+rgb", "vector+rgbd"]
 AgentView = Literal["joint", "own"]
@@ -73,12 +79,49 @@ class Option:
     minimum: int | float | None = None
 
 
+@dataclass(frozen=True)
+class SimulatorOptions:
+    """How an env's simulators run: the one bundle of the simulator keywords (module docstring).
+
+    Args:
+        physics_threads: threads stepping the simulators (``backend="cpu"`` only; 2 pays when a core is
+            idle, see :mod:`sg_torchrl.envs.physics`).
+        backend: ``"cpu"`` (MuJoCo C, float64) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
+            see :mod:`sg_torchrl.envs.backends`.
+        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
+        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords with ``backend="warp"``
+            (``nconmax``, ``njmax``, ``graph``).
+
+    Raises:
+        ValueError: an unknown backend, a thread count below 1, or a setting of the other backend.
+    """
+
+    physics_threads: int = 1
+    backend: Backend = "cpu"
+    warp_device: str | None = None
+    warp_options: dict[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown physics backend {self.backend!r}; choose from {list(BACKENDS)}")
+        threads = self.physics_threads
+        if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 1:
+            raise ValueError(f"physics_threads must be a positive integer, got {threads!r}")
+        if self.backend == "cpu":
+            for name in ("warp_device", "warp_options"):
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name}={getattr(self, name)!r} applies to backend='warp' only")
+        elif threads != 1:
+            raise ValueError(f"physics_threads={threads} applies to backend='cpu' only (MuJoCo Warp parallelises "
+                             "over worlds itself); leave it at 1 with backend='warp'")
+
+
 _COUNT = Option(int, minimum=1)
-_BACKEND = {
-    "physics_threads": _COUNT,
-    "backend": Option(Backend),
-    "warp_device": Option(str | None),
-    "warp_options": Option(dict[str, Any] | None),
+#: The option types of :class:`SimulatorOptions`' fields, in their order (the constructors take them as keywords).
+SIMULATOR_OPTIONS: dict[str, Option] = {
+    field.name: Option(typing.get_type_hints(SimulatorOptions)[field.name],
+                       minimum=_COUNT.minimum if field.name == "physics_threads" else None)
+    for field in fields(SimulatorOptions)
 }
 _SHADOW_HAND = {
     "cost_mode": Option(CostMode),
@@ -86,7 +129,7 @@ _SHADOW_HAND = {
     "max_episode_steps": _COUNT,
     "distance_scale": Option(float),
     "fall_height": Option(float | None),
-    **_BACKEND,
+    **SIMULATOR_OPTIONS,
 }
 
 #: Per constructor (``"module:Class"``, the module that defines it), the keyword options the registry
@@ -98,7 +141,7 @@ CONSTRUCTOR_OPTIONS: dict[str, dict[str, Option]] = {
         "max_episode_steps": _COUNT,
         "velocity_threshold": Option(float | None),
         "planar_cost": Option(bool | None),
-        **_BACKEND,
+        **SIMULATOR_OPTIONS,
     },
     "sg_torchrl.envs.navigation.env:NavigationEnv": {
         "cost_mode": Option(CostMode),
@@ -114,7 +157,7 @@ CONSTRUCTOR_OPTIONS: dict[str, dict[str, Option]] = {
         "cost_mode": Option(CostMode),
         "max_episode_steps": _COUNT,
         "velocity_threshold": Option(float | None),
-        **_BACKEND,
+        **SIMULATOR_OPTIONS,
     },
     "sg_torchrl.envs.multi_agent.navigation:MultiAgentNavigationEnv": {
         "agent_view": Option(AgentView),
@@ -124,8 +167,8 @@ CONSTRUCTOR_OPTIONS: dict[str, dict[str, Option]] = {
         "compass": Option(bool),
         "physics_threads": _COUNT,
     },
-    "sg_torchrl.dexhands.env:ShadowHandEnv": _SHADOW_HAND,
-    "sg_torchrl.dexhands.multi_agent:MultiAgentShadowHandEnv": _SHADOW_HAND,
+    "sg_torchrl.envs.hands.env:ShadowHandEnv": _SHADOW_HAND,
+    "sg_torchrl.envs.hands.multi_agent:MultiAgentShadowHandEnv": _SHADOW_HAND,
 }
 
 #: Constructor parameters that are ``make``'s own arguments, never options.

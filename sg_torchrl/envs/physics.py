@@ -54,6 +54,9 @@ from concurrent.futures import ThreadPoolExecutor
 import mujoco
 import numpy as np
 
+from sg_torchrl.envs.contacts import ContactCounting
+from sg_torchrl.envs.physics_protocol import PhysicsBatch
+
 __all__ = ["MocapTrajectory", "MujocoBatch"]
 
 #: ``times (N, nstep) -> positions (N, nstep, K, 3)``: where driven mocap bodies go before each sub-step
@@ -62,25 +65,7 @@ MocapTrajectory = Callable[[np.ndarray], np.ndarray]
 # MuJoCo's instability warnings (contiguous in mjtWarning): each comes with an automatic reset.
 _UNSTABLE = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
 assert int(mujoco.mjtWarning.mjWARN_BADQVEL) == _UNSTABLE.start + 1 and _UNSTABLE.stop - _UNSTABLE.start == 3
-# Up to this many contacts, contact_counts counts them in a Python loop (whole numbers: the same counts as
-# its array path, which a one-simulator navigation step paid ~10 us for with one or two contacts).
-_FEW_CONTACTS = 8
-
-
-def _partner_counts(pairs: list[list[int]], mask: list[bool]) -> dict[int, float]:
-    """``{geom: number of contacts between it and a geom of mask}`` from contact geom ``pairs``, counted in
-    a Python loop (whole numbers, so any order gives the same floats); a pair of two masked geoms counts
-    for both."""
-    counts: dict[int, float] = {}
-    for first, second in pairs:
-        if mask[first]:
-            counts[second] = counts.get(second, 0.0) + 1.0
-        if mask[second]:
-            counts[first] = counts.get(first, 0.0) + 1.0
-    return counts
-
-
-class MujocoBatch:
+class MujocoBatch(ContactCounting, PhysicsBatch):
     """``num_sims`` MuJoCo simulators stepping one shared model.
 
     Args:
@@ -254,9 +239,10 @@ class MujocoBatch:
                 mujoco.mj_rnePostConstraint(model, data)
 
     @property
-    def aliased(self) -> bool:
+    def supports_aliased_single_step(self) -> bool:
         """Whether the state cache arrays are views of the one simulator's ``MjData`` (``num_sims == 1``):
-        then a reader holding :meth:`qpos` / :meth:`qvel` rows sees every step without a copy."""
+        then a reader holding :meth:`qpos` / :meth:`qvel` rows sees every step without a copy, and
+        :meth:`advance_one` / :meth:`contact_counts_one` apply (:mod:`~sg_torchrl.envs.physics_protocol`)."""
         return self._aliased
 
     @property
@@ -396,64 +382,6 @@ class MujocoBatch:
         collision geoms does not influence the dynamics, so nothing else needs recomputing.
         """
         self.datas[index].mocap_pos[mocap_id] = pos
-
-    def count_contacts(self, geoms_a: np.ndarray, geoms_b: np.ndarray) -> np.ndarray:
-        """Number of active contacts between a geom of set A and a geom of set B, per simulator.
-
-        Args:
-            geoms_a / geoms_b: ``(ngeom,)`` bool masks over the model's geoms.
-
-        Returns:
-            ``(N,)`` float counts (a contact between two geoms in both sets counts once).
-        """
-        counts = np.zeros(self.num_sims)
-        for i, data in enumerate(self.datas):
-            if data.ncon:
-                pairs = data.contact.geom
-                first, second = pairs[:, 0], pairs[:, 1]
-                hits = (geoms_a[first] & geoms_b[second]) | (geoms_a[second] & geoms_b[first])
-                counts[i] = np.count_nonzero(hits)
-        return counts
-
-    def contact_counts(self, geoms: np.ndarray) -> np.ndarray:
-        """Per simulator and geom, the number of active contacts between that geom and a geom of ``geoms``.
-
-        Args:
-            geoms: ``(ngeom,)`` bool mask (e.g. the robot's geoms).
-
-        Returns:
-            ``(N, ngeom)`` float counts: one pass over the contacts answers "how often does each
-            object touch the robot" for every object at once.
-        """
-        ngeom = self.model.ngeom
-        counts = np.zeros((self.num_sims, ngeom))
-        mask = None
-        for i, data in enumerate(self.datas):
-            ncon = data.ncon
-            if 0 < ncon <= _FEW_CONTACTS:  # the usual case: a loop over a few pairs beats ten array operations
-                if mask is None:
-                    mask = geoms.tolist()
-                row = counts[i]
-                for geom, count in _partner_counts(data.contact.geom.tolist(), mask).items():
-                    row[geom] = count
-            elif ncon:
-                pairs = data.contact.geom
-                first, second = pairs[:, 0], pairs[:, 1]
-                partners = np.concatenate([second[geoms[first]], first[geoms[second]]])
-                if len(partners):
-                    counts[i] = np.bincount(partners, minlength=ngeom)
-        return counts
-
-    def contact_counts_one(self, geoms: list[bool]) -> dict[int, float]:
-        """:meth:`contact_counts` of simulator 0 as ``{geom: count}`` over the geoms with a contact, ``geoms``
-        the mask as a list of bools.
-
-        Why a second form: a one-simulator step reads a handful of counts (a goal button, the gremlins) and
-        its contacts are one or two pairs; this is the same loop as :meth:`contact_counts`' few-contacts case
-        (:func:`_partner_counts`, the same whole-number counts) without the ``(1, ngeom)`` array or the
-        indexing of it, whatever the number of contacts.
-        """
-        return _partner_counts(self.datas[0].contact.geom.tolist(), geoms)  # no contacts: no pairs, {}
 
     def close(self) -> None:
         """Stop the stepping threads (if any); a later :meth:`step` starts them again."""

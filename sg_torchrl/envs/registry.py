@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 __all__ = [
     "EnvEntry", "EnvOptionTypeError", "InvalidEnvOptionError", "MULTI_AGENT_FAMILIES", "UnknownEnvError",
     "UnknownEnvOptionError", "VISION_FAMILY", "command_line_env_options", "env_option_types", "env_options",
-    "list_envs", "make", "register", "registry_entry", "validate_env_options",
+    "list_envs", "make", "register", "registry_entry", "unregister", "validate_env_options",
 ]
 
 #: The family of the ``...Vision-v0`` ids: navigation tasks observed through the robot's camera.
@@ -102,7 +102,7 @@ class EnvEntry:
             or its path ``"module:Name"`` (imported when first read).
         family: ``"velocity"``, ``"navigation"``, ``"vision"`` (navigation seen through the robot's
             camera), ``"multi_agent_velocity"``, ``"multi_agent_navigation"``, ``"dexhands"`` (two
-            Shadow Hands, :mod:`sg_torchrl.dexhands`), ``"multi_agent_dexhands"`` (the same, one agent per hand).
+            Shadow Hands, :mod:`sg_torchrl.envs.hands`), ``"multi_agent_dexhands"`` (the same, one agent per hand).
         robot / task / level: metadata for filtering and tables (``level`` is ``None`` where the
             family has no levels).
         max_episode_steps: the reference's episode length.
@@ -140,6 +140,12 @@ def register(entry: EnvEntry) -> None:
     if entry.env_id in _REGISTRY:
         raise ValueError(f"env id {entry.env_id!r} is already registered")
     _REGISTRY[entry.env_id] = entry
+
+
+def unregister(env_id: str) -> EnvEntry:
+    """Remove a registered id (a user's, to register it again with other settings); returns its entry."""
+    registry_entry(env_id)  # an unknown id: UnknownEnvError with the closest ids
+    return _REGISTRY.pop(env_id)
 
 
 def registry_entry(env_id: str) -> EnvEntry:
@@ -308,8 +314,8 @@ _VELOCITY = "sg_torchrl.envs.velocity.env:VelocityEnv"
 _NAVIGATION = "sg_torchrl.envs.navigation.env:NavigationEnv"
 _MULTI_AGENT_VELOCITY = "sg_torchrl.envs.multi_agent.env:MultiAgentVelocityEnv"
 _MULTI_AGENT_NAVIGATION = "sg_torchrl.envs.multi_agent.navigation:MultiAgentNavigationEnv"
-_SHADOW_HAND = "sg_torchrl.dexhands.env:ShadowHandEnv"
-_MULTI_AGENT_SHADOW_HAND = "sg_torchrl.dexhands.multi_agent:MultiAgentShadowHandEnv"
+_SHADOW_HAND = "sg_torchrl.envs.hands.env:ShadowHandEnv"
+_MULTI_AGENT_SHADOW_HAND = "sg_torchrl.envs.hands.multi_agent:MultiAgentShadowHandEnv"
 
 #: Velocity robots (gymnasium's MuJoCo assets) in ``sg_torchrl.envs.velocity.ROBOTS`` order, and the task
 #: versions each has (0: Safety-Gymnasium's v0 thresholds, 1: v1's).
@@ -330,7 +336,7 @@ MULTI_AGENT_VELOCITY_PARTITIONS = {
     "HalfCheetah": ("2x3", "6x1"), "Ant": ("2x4", "4x2"), "Hopper": ("3x1",), "Humanoid": ("9|8",),
     "Swimmer": ("2x1",), "Walker2d": ("2x3",),
 }
-#: Two-hand tasks (``sg_torchrl.dexhands.TASKS``): episode length (Isaac Gym's ``episodeLength``), and the
+#: Two-hand tasks (``sg_torchrl.envs.hands.TASKS``): episode length (Isaac Gym's ``episodeLength``), and the
 #: safety variants (``SAFETY_VARIANTS``).
 HAND_TASKS = {"HandOver": 75, "CatchOver2Underarm": 75}
 HAND_SAFETY_VARIANTS = ("SafeJoint", "SafeFinger")
@@ -399,7 +405,7 @@ def _register_dexhands() -> None:
     SafeJoint or SafeFinger) with Safety-Gymnasium's ``-v0`` suffix; 75 steps per episode (Isaac
     Gym's ``episodeLength``). The paper uses one name for the single- and the multi-agent form (the
     algorithm decides); here the multi-agent form, one agent per hand, is ``MultiAgent`` + the id.
-    See :mod:`sg_torchrl.dexhands`.
+    See :mod:`sg_torchrl.envs.hands`.
     """
     for task, steps in HAND_TASKS.items():
         for safety in HAND_SAFETY_VARIANTS:

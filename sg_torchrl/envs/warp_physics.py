@@ -1,6 +1,6 @@
 """Batched simulators on MuJoCo Warp: :class:`WarpBatch`, the array-native physics backend.
 
-:class:`WarpBatch` implements :class:`~sg_torchrl.envs.physics.MujocoBatch`'s interface (``step``,
+:class:`WarpBatch` implements :class:`~sg_torchrl.envs.physics_protocol.PhysicsBatch` (``step``,
 ``reset``, ``qpos()``, ``field()``, ``get_state``/``set_state``, ``unstable``, ``version``, ...)
 over `MuJoCo Warp <https://github.com/google-deepmind/mujoco_warp>`_: one ``mjw.Model`` put on the
 device once, one ``mjw.Data`` holding all ``N`` worlds as ``(N, ...)`` device arrays, every kernel
@@ -55,6 +55,8 @@ from typing import Any
 import mujoco
 import numpy as np
 import torch
+
+from sg_torchrl.envs.physics_protocol import PhysicsBatch
 
 __all__ = ["STATE_FIELDS", "WarpBatch", "default_warp_device", "import_warp"]
 
@@ -119,7 +121,7 @@ class _HostDatas(Sequence[mujoco.MjData]):
         return data
 
 
-class WarpBatch:
+class WarpBatch(PhysicsBatch):
     """``num_sims`` worlds of one model stepped by MuJoCo Warp (see the module docstring).
 
     Args:
@@ -338,6 +340,10 @@ class WarpBatch:
         """Move mocap body ``mocap_id`` of world ``index`` to ``pos`` (3,), without a forward pass."""
         view = self._views["mocap_pos"]
         view[index, mocap_id] = torch.as_tensor(np.asarray(pos), dtype=view.dtype).to(view.device)
+
+    @property
+    def drives_mocap(self) -> bool:
+        return False  # drive_mocap refuses: no trajectory is ever registered
 
     def drive_mocap(self, mocap_ids: Sequence[int], trajectory) -> None:
         raise NotImplementedError("driven mocap bodies (navigation's gremlins) are not ported to backend='warp'")

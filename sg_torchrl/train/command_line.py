@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import json
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 from types import UnionType
@@ -54,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
                "143 SIGTERM) after a checkpointed epoch.",
     )
     parser.add_argument("--preset", choices=sorted(PRESETS), help="start from a named preset, then apply flags")
+    parser.add_argument("--task-module", dest="task_modules", action="append", metavar="MODULE",
+                        help="import MODULE first (repeatable): a module of yours that registers env ids with "
+                             "sg_torchrl.tasks (docs/custom_tasks.md); give it again with --resume")
     hints = get_type_hints(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
         hint = hints[f.name]
@@ -87,11 +91,16 @@ def command_line_values(argv: list[str] | None = None) -> dict[str, Any]:
     """
     parser = build_parser()
     namespace = parser.parse_args(argv)
+    for module in namespace.task_modules or ():  # users' env ids, registered before anything reads the registry
+        try:
+            importlib.import_module(module)
+        except ImportError as error:
+            parser.error(f"--task-module {module}: {error}")
     if namespace.seed is not None and namespace.seeds is not None:
         parser.error("--seed and --seeds cannot be given together: --seed 3 trains one run, --seeds 3 4 5 a group "
                      "of runs (whose first seed is the group's)")
     values = dict(PRESETS[namespace.preset]) if namespace.preset else {}
-    values.update({k: v for k, v in vars(namespace).items() if k != "preset" and v is not None})
+    values.update({k: v for k, v in vars(namespace).items() if k not in ("preset", "task_modules") and v is not None})
     if isinstance(values.get("env_options"), list):  # [(key, value), ...] from the flag
         values["env_options"] = _command_line_env_options(values, dict(values["env_options"]))
     if namespace.preset:

@@ -48,7 +48,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         total_steps=80_000, num_envs=10,
         steps_per_epoch=10_000, update_iters=4, minibatch_size=64, eval_episodes=5, run_name="vision",
     ),
-    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (sg_torchrl.dexhands). SafePO's
+    # PPO-Lag on the two-hand task ShadowHandOverSafeJoint-v0 (sg_torchrl.envs.hands). SafePO's
     # Isaac Gym override config where a CPU can follow it: gamma 0.96, target KL 0.016, 8 passes of 4
     # minibatches, gradient-norm clip 1.0, no critic L2. Scaled down for a CPU: 64 simulators on two
     # physics threads (not 2,048 on a GPU), 9,600-step epochs (two 75-step episodes per simulator;

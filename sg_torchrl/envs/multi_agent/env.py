@@ -41,7 +41,7 @@ import torch
 
 from sg_torchrl.envs.backends import Backend
 from sg_torchrl.envs.base import CostMode
-from sg_torchrl.envs.multi_agent.group import GROUP, AgentGroupMixin, agent_column, root_column
+from sg_torchrl.envs.agent_group import GROUP, AgentGroupMixin, agent_column, root_column
 from sg_torchrl.envs.multi_agent.layout import AgentLayout, agent_layout
 from sg_torchrl.envs.multi_agent.partitions import Scenario, scenario_of
 from sg_torchrl.envs.velocity.env import VelocityEnv
@@ -60,7 +60,8 @@ class MultiAgentVelocityEnv(AgentGroupMixin, VelocityEnv):
         agent_obsk: graph distance of the joints an agent observes (MaMuJoCo's ``agent_obsk``; the
             reference and its sizes use 1).
         velocity_threshold: override the configuration's threshold (reference section 9).
-        physics_threads, backend, warp_device, warp_options: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
+        physics_threads, backend, warp_device, warp_options: how the simulators run, the fields of
+            :class:`~sg_torchrl.envs.options.SimulatorOptions` (handed to :class:`~sg_torchrl.envs.velocity.VelocityEnv`).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`~sg_torchrl.envs.base.SafeEnv`.
 
     See the module docstring for the TensorDict layout.

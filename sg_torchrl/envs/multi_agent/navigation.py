@@ -7,7 +7,7 @@ world, each an agent with its own goal, its own reward and its own costs
 :class:`~sg_torchrl.envs.navigation.NavigationEnv` built for such a task (one compiled world with
 both robots, layouts with every keep-out, per-robot lidar, per-agent reward and costs, seeding,
 partial resets, divergence isolation: all inherited) behind TorchRL's multi-agent interface
-(:class:`~sg_torchrl.envs.multi_agent.group.AgentGroupMixin`).
+(:class:`~sg_torchrl.envs.agent_group.AgentGroupMixin`).
 
 TensorDict layout (:mod:`.group`; ``A = 2`` agents, ``agent_i`` drives robot ``i``):
 
@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from sg_torchrl.envs.base import CostMode
-from sg_torchrl.envs.multi_agent.group import JointVectorAgentsMixin
+from sg_torchrl.envs.agent_group import JointVectorAgentsMixin
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.lidar import LidarMode
 from sg_torchrl.envs.navigation.tasks import Task
@@ -59,7 +59,7 @@ class MultiAgentNavigationEnv(JointVectorAgentsMixin, NavigationEnv):
 
     Args:
         robot: the robot of every agent, a key of :data:`~sg_torchrl.envs.navigation.robots.ROBOTS`.
-        task: a multi-agent task of :data:`~sg_torchrl.envs.navigation.tasks.MULTI_AGENT_TASKS`
+        task: a multi-agent task of :data:`~sg_torchrl.envs.navigation.levels.MULTI_AGENT_TASKS`
             (``"MultiGoal"``) or a fresh task instance.
         level: the task level (0, 1, 2).
         agent_view: ``"joint"`` (default, the reference's: every agent observes the joint vector) or

@@ -5,7 +5,10 @@ Layout of this package:
 * ``world.py``   ``MjSpec`` world builder, compiled-model cache, :class:`Scene` (batched state views)
 * ``robots/``    :class:`Robot` interface and the robots (``ROBOTS``)
 * ``objects/``   :class:`NavObject` and the task objects (goal, constraints)
-* ``tasks/``     :class:`Task` interface, tasks and their levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal)
+* ``tasks/``     :class:`Task` interface and the task classes
+* ``compose.py`` :class:`TaskSpec`: a task declared as data (objective, extents, objects, reward), the
+                 composition API of custom tasks and of the Goal, Button, Push and Circle levels
+* ``levels.py``  every task's levels (``TASKS``; ``MULTI_AGENT_TASKS``: MultiGoal), what the registry reads
 * ``fading.py``  per-simulator render alphas of fading objects (the Fading tasks)
 * ``layout.py``  vectorised layout sampling with keep-outs
 * ``scenery/``   static set dressing of a level (textured floor, fixed geoms: Race's village, Building's
@@ -20,7 +23,9 @@ from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.objects import FreeObject, Goal, Hazards, NavObject, StaticObject, Vases
 from sg_torchrl.envs.navigation.objects import CircleZone, Sigwalls
 from sg_torchrl.envs.navigation.robots import ROBOTS, Ant, Car, Doggo, Point, Racecar, Robot
-from sg_torchrl.envs.navigation.tasks import MULTI_AGENT_TASKS, TASKS, GoalTask, MultiGoalTask, Task, make_task
+from sg_torchrl.envs.navigation.tasks import GoalTask, MultiGoalTask, Task
+from sg_torchrl.envs.navigation.levels import MULTI_AGENT_TASKS, TASKS, make_task
+from sg_torchrl.envs.navigation.compose import TaskSpec, TaskSpecError
 from sg_torchrl.envs.navigation.tasks import CircleTask, RunTask
 from sg_torchrl.envs.navigation.tasks import FadingEasyTask, FadingHardTask, FadingTask, RaceTask
 from sg_torchrl.envs.navigation.fading import Fader
@@ -73,6 +78,8 @@ __all__ = [
     "StaticObject",
     "TASKS",
     "Task",
+    "TaskSpec",
+    "TaskSpecError",
     "Vases",
     "make_task",
 ]

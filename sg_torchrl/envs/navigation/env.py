@@ -41,7 +41,9 @@ from sg_torchrl.envs.navigation.lidar import (LidarMode, NaturalLidar, compass_v
 from sg_torchrl.envs.navigation.objects.base import NavObject
 from sg_torchrl.envs.navigation.robots import ROBOTS
 from sg_torchrl.envs.navigation.single import SingleNavigationStep
-from sg_torchrl.envs.navigation.tasks import Task, make_task
+from sg_torchrl.envs.navigation.compose import TaskSpec
+from sg_torchrl.envs.navigation.levels import make_task
+from sg_torchrl.envs.navigation.tasks import Task
 from sg_torchrl.envs.navigation.world import Scene, agent_prefix, build_spec, compiled_model, world_extent
 from sg_torchrl.envs.rendering import NAVIGATION_CAMERA, GeomAlpha, RenderMixin
 from sg_torchrl.envs.vision import DEFAULT_IMAGE_SIZE, ObservationContent, ObsMode, PixelObserver
@@ -54,10 +56,11 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
 
     Args:
         robot: a key of :data:`~sg_torchrl.envs.navigation.robots.ROBOTS` (``"Point"``).
-        task: a key of :data:`~sg_torchrl.envs.navigation.tasks.TASKS` (``"Goal"``), or a fresh
-            :class:`~sg_torchrl.envs.navigation.tasks.Task` instance (a custom composition; one
+        task: a key of :data:`~sg_torchrl.envs.navigation.levels.TASKS` (``"Goal"``), a
+            :class:`~sg_torchrl.envs.navigation.compose.TaskSpec` (a task declared as data: each env builds
+            its own task from it), or a fresh :class:`~sg_torchrl.envs.navigation.tasks.Task` instance (one
             instance per env, it holds per-simulator state).
-        level: the task level (0, 1, 2); ignored when ``task`` is an instance.
+        level: the task level (0, 1, 2); ignored when ``task`` is a spec or an instance.
         num_envs, device, seed, cost_mode: see :class:`SafeEnv`.
         max_episode_steps: default: the task's (1000 for Goal).
         lidar: ``"pseudo"`` (default, the reference's) or ``"natural"`` (ray casting, sees the surfaces
@@ -84,7 +87,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
     def __init__(
         self,
         robot: str = "Point",
-        task: str | Task = "Goal",
+        task: str | TaskSpec | Task = "Goal",
         level: int = 1,
         *,
         num_envs: int = 1,
@@ -102,6 +105,8 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
         check_num_envs(num_envs)  # before building the scene, for this message
         if robot not in ROBOTS:
             raise ValueError(f"unknown navigation robot {robot!r}; choose from {sorted(ROBOTS)}")
+        if isinstance(task, TaskSpec):
+            task = task.build()
         self.task = task if isinstance(task, Task) else make_task(task, level)
         count = self.task.num_agents
         options = self.task.robot_options.get(robot, {})
@@ -130,7 +135,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             obj.bind(self.scene)
         agent_keepout = self.robot.keepout if self.task.agent_keepout is None else self.task.agent_keepout
         self.layout_sampler = LayoutSampler(self.task.extents, agent_keepout, objects, self.task.agent_placements,
-                                            num_agents=count)
+                                            num_agents=count, label=f"task {self.task.name!r}")
         self.layout = np.zeros((num_envs, self.layout_sampler.size, 2))
         # In-goal-layout items (for re-sampling a goal mid-episode): the agents and every object but movers.
         self._layout_objects = [obj for obj in objects if obj.in_goal_layout]
@@ -218,7 +223,7 @@ class NavigationEnv(RenderMixin, MujocoSafeEnv):
             self._declare_pixels()
         self.task.bind(self)
         #: the one-simulator step of :meth:`step_one` (``None``: SafeEnv's, see :mod:`.single`)
-        self._single = SingleNavigationStep.of(self)
+        self._single = SingleNavigationStep.of(self, NavigationEnv)
 
     def step_one(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool, bool, dict[str, float]]:
         """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>`, through

@@ -16,6 +16,12 @@ against all placed items at once, so a layout costs a few numpy operations per i
 until one is valid. When the first attempt fails, the next ones are tried 32 at a time (the first
 success of the batch is taken: the same distribution as one at a time), which keeps crowded levels
 such as Button's fast. All randomness comes from the generator passed in: the simulator's own.
+
+Impossible layouts are refused early. At construction: the items placed in the task's extents are
+disks of their keep-out radius that may not overlap and lie inside the extents, so if their areas add
+up to more than the extents' area no layout exists (:class:`LayoutError` names the object that no
+longer fits). A layout that is possible on paper but too crowded to be drawn fails at the first reset,
+after :data:`LAYOUT_TRIES` attempts, naming the object whose placement failed most often.
 """
 
 from __future__ import annotations
@@ -79,6 +85,10 @@ class LayoutSampler:
         agent_placements: rectangles for the agent (default: the extents).
         num_agents: number of agents (robots), items ``0 .. num_agents - 1``, all placed with the
             agent's keep-out and placements.
+        label: what the layout belongs to, for error messages (``"task 'Goal'"``).
+
+    Raises:
+        LayoutError: the items placed in the extents cannot fit in them (module docstring).
 
     Attributes:
         slices: item range of each object in the layout arrays (the agents come first: item 0, ...).
@@ -92,6 +102,7 @@ class LayoutSampler:
         objects: Sequence[NavObject],
         agent_placements: np.ndarray | None = None,
         num_agents: int = 1,
+        label: str = "layout",
     ) -> None:
         if num_agents < 1:
             raise ValueError(f"num_agents must be >= 1, got {num_agents}")
@@ -115,6 +126,12 @@ class LayoutSampler:
         self.regions = regions
         self.keepouts = np.array(keepouts)
         self.size = len(regions)
+        self.label = label
+        # Who each item is, for error messages: "the agent", "hazards (instance 3 of 8)".
+        self._item_names = ["the agent"] * self.num_agents + [
+            f"{obj.name} (instance {i + 1} of {obj.num})" for obj in self.objects for i in range(obj.num)]
+        self._check_room(extents[0], agent_placements is None)
+        self._failures = np.zeros(self.size, dtype=np.int64)  # per item: layout attempts it ended (sample)
         # Squared minimum distances between items, and the items whose region is one rectangle
         # (their candidates are an affine map of one shared uniform draw).
         self._min_d2 = np.square(self.keepouts[:, None] + self.keepouts[None, :])
@@ -123,6 +140,21 @@ class LayoutSampler:
         lows = np.array([r.rects[0, :2] for r in regions])
         self._low = lows
         self._span = np.array([r.rects[0, 2:] for r in regions]) - lows
+
+    def _check_room(self, extents: np.ndarray, agent_in_extents: bool) -> None:
+        """Raise :class:`LayoutError` when the disks of the items placed in ``extents`` outgrow its area."""
+        area = (extents[2] - extents[0]) * (extents[3] - extents[1])
+        used = 0.0
+        in_extents = [agent_in_extents] * self.num_agents + [
+            obj.placements is None and i >= len(obj.locations) for obj in self.objects for i in range(obj.num)]
+        for item, placed_in_extents in enumerate(in_extents):
+            if placed_in_extents:
+                used += np.pi * self.keepouts[item] ** 2
+                if used > area:
+                    raise LayoutError(
+                        f"{self.label}: {self._item_names[item]} does not fit: the keep-out disks of the items "
+                        f"placed so far cover {used:.3g} m^2, more than the {area:.3g} m^2 of the extents "
+                        f"{tuple(float(e) for e in extents)}; use fewer or smaller objects (keepout), or larger extents")
 
     def slice_of(self, obj: NavObject) -> slice:
         return self.slices[id(obj)]
@@ -140,7 +172,10 @@ class LayoutSampler:
                     xy[:] = placed
                     break
             else:
-                raise LayoutError(f"no valid layout in {LAYOUT_TRIES} attempts")
+                worst = int(self._failures.argmax())
+                raise LayoutError(f"{self.label}: no valid layout in {LAYOUT_TRIES} attempts; placing "
+                                  f"{self._item_names[worst]} failed most often: use fewer or smaller objects "
+                                  "(keepout), or larger extents")
         yaw = rng.uniform(0.0, 2.0 * np.pi, size=size)
         return xy, yaw
 
@@ -175,6 +210,7 @@ class LayoutSampler:
                 first[retry] = rest
                 chosen[retry] = more[np.arange(len(retry)), rest]
             found = first >= 0
+            self._failures[item] += count - np.count_nonzero(found)
             alive = alive[found]
             if not len(alive):
                 return None
@@ -213,6 +249,7 @@ class LayoutSampler:
                     xy[item] = chunk[first]
                     break
             else:
+                self._failures[item] += 1
                 return False
         return True
 

@@ -46,24 +46,21 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sg_torchrl.envs.base import FLOAT32_MAX
-from sg_torchrl.envs.physics import MujocoBatch
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
 __all__ = ["SingleNavigationStep"]
 
-# The env hooks whose work this step does: an env class overriding one of them steps through SafeEnv's path.
-_HOOKS = ("_before_step", "_advance", "_observe", "_compute_reward", "_compute_cost", "_compute_terminated",
-          "_transition_arrays", "_fault_free", "_aggregate_cost", "_single_outputs", "_single_cost")
-
 
 class SingleNavigationStep:
     """:meth:`SafeEnv.step_one <sg_torchrl.envs.base.SafeEnv.step_one>` of ``env``, bookkeeping on Python values.
 
     Build it with :meth:`of`, which answers ``None`` for the envs it does not cover: more than one
-    simulator or robot, pixel observations, another physics backend, or an env class that overrides one of
-    the hooks it replaces.
+    simulator or robot, pixel observations, a physics backend without the aliased single step
+    (:attr:`PhysicsBatch.supports_aliased_single_step <sg_torchrl.envs.physics_protocol.PhysicsBatch>`), or
+    an env class that redefines one of the step hooks it does the work of
+    (:meth:`~sg_torchrl.envs.step_hooks.StepHooks.hooks_overridden_since`).
     """
 
     def __init__(self, env: NavigationEnv) -> None:
@@ -78,12 +75,11 @@ class SingleNavigationStep:
         self._row = env._observation[0]  # the one simulator's observation row (NavigationEnv._observe's buffer)
 
     @classmethod
-    def of(cls, env: NavigationEnv) -> SingleNavigationStep | None:
-        from sg_torchrl.envs.navigation.env import NavigationEnv
-
+    def of(cls, env: NavigationEnv, written_for: type[NavigationEnv]) -> SingleNavigationStep | None:
+        """This step for ``env``, or ``None`` where it does not apply; ``written_for`` is the env class whose
+        hooks it reproduces (:class:`~sg_torchrl.envs.navigation.env.NavigationEnv`, which passes itself)."""
         if (env.num_envs != 1 or len(env.robots) != 1 or env.vision is not None
-                or not isinstance(env.physics, MujocoBatch) or not env.physics.aliased
-                or any(getattr(type(env), name) is not getattr(NavigationEnv, name) for name in _HOOKS)):
+                or not env.physics.supports_aliased_single_step or type(env).hooks_overridden_since(written_for)):
             return None
         return cls(env)
 
@@ -91,7 +87,7 @@ class SingleNavigationStep:
         env = self.env
         task, scene, physics = env.task, env.scene, env.physics
         # SafeEnv._transition_arrays: the clip (np.clip's values) written straight into MjData's control, then
-        # NavigationEnv._advance through MujocoBatch's one-simulator path.
+        # NavigationEnv._advance through the physics' aliased single step.
         if not self._clip(action):
             clipped = self._clipped
             np.maximum(action, env._clip_low, out=clipped)  # (act_dim,) or (1, act_dim): the same (1, act_dim) row

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from sg_torchrl.envs.backends import make_physics
+from sg_torchrl.envs.backends import SimulatorOptions, make_physics
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.objects.base import NavObject
@@ -277,8 +277,8 @@ class Scene:
         self.model = model
         self.num_envs = num_envs
         self.robots: list[Robot] = list(robot) if isinstance(robot, Sequence) else [robot]
-        self.physics = make_physics("cpu", model, num_envs, fields=("xpos", "xmat", "sensordata"),
-                                    forward_after_step=True, threads=physics_threads)
+        self.physics = make_physics(model, num_envs, SimulatorOptions(physics_threads=physics_threads),
+                                    fields=("xpos", "xmat", "sensordata"), forward_after_step=True)
         mocap_bodies = np.flatnonzero(model.body_mocapid >= 0)
         order = model.body_mocapid[mocap_bodies]
         self._mocap_pos = np.empty((model.nmocap, 3))

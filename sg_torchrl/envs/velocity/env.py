@@ -18,12 +18,13 @@ import mujoco
 import numpy as np
 import torch
 
-from sg_torchrl.envs.backends import Backend, make_physics
+from sg_torchrl.envs.backends import Backend, SimulatorOptions, make_physics
 from sg_torchrl.envs.base import FLOAT32_MAX, CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
-from sg_torchrl.envs.physics import MujocoBatch
 from sg_torchrl.envs.rendering import LOCOMOTION_CAMERA, RenderMixin
-from sg_torchrl.envs.velocity.robots import ROBOTS, LocomotionRobot, load_model
+from sg_torchrl.envs.step_hooks import step_hook
+from sg_torchrl.envs.velocity.robots import (ROBOTS, LocomotionRobot, load_model, normalize_quaternions,
+                                             quaternion_addresses)
 
 __all__ = ["INFO_TERMS", "VelocityEnv", "normalize_quaternions", "quaternion_addresses"]
 
@@ -48,33 +49,6 @@ INFO_TERMS: dict[str, str] = {
 _FORWARD = ("forward_reward", "reward_run", "reward_fwd", "reward_forward", "reward_linvel")
 
 
-def quaternion_addresses(model: mujoco.MjModel) -> np.ndarray:
-    """Where each free or ball joint's quaternion starts in ``qpos``, ``(K,)`` (empty for planar robots)."""
-    free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
-    kinds = model.jnt_type.astype(int)
-    starts = [int(model.jnt_qposadr[j]) + (3 if kinds[j] == free else 0)
-              for j in range(model.njnt) if kinds[j] in (free, ball)]
-    return np.asarray(starts, dtype=np.int64)
-
-
-def normalize_quaternions(qpos: np.ndarray, starts: np.ndarray) -> None:
-    """Scale the quaternions of ``qpos`` (``(N, nq)``, in place) starting at ``starts`` to unit length.
-
-    Why: gymnasium's v4 ``reset_model`` adds uniform noise to every ``qpos`` entry, the torso
-    quaternion included, and MuJoCo 2.3.3 (what Safety-Gymnasium 1.0.0 runs on) normalised
-    quaternions inside ``qpos`` during ``mj_forward``, so the original's first observation holds a
-    unit quaternion ``q / |q|`` (checked against safety-gymnasium 1.0.0: norm 1 to 1e-16 over 200
-    seeds, the other coordinates untouched). Current MuJoCo normalises only a copy, so we do it
-    here. A quaternion of (near) zero length becomes the identity, as MuJoCo's ``mju_normalize4``.
-    """
-    for start in starts:
-        quat = qpos[:, start : start + 4]
-        norm = np.linalg.norm(quat, axis=1, keepdims=True)
-        tiny = norm[:, 0] < 1e-15
-        quat /= np.where(norm < 1e-15, 1.0, norm)
-        quat[tiny] = (1.0, 0.0, 0.0, 0.0)
-
-
 class VelocityEnv(RenderMixin, MujocoSafeEnv):
     """A gymnasium-v4 locomotion robot with Safety-Gymnasium's velocity cost, batched.
 
@@ -86,12 +60,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         planar_cost: override the version's velocity measure: ``True`` prices the planar speed
             ``hypot(vx, vy)`` (``|vx|`` for robots that move along x only), ``False`` the signed x
             velocity. The multi-agent velocity tasks use it (:mod:`sg_torchrl.envs.multi_agent`).
-        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`;
-            2 pays when a core is idle, see its module docstring; ``backend="cpu"`` only).
-        backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible);
-            see :mod:`sg_torchrl.envs.backends`.
-        warp_device: the Warp device with ``backend="warp"`` (``None``: ``"cuda:0"`` if available, else ``"cpu"``).
-        warp_options: more :class:`~sg_torchrl.envs.warp_physics.WarpBatch` keywords (``nconmax``, ``njmax``, ``graph``).
+        physics_threads, backend, warp_device, warp_options: how the simulators run, the fields of
+            :class:`~sg_torchrl.envs.options.SimulatorOptions` (:attr:`simulator_options`).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     The single constraint is ``("cost_info", "velocity")``. Diagnostics of the last step:
@@ -119,6 +89,8 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         warp_options: dict[str, Any] | None = None,
     ) -> None:
         check_num_envs(num_envs)  # before MujocoBatch, for this message
+        #: how the simulators run (built from the four simulator keywords)
+        self.simulator_options = SimulatorOptions(physics_threads, backend, warp_device, warp_options)
         if robot not in ROBOTS:
             raise ValueError(f"unknown velocity robot {robot!r}; choose from {sorted(ROBOTS)}")
         spec: LocomotionRobot = ROBOTS[robot]
@@ -130,16 +102,9 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         if not np.isfinite(self.velocity_threshold):  # NaN compares false with every speed: the cost never fires
             raise ValueError(f"velocity_threshold must be a finite number, got {velocity_threshold!r}")
         position_field = {"qpos": (), "torso": ("xpos",), "mass_center": ("xipos",)}[spec.position_source]
-        self.physics = make_physics(
-            backend,
-            load_model(spec.xml_file),
-            num_envs,
-            post_constraint="cfrc_ext" in spec.extra_observations,
-            fields=position_field + spec.extra_observations,
-            threads=physics_threads,
-            warp_device=warp_device,
-            warp_options=warp_options,
-        )
+        self.physics = make_physics(load_model(spec.xml_file), num_envs, self.simulator_options,
+                                    post_constraint="cfrc_ext" in spec.extra_observations,
+                                    fields=position_field + spec.extra_observations)
         model = self.physics.model
         self._init_qpos = model.qpos0.copy()
         self._quaternions = quaternion_addresses(model)
@@ -209,6 +174,7 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         normalize_quaternions(qpos, self._quaternions)
         self.physics.reset(indices, qpos, qvel)
 
+    @step_hook
     def _position(self) -> np.ndarray:
         """The position whose finite difference is the robot's velocity, ``(N, 1 or 2)``."""
         width = 2 if self.robot.planar else 1
@@ -306,20 +272,16 @@ class VelocityEnv(RenderMixin, MujocoSafeEnv):
         return ~health(self.physics.qpos(), self.physics.qvel())
 
     # ------------------------------------------------------------------ one simulator (gymnasium façade)
-    # The hooks whose work :meth:`step_one`'s own path does: a subclass overriding one steps through SafeEnv's.
-    _SINGLE_HOOKS = ("_before_step", "_advance", "_observe", "_compute_reward", "_compute_cost",
-                     "_compute_terminated", "_transition_arrays", "_fault_free", "_aggregate_cost",
-                     "_single_outputs", "_position")
 
     def _single_plan(self) -> tuple | None:
         """What :meth:`step_one`'s own path reads, taken once (views of the buffers and of the one
-        ``MjData``), or ``None`` where it does not apply: more than one simulator, another backend,
-        a position other than joint ``qpos`` (Ant, Humanoid) or extra observation fields, or hooks
-        that a subclass overrides."""
+        ``MjData``), or ``None`` where it does not apply: more than one simulator, a backend without the
+        aliased single step, a position other than joint ``qpos`` (Ant, Humanoid) or extra observation
+        fields, or step hooks that a subclass redefines (:mod:`sg_torchrl.envs.step_hooks`)."""
         physics, robot = self.physics, self.robot
-        if (self.num_envs != 1 or not isinstance(physics, MujocoBatch) or not physics.aliased
+        if (self.num_envs != 1 or not physics.supports_aliased_single_step
                 or robot.position_source != "qpos" or robot.extra_observations
-                or any(getattr(type(self), name) is not getattr(VelocityEnv, name) for name in self._SINGLE_HOOKS)):
+                or type(self).hooks_overridden_since(VelocityEnv)):
             return None
         qpos_part, qvel_part, _ = self._parts
         qvel_clip = None

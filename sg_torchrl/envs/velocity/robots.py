@@ -21,7 +21,7 @@ import gymnasium.envs.mujoco
 import mujoco
 import numpy as np
 
-__all__ = ["HealthCheck", "LocomotionRobot", "ROBOTS", "load_model"]
+__all__ = ["HealthCheck", "LocomotionRobot", "ROBOTS", "load_model", "normalize_quaternions", "quaternion_addresses"]
 
 ASSETS = Path(gymnasium.envs.mujoco.__file__).parent / "assets"
 
@@ -206,3 +206,30 @@ def load_model(xml_file: str) -> mujoco.MjModel:
         mujoco.mj_setTotalmass(model, float(total_mass.group(1)))
         mujoco.mj_setConst(model, mujoco.MjData(model))  # refresh constants derived from masses
     return model
+
+
+def quaternion_addresses(model: mujoco.MjModel) -> np.ndarray:
+    """Where each free or ball joint's quaternion starts in ``qpos``, ``(K,)`` (empty for planar robots)."""
+    free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
+    kinds = model.jnt_type.astype(int)
+    starts = [int(model.jnt_qposadr[j]) + (3 if kinds[j] == free else 0)
+              for j in range(model.njnt) if kinds[j] in (free, ball)]
+    return np.asarray(starts, dtype=np.int64)
+
+
+def normalize_quaternions(qpos: np.ndarray, starts: np.ndarray) -> None:
+    """Scale the quaternions of ``qpos`` (``(N, nq)``, in place) starting at ``starts`` to unit length.
+
+    Why: gymnasium's v4 ``reset_model`` adds uniform noise to every ``qpos`` entry, the torso
+    quaternion included, and MuJoCo 2.3.3 (what Safety-Gymnasium 1.0.0 runs on) normalised
+    quaternions inside ``qpos`` during ``mj_forward``, so the original's first observation holds a
+    unit quaternion ``q / |q|`` (checked against safety-gymnasium 1.0.0: norm 1 to 1e-16 over 200
+    seeds, the other coordinates untouched). Current MuJoCo normalises only a copy, so we do it
+    here. A quaternion of (near) zero length becomes the identity, as MuJoCo's ``mju_normalize4``.
+    """
+    for start in starts:
+        quat = qpos[:, start : start + 4]
+        norm = np.linalg.norm(quat, axis=1, keepdims=True)
+        tiny = norm[:, 0] < 1e-15
+        quat /= np.where(norm < 1e-15, 1.0, norm)
+        quat[tiny] = (1.0, 0.0, 0.0, 0.0)

@@ -4,7 +4,7 @@ A :class:`Task` subclass holds what is common to every level of a task (reward, 
 the goal is reached, episode length, floor, lidar range); a level is one constructor call listing
 its extents and objects, e.g. ``GoalTask(1, extents=1.5, objects=[Goal(keepout=0.305),
 Hazards(8, keepout=0.18), Vases(1, constrained=False)])``. Register the level in
-:data:`sg_torchrl.envs.navigation.tasks.TASKS` and the registry picks it up for every robot.
+:data:`sg_torchrl.envs.navigation.levels.TASKS` and the registry picks it up for every robot.
 """
 
 from __future__ import annotations

@@ -21,13 +21,13 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects import Buttons, GoalMarker, Gremlins, Hazards
+from sg_torchrl.envs.navigation.objects import Buttons
 from sg_torchrl.envs.navigation.tasks.goal import GoalTask
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["BUTTON_LEVELS", "ButtonTask"]
+__all__ = ["ButtonTask"]
 
 
 class ButtonTask(GoalTask):
@@ -85,13 +85,3 @@ class ButtonTask(GoalTask):
         timer = self.buttons.timer
         if self._buttons_lidar is not None and np.count_nonzero(timer):  # no timer running: the masked write is a no-op
             observation[timer > 0, self._buttons_lidar] = 0.0
-
-
-# reference section 6: extents, counts, sizes and keep-outs of each level.
-BUTTON_LEVELS = {
-    0: lambda: ButtonTask(0, extents=1.0, objects=[Buttons(4, constrained=False), GoalMarker()]),
-    1: lambda: ButtonTask(1, extents=1.5, objects=[
-        Buttons(4), GoalMarker(), Hazards(4, keepout=0.18), Gremlins(4)]),
-    2: lambda: ButtonTask(2, extents=1.8, objects=[
-        Buttons(4), GoalMarker(), Hazards(8, keepout=0.18), Gremlins(6)]),
-}

@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects import CircleZone, NavObject, Sigwalls
+from sg_torchrl.envs.navigation.objects import CircleZone, NavObject
 from sg_torchrl.envs.navigation.tasks.base import Task
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["CircleTask", "CIRCLE_LEVELS"]
+__all__ = ["CircleTask"]
 
 try:  # what np.einsum(..., optimize=False) returns, called without its Python wrapper (a microsecond a step)
     from numpy._core.multiarray import c_einsum as _einsum
@@ -92,11 +92,3 @@ class CircleTask(Task):
         if rho < 1e-12:
             rho = 1e-12
         return self.zone.reward_factor * ((-u * y + v * x) / rho) / (1.0 + abs(rho - self.zone.size))
-
-
-# reference section 6: the circle alone, then 2 and 4 walls.
-CIRCLE_LEVELS = {
-    0: lambda: CircleTask(0, objects=[CircleZone()]),
-    1: lambda: CircleTask(1, objects=[CircleZone(), Sigwalls(2, bound=1.125)]),
-    2: lambda: CircleTask(2, objects=[CircleZone(), Sigwalls(4, bound=1.125)]),
-}

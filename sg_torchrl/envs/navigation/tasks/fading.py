@@ -1,7 +1,7 @@
 """FadingEasy / FadingHard: Goal tasks whose goal (and at level 2 more) fades from view (reference section 6).
 
 A Fading level is the Goal level of the same digit (extents, objects, reward, costs, 1000 steps,
-:func:`~sg_torchrl.envs.navigation.tasks.goal.goal_level`) plus a
+:data:`~sg_torchrl.envs.navigation.levels.GOAL_SPECS`, built with this task class) plus a
 :class:`~sg_torchrl.envs.navigation.fading.Fader`: the goal's render alpha falls linearly to 0
 over 150 steps (FadingEasy) or 75 (FadingHard) and comes back whenever a new goal is drawn or an
 episode starts. Level 2 also fades the hazards (and, in FadingHard, the vases); each group shows
@@ -14,19 +14,18 @@ pixels and has to remember where the goal was.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
 from sg_torchrl.envs.navigation.fading import Fader
-from sg_torchrl.envs.navigation.tasks.goal import GoalTask, goal_level
+from sg_torchrl.envs.navigation.tasks.goal import GoalTask
 from sg_torchrl.envs.rendering import GeomAlpha
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["FADING_EASY_LEVELS", "FADING_HARD_LEVELS", "FadingEasyTask", "FadingHardTask", "FadingTask"]
+__all__ = ["FadingEasyTask", "FadingHardTask", "FadingTask"]
 
 
 class FadingTask(GoalTask):
@@ -85,11 +84,3 @@ class FadingHardTask(FadingTask):
 
     name: ClassVar[str] = "FadingHard"
     fading_steps: ClassVar[int] = 75
-
-
-# What fades per level (reference: Safety-Gymnasium's fading levels).
-_EASY_FADED = {0: ("goal",), 1: ("goal",), 2: ("goal", "hazards")}
-_HARD_FADED = {0: ("goal",), 1: ("goal",), 2: ("goal", "hazards", "vases")}
-
-FADING_EASY_LEVELS = {level: partial(goal_level, FadingEasyTask, level, faded=faded) for level, faded in _EASY_FADED.items()}
-FADING_HARD_LEVELS = {level: partial(goal_level, FadingHardTask, level, faded=faded) for level, faded in _HARD_FADED.items()}

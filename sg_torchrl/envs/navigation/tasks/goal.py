@@ -6,24 +6,23 @@ the layout keep-out rule against the current positions of the robot and all obje
 ``d_prev`` restarts from the distance to the new goal. If no position is found (10000 tries) the
 episode terminates. Episodes last 1000 steps.
 
-Levels: 0 the goal alone in +-1; 1 adds 8 hazards and one unconstrained vase in +-1.5; 2 has
-10 hazards and 10 constrained vases in +-2.
+Levels (:mod:`sg_torchrl.envs.navigation.levels`): 0 the goal alone in +-1; 1 adds 8 hazards and one
+unconstrained vase in +-1.5; 2 has 10 hazards and 10 constrained vases in +-2.
 """
 
 from __future__ import annotations
 
-from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects import Goal, Hazards, Vases
+from sg_torchrl.envs.navigation.objects import Goal
 from sg_torchrl.envs.navigation.tasks.base import Task
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["GoalTask", "GOAL_LEVELS", "goal_level"]
+__all__ = ["GoalTask"]
 
 
 class GoalTask(Task):
@@ -121,19 +120,3 @@ class GoalTask(Task):
     def load_state_dict(self, state: dict) -> None:
         self._last_distance[:] = state["last_distance"]
         self.goal_met[:] = state["goal_met"]
-
-
-def goal_level(task: type[GoalTask], level: int, **options) -> GoalTask:
-    """A fresh ``task`` (:class:`GoalTask` or a subclass: the Fading tasks) with Goal level ``level``'s
-    extents and objects (reference section 6); ``options`` go to ``task``'s constructor."""
-    if level == 0:
-        return task(0, extents=1.0, objects=[Goal(keepout=0.305)], **options)
-    if level == 1:
-        return task(1, extents=1.5, objects=[Goal(keepout=0.305), Hazards(8, keepout=0.18), Vases(1, constrained=False)],
-                    **options)
-    if level == 2:
-        return task(2, extents=2.0, objects=[Goal(keepout=0.305), Hazards(10, keepout=0.18), Vases(10)], **options)
-    raise ValueError(f"Goal has levels 0, 1, 2, got {level}")
-
-
-GOAL_LEVELS = {level: partial(goal_level, GoalTask, level) for level in range(3)}

@@ -19,13 +19,13 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from sg_torchrl.envs.navigation.objects import Goal, Hazards, Pillars, PushBox
+from sg_torchrl.envs.navigation.objects import PushBox
 from sg_torchrl.envs.navigation.tasks.goal import GoalTask
 
 if TYPE_CHECKING:
     from sg_torchrl.envs.navigation.env import NavigationEnv
 
-__all__ = ["PUSH_LEVELS", "PushTask"]
+__all__ = ["PushTask"]
 
 
 class PushTask(GoalTask):
@@ -75,13 +75,3 @@ class PushTask(GoalTask):
     def load_state_dict(self, state: dict) -> None:
         super().load_state_dict(state)
         self._last_box_distance[:] = state["last_box_distance"]
-
-
-# reference section 6: extents, counts, sizes and keep-outs of each level.
-PUSH_LEVELS = {
-    0: lambda: PushTask(0, extents=1.0, objects=[Goal(), PushBox()]),
-    1: lambda: PushTask(1, extents=1.5, objects=[
-        Goal(), Hazards(2, size=0.3, keepout=0.4), Pillars(1, constrained=False), PushBox()]),
-    2: lambda: PushTask(2, extents=2.0, objects=[
-        Goal(), Hazards(4, size=0.3, keepout=0.4), Pillars(4), PushBox()]),
-}

@@ -2,9 +2,9 @@
 
 Safety-Gymnasium's paper (section 4.4) trains its dexterous-hand tasks with single- and multi-agent
 algorithms alike (MACPO, MAPPO-L); the multi-agent form splits the same world by hand.
-:class:`MultiAgentShadowHandEnv` is :class:`~sg_torchrl.dexhands.env.ShadowHandEnv` (physics, reward,
+:class:`MultiAgentShadowHandEnv` is :class:`~sg_torchrl.envs.hands.env.ShadowHandEnv` (physics, reward,
 termination, seeding, partial resets: all inherited) in TorchRL's multi-agent layout
-(:mod:`sg_torchrl.envs.multi_agent.group`):
+(:mod:`sg_torchrl.envs.agent_group`):
 
 * agents ``agent_0`` (the throwing ``right/`` hand) and ``agent_1`` (the catching ``left/`` hand);
 * ``("agents", "action")`` ``(N, 2, Da)``: each agent drives its own hand's actuators (Da = 20, or 26
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sg_torchrl.dexhands.env import OBJECT_OBSERVATION_DIM, ShadowHandEnv
-from sg_torchrl.envs.multi_agent.group import JointVectorAgentsMixin
+from sg_torchrl.envs.hands.env import OBJECT_OBSERVATION_DIM, ShadowHandEnv
+from sg_torchrl.envs.agent_group import JointVectorAgentsMixin
 
 __all__ = ["MultiAgentShadowHandEnv"]
 

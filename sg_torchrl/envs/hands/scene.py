@@ -65,7 +65,7 @@ def hand_assets_dir() -> str:
     spec = importlib.util.find_spec("gymnasium_robotics")
     if spec is None or not spec.submodule_search_locations:
         raise ImportError(
-            "the Shadow-Hand tasks (sg_torchrl.dexhands) load the Shadow Hand model of gymnasium-robotics; "
+            "the Shadow-Hand tasks (sg_torchrl.envs.hands) load the Shadow Hand model of gymnasium-robotics; "
             "install it with `pip install gymnasium-robotics==1.4.2` (a dependency of sg_torchrl)"
         )
     root = os.path.join(next(iter(spec.submodule_search_locations)), "envs", "assets")

@@ -1,6 +1,6 @@
 """The two-hand tasks of the Safety-Gymnasium paper (section 4.4): geometry and episode settings.
 
-Each :class:`HandTask` is data for the one env class, :class:`~sg_torchrl.dexhands.env.ShadowHandEnv`.
+Each :class:`HandTask` is data for the one env class, :class:`~sg_torchrl.envs.hands.env.ShadowHandEnv`.
 
 * ``HandOver`` (Isaac Gym's ShadowHandOver): fixed hands, palms up, fingers towards each other,
   wrists 1 m apart; the ball starts on the ``right/`` palm, the goal is above the ``left/`` palm.
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sg_torchrl.dexhands.scene import HAND_OVER_SCENE, MOUNT_HEIGHT, SceneConfig
+from sg_torchrl.envs.hands.scene import HAND_OVER_SCENE, MOUNT_HEIGHT, SceneConfig
 
 __all__ = ["HandTask", "TASKS", "above_palm"]
 

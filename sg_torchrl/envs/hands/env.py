@@ -1,9 +1,9 @@
 """``ShadowHand{Over,CatchOver2Underarm}{SafeJoint,SafeFinger}-v0``: pass a ball between two Shadow Hands, safely.
 
 Safety-Gymnasium paper, section 4.4 ("Safe Isaac Gym"): the Isaac Gym tasks ShadowHandOver and
-ShadowHandCatchOver2Underarm (:mod:`sg_torchrl.dexhands.tasks`), with a constraint on the
-forefinger (:mod:`sg_torchrl.dexhands.constraints`), rebuilt on MuJoCo with ``N`` simulators
-sharing one compiled two-hand model per task (:mod:`sg_torchrl.dexhands.scene`). Model
+ShadowHandCatchOver2Underarm (:mod:`sg_torchrl.envs.hands.tasks`), with a constraint on the
+forefinger (:mod:`sg_torchrl.envs.hands.constraints`), rebuilt on MuJoCo with ``N`` simulators
+sharing one compiled two-hand model per task (:mod:`sg_torchrl.envs.hands.scene`). Model
 derived from gymnasium-robotics' Shadow Hand assets (Apache-2.0, (C) Vikash Kumar, CSE, UW; see
 ``NOTICE`` in this package).
 
@@ -56,11 +56,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from sg_torchrl.dexhands.constraints import SAFETY_VARIANTS, CostSource, JointRangeConstraint
-from sg_torchrl.dexhands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
-from sg_torchrl.dexhands.scene import FINGERTIPS, HandLayout, build_scene
-from sg_torchrl.dexhands.tasks import TASKS
-from sg_torchrl.envs.backends import Backend, make_physics
+from sg_torchrl.envs.hands.constraints import SAFETY_VARIANTS, CostSource, JointRangeConstraint
+from sg_torchrl.envs.hands.rotations import quat_conjugate, quat_multiply, random_quaternion, rotation_distance
+from sg_torchrl.envs.hands.scene import FINGERTIPS, HandLayout, build_scene
+from sg_torchrl.envs.hands.tasks import TASKS
+from sg_torchrl.envs.backends import Backend, SimulatorOptions, make_physics
 from sg_torchrl.envs.base import CostMode, check_num_envs
 from sg_torchrl.envs.mujoco_env import MujocoSafeEnv
 from sg_torchrl.envs.rendering import FollowCamera, RenderMixin
@@ -80,19 +80,17 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
     """Two Shadow Hands pass a ball from one to the other under a forefinger constraint.
 
     Args:
-        task: a key of :data:`~sg_torchrl.dexhands.tasks.TASKS` (``"HandOver"``, ``"CatchOver2Underarm"``).
-        safety: ``"SafeJoint"`` or ``"SafeFinger"`` (:data:`~sg_torchrl.dexhands.constraints.SAFETY_VARIANTS`).
+        task: a key of :data:`~sg_torchrl.envs.hands.tasks.TASKS` (``"HandOver"``, ``"CatchOver2Underarm"``).
+        safety: ``"SafeJoint"`` or ``"SafeFinger"`` (:data:`~sg_torchrl.envs.hands.constraints.SAFETY_VARIANTS`).
         cost_source: ``"joints"`` (default: measured joint angles) or ``"actions"`` (the original
-            code's normalised actions); see :mod:`sg_torchrl.dexhands.constraints`.
+            code's normalised actions); see :mod:`sg_torchrl.envs.hands.constraints`.
         distance_scale: ``alpha`` of the reward.
         fall_height: the episode terminates when the ball's centre is below this height (m);
             default: the task's.
-        physics_threads: threads stepping the simulators (:class:`~sg_torchrl.envs.physics.MujocoBatch`);
-            the two-hand scene is heavy enough for 2 to pay on 2 cores (``benchmarks/threaded_stepping.py``;
-            ``backend="cpu"`` only).
-        backend: ``"cpu"`` (MuJoCo C) or ``"warp"`` (MuJoCo Warp, on a GPU when one is visible; thousands
-            of envs, ``benchmarks/warp_throughput.py``); see :mod:`sg_torchrl.envs.backends`.
-        warp_device, warp_options: see :class:`~sg_torchrl.envs.velocity.VelocityEnv`.
+        physics_threads, backend, warp_device, warp_options: how the simulators run, the fields of
+            :class:`~sg_torchrl.envs.options.SimulatorOptions` (:attr:`simulator_options`). The two-hand
+            scene is heavy enough for 2 threads to pay on 2 cores (``benchmarks/threaded_stepping.py``);
+            ``backend="warp"`` steps thousands of envs on a GPU (``benchmarks/warp_throughput.py``).
         num_envs, device, seed, cost_mode, max_episode_steps: see :class:`SafeEnv`.
 
     ``cost_info`` entries: ``forefinger_abduction`` (both variants) and ``forefinger_flexion``
@@ -121,6 +119,8 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         warp_options: dict[str, Any] | None = None,
     ) -> None:
         check_num_envs(num_envs)  # before MujocoBatch, for this message
+        #: how the simulators run (built from the four simulator keywords)
+        self.simulator_options = SimulatorOptions(physics_threads, backend, warp_device, warp_options)
         if safety not in SAFETY_VARIANTS:
             raise ValueError(f"unknown safety variant {safety!r}; choose from {sorted(SAFETY_VARIANTS)}")
         if task not in TASKS:
@@ -131,9 +131,8 @@ class ShadowHandEnv(RenderMixin, MujocoSafeEnv):
         self.layout = layout
         self.distance_scale = float(distance_scale)
         self.fall_height = float(self.task.fall_height if fall_height is None else fall_height)
-        self.physics = make_physics(backend, model, num_envs, fields=("sensordata", "qfrc_actuator"),
-                                    forward_after_step=True, threads=physics_threads, warp_device=warp_device,
-                                    warp_options=warp_options)
+        self.physics = make_physics(model, num_envs, self.simulator_options, fields=("sensordata", "qfrc_actuator"),
+                                    forward_after_step=True)
         hands = layout.hands
         self.constraints = [JointRangeConstraint(name, ranges, hands, cost_source)
                             for name, ranges in SAFETY_VARIANTS[safety].items()]

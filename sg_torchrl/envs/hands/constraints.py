@@ -48,7 +48,7 @@ from typing import Literal
 
 import numpy as np
 
-from sg_torchrl.dexhands.scene import HandLayout
+from sg_torchrl.envs.hands.scene import HandLayout
 
 __all__ = ["CostSource", "JointRange", "PAPER_JOINTS", "SAFETY_VARIANTS", "JointRangeConstraint"]
 

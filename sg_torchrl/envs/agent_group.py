@@ -7,7 +7,8 @@ controls, partial resets asked per agent, and packing the step's numpy arrays in
 The envs supply what differs: the per-agent arrays (:meth:`AgentGroupMixin._output_arrays`), the
 sizes and the action slots. Users: :class:`~sg_torchrl.envs.multi_agent.MultiAgentVelocityEnv`
 (MaMuJoCo partitions of one robot) and :class:`~sg_torchrl.envs.multi_agent.MultiAgentNavigationEnv`
-(several robots in one navigation world).
+(several robots in one navigation world) and :class:`~sg_torchrl.envs.hands.MultiAgentShadowHandEnv` (one agent
+per hand), which is why it sits beside :mod:`~sg_torchrl.envs.base` rather than in one family's package.
 
 TensorDict layout (``N`` simulators, ``A`` agents ``agent_0 .. agent_{A-1}``, ``D`` / ``Da`` the
 largest agent's observation / action size):
@@ -43,6 +44,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from sg_torchrl.envs.base import reject_complex_action
+from sg_torchrl.envs.step_hooks import numpy_faced
 
 __all__ = ["GROUP", "AgentGroupMixin", "JointVectorAgentsMixin", "agent_column", "root_column"]
 
@@ -206,6 +208,7 @@ class AgentGroupMixin(abc.ABC):
         return self.robot_control(action)
 
     # ------------------------------------------------------------------ TorchRL hooks
+    @numpy_faced("agent_group")
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._validated_action(tensordict.get((GROUP, "action"), None))
         return self._pack(*self._transition_arrays(action))
