@@ -11,7 +11,7 @@ from sg_torchrl.envs.multi_agent.env import MultiAgentVelocityEnv
 from sg_torchrl.envs.navigation.env import NavigationEnv
 from sg_torchrl.envs.navigation.single import SingleNavigationStep
 from sg_torchrl.envs.step_hooks import StepHooks, step_hook
-from sg_torchrl.envs.registry import EnvEntry, register
+from sg_torchrl.envs.registry import EnvEntry, register, unregister
 from sg_torchrl.envs.velocity.env import VelocityEnv
 from sg_torchrl.gym import SafetyGymnasiumEnv
 
@@ -78,11 +78,13 @@ def test_numpy_step_interface_follows_the_step_in_use():
 
 def test_the_gymnasium_facade_steps_a_redefined_step_through_torchrl():
     env_id = "TestOwnStepHalfCheetah-v0"
-    if env_id not in sg_torchrl.list_envs():
-        register(EnvEntry(env_id=env_id, constructor=OwnStep, family="velocity", robot="HalfCheetah",
-                          task="Velocity", max_episode_steps=1000, kwargs={"robot": "HalfCheetah"}))
-    assert SafetyGymnasiumEnv("SafetyHalfCheetahVelocity-v1")._fast
-    assert not SafetyGymnasiumEnv(env_id)._fast
+    register(EnvEntry(env_id=env_id, constructor=OwnStep, family="velocity", robot="HalfCheetah",
+                      task="Velocity", max_episode_steps=1000, kwargs={"robot": "HalfCheetah"}))
+    try:  # the id leaves with the test: other tests count the registry's ids
+        assert SafetyGymnasiumEnv("SafetyHalfCheetahVelocity-v1")._fast
+        assert not SafetyGymnasiumEnv(env_id)._fast
+    finally:
+        unregister(env_id)
 
 
 def test_hooks_marked_in_a_new_class_are_discovered():
