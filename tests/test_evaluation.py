@@ -184,9 +184,14 @@ def test_load_policy_refusals(group_run, tmp_path):
         load_policy(group_run, seed=0)
 
 
-def test_multi_agent_runs_are_refused_with_a_clear_error():
-    with pytest.raises(PolicyLoadError, match="multi-agent run .* not supported yet"):
-        load_policy(DATA / "multi_agent_trainer_run")
+def test_a_checkpoint_of_the_replaced_multi_agent_trainer_loads_as_its_one_seed():
+    """Its team's entries at the top level (tests/data/multi_agent_trainer_run): read as the one-seed group's."""
+    policy = load_policy(DATA / "multi_agent_trainer_run")
+    state = load_checkpoint(DATA / "multi_agent_trainer_run")
+    assert policy.seed == state["config"]["seed"] and policy.epoch == state["epoch"]
+    assert policy.in_keys == [("agents", "observation")] and policy.out_keys == [("agents", "action")]
+    weight = next(v for k, v in state["networks"].items() if k.startswith("policy.") and k.endswith("weight"))
+    assert any(torch.equal(weight, p) for p in policy.network.head.parameters())
 
 
 def test_a_checkpoint_whose_actor_does_not_fit_its_config_is_refused(group_run, tmp_path):
@@ -252,7 +257,6 @@ def test_bad_arguments_exit_2_and_write_nothing(group_run, tmp_path, capsys):
         ([group_run, "--env-options", "no_such_option=1"], "no_such_option"),
         ([group_run, "--env-options", "seed=3"], "cannot set seed"),
         ([group_run, "--episodes", "2", "--video", tmp_path / "v.gif", "--video-episodes", "3"], "more than the 2"),
-        ([DATA / "multi_agent_trainer_run"], "not supported yet"),
     ]
     for argv, message in cases:
         code, _, err = run_eval(*argv, capsys=capsys)
