@@ -140,6 +140,8 @@ def load_policy(run_dir: str | Path, seed: int | None = None, device: torch.devi
     >>> policy = sg_torchrl.load_policy("runs/SafetyPointGoal1-v0/ppo_lag/seed-000")
     >>> action = policy.act(observation)              # numpy in, numpy out
     >>> td = env.rollout(1000, policy)                # a TorchRL policy (mean actions)
+    >>> team = sg_torchrl.load_policy("runs/Safety2x3HalfCheetahVelocity-v0/mappo/seed-000")
+    >>> actions = team.act(agent_observations)        # (A, obs_dim) -> (A, max action size)
 
     Raises:
         FileNotFoundError: no run or checkpoint there.
