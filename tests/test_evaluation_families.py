@@ -208,6 +208,13 @@ def test_team_policy_is_a_torchrl_policy(runs):
     assert not torch.equal(sampled, policy(td.clone())["agents", "action"])
 
 
+def test_a_team_is_not_evaluated_on_another_partition(runs, tmp_path, capsys):
+    code = cli.main([str(runs["mappo_lag"]), "--seeds", "0", "--env-id", "Safety6x1HalfCheetahVelocity-v0",
+                     "--output-dir", str(tmp_path)])
+    assert code == 2 and "the policy was trained on {('agents', 'observation'): (2, 12)}" in capsys.readouterr().err
+    assert not tmp_path.joinpath("summary.json").exists()
+
+
 # ---------------------------------------------------------------------------- export
 def test_every_familys_export_runs_without_sg_torchrl(runs, tmp_path):
     programs, expected = [], []
