@@ -16,7 +16,6 @@ import json
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +32,8 @@ from sg_torchrl.modules.mlp import make_actor
 from sg_torchrl.train import TrainConfig, train
 from sg_torchrl.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from sg_torchrl.train.seed_runs import seed_entry
+
+from export_checks import run_exported
 
 torch.set_num_threads(1)
 
@@ -184,9 +185,14 @@ def test_load_policy_refusals(group_run, tmp_path):
         load_policy(group_run, seed=0)
 
 
-def test_multi_agent_runs_are_refused_with_a_clear_error():
-    with pytest.raises(PolicyLoadError, match="multi-agent run .* not supported yet"):
-        load_policy(DATA / "multi_agent_trainer_run")
+def test_a_checkpoint_of_the_replaced_multi_agent_trainer_loads_as_its_one_seed():
+    """Its team's entries at the top level (tests/data/multi_agent_trainer_run): read as the one-seed group's."""
+    policy = load_policy(DATA / "multi_agent_trainer_run")
+    state = load_checkpoint(DATA / "multi_agent_trainer_run")
+    assert policy.seed == state["config"]["seed"] and policy.epoch == state["epoch"]
+    assert policy.in_keys == [("agents", "observation")] and policy.out_keys == [("agents", "action")]
+    weight = next(v for k, v in state["networks"].items() if k.startswith("policy.") and k.endswith("weight"))
+    assert any(torch.equal(weight, p) for p in policy.network.head.parameters())
 
 
 def test_a_checkpoint_whose_actor_does_not_fit_its_config_is_refused(group_run, tmp_path):
@@ -198,37 +204,12 @@ def test_a_checkpoint_whose_actor_does_not_fit_its_config_is_refused(group_run, 
 
 
 # ---------------------------------------------------------------------------- export
-_LOAD_WITHOUT_SG_TORCHRL = textwrap.dedent("""
-    import sys
-    for name in ("sg_torchrl", "torchrl", "tensordict"):
-        sys.modules[name] = None  # importing them now fails, so loading cannot use them
-    try:
-        import sg_torchrl
-    except ImportError:
-        pass
-    else:
-        raise SystemExit("sg_torchrl is importable")
-    import torch
-    program, observations, out = sys.argv[1:]
-    policy = torch.export.load(program).module()
-    with torch.no_grad():
-        actions = policy(torch.load(observations, weights_only=True))
-    torch.save(actions, out)
-    loaded = [n for n, m in sys.modules.items() if m is not None and n.split(".")[0] in ("sg_torchrl", "torchrl", "tensordict")]
-    assert not loaded, loaded
-""")
-
-
 def test_export_runs_without_sg_torchrl(group_run, tmp_path):
     target = tmp_path / "policy.pt2"
     assert cli.main([str(group_run), "--seeds", "1", "--episodes", "0", "--export", str(target)]) == 0
     assert not (group_run / "eval").exists()  # --episodes 0: nothing evaluated, nothing written there
     obs = torch.randn(1000, 60, generator=torch.Generator().manual_seed(1)) * 3
-    torch.save(obs, tmp_path / "obs.pt")
-    result = subprocess.run([sys.executable, "-I", "-c", _LOAD_WITHOUT_SG_TORCHRL, str(target), str(tmp_path / "obs.pt"),
-                             str(tmp_path / "actions.pt")], cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    exported = torch.load(tmp_path / "actions.pt", weights_only=True)
+    [exported] = run_exported([(target, obs)], tmp_path)
     expected = torch.from_numpy(load_policy(group_run, seed=1).act(obs.numpy()))
     assert exported.shape == (1000, 2)
     torch.testing.assert_close(exported, expected, rtol=0, atol=1e-6)
@@ -252,7 +233,6 @@ def test_bad_arguments_exit_2_and_write_nothing(group_run, tmp_path, capsys):
         ([group_run, "--env-options", "no_such_option=1"], "no_such_option"),
         ([group_run, "--env-options", "seed=3"], "cannot set seed"),
         ([group_run, "--episodes", "2", "--video", tmp_path / "v.gif", "--video-episodes", "3"], "more than the 2"),
-        ([DATA / "multi_agent_trainer_run"], "not supported yet"),
     ]
     for argv, message in cases:
         code, _, err = run_eval(*argv, capsys=capsys)

@@ -1,8 +1,9 @@
 """Evaluate, watch and export a trained agent: ``sg-eval`` and :func:`load_policy`.
 
-* :func:`load_policy` (also ``sg_torchrl.load_policy``): a run's trained policy, observation
-  normaliser folded in, as a TorchRL ``TensorDictModule`` with ``act(obs)`` for numpy
-  (:mod:`~sg_torchrl.evaluation.policy`);
+* :func:`load_policy` (also ``sg_torchrl.load_policy``): a run's trained policy (any family: on-policy,
+  off-policy, a multi-agent team), observation normaliser folded in, as a TorchRL ``TensorDictModule``
+  with ``act(obs)`` for numpy (:mod:`~sg_torchrl.evaluation.policy`; one loader per kind of run,
+  :mod:`~sg_torchrl.evaluation.loaders`; the networks, :mod:`~sg_torchrl.evaluation.networks`);
 * :func:`export_policy`: that policy's mean action as a ``torch.export`` file that runs with torch
   alone (:mod:`~sg_torchrl.evaluation.export`);
 * :func:`record_evaluation`: the frames of evaluation episodes with their running cost drawn on
@@ -23,8 +24,10 @@ from typing import Any
 #: Public name -> the module of this package that defines it.
 _HOMES = {
     "PolicyLoadError": "policy",
-    "PolicyNetwork": "policy",
-    "TrainedPolicy": "policy",
+    "ObservationScaler": "networks",
+    "OffPolicyActorNetwork": "networks",
+    "PolicyNetwork": "networks",
+    "TrainedPolicy": "networks",
     "load_policy": "policy",
     "read_run": "policy",
     "export_policy": "export",

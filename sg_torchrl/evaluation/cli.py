@@ -13,7 +13,10 @@ simulator of an env seeded ``env_seed(run seed, EVALUATION)`` (run seed + 10,000
 from the run's checkpoint, and it runs the same rollout code
 (:func:`~sg_torchrl.train.evaluate.evaluate_episodes`), so without options its ``Metrics/EvalEpRet``,
 ``Metrics/EvalEpCost``, ... equal those of the run's ``summary.json``, to the last bit. ``--seed``,
-``--episodes``, ``--env-id``, ``--env-options`` and ``--stochastic`` evaluate otherwise. Episode ``k`` starts
+``--episodes``, ``--env-id``, ``--env-options`` and ``--stochastic`` evaluate otherwise. This holds for every
+family: single-agent on-policy and off-policy runs (SAC's squashed mean, TD3's and DDPG's deterministic
+actor) and multi-agent runs (the team's mean actions, its per-agent normaliser; the team return is the
+agents' mean reward summed over the episode, as training scores it). Episode ``k`` starts
 from the same layout whatever ``--episodes`` (simulator ``k``'s seed does not depend on their number), but its
 figures are bit-identical only for the same number: the policy acts on all episodes in one batch, and a
 matmul over another batch size rounds differently (about 1e-7 per action, 1e-3 in a 1000-step return of
@@ -64,8 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the seeds of a group to evaluate (default: every seed)")
     parser.add_argument("--episodes", type=int, help="episodes per seed (default: the run's eval_episodes, 10 "
                         "unless it was trained otherwise; 0: no evaluation, e.g. only --export)")
-    parser.add_argument("--stochastic", action="store_true", help="sample actions from the policy's Gaussian "
-                        "(torch's RNG seeded with the env seed) instead of its mean action")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions from the policy's distribution "
+                        "(its Gaussian, SAC's squashed one; torch's RNG seeded with the env seed) instead of its mean "
+                        "action; TD3 and DDPG actors are deterministic")
     parser.add_argument("--seed", type=int, help="env seed of the evaluation env (default: each run seed's "
                         "evaluation seed, run seed + 10000, as sg-train evaluates)")
     parser.add_argument("--env-id", help="evaluate on another env id with the same observations and actions "
@@ -159,16 +163,17 @@ def _plan(args: argparse.Namespace, run: Any) -> dict[str, Any]:
 def _check_observations(policy: Any, env_id: str, options: dict[str, Any]) -> None:
     """Refuse an env whose observations or actions differ from what the policy was trained on."""
     import sg_torchrl
-    from sg_torchrl.modules.mlp import ObservationLayout
 
     env = sg_torchrl.make(env_id, num_envs=1, **options)
     try:
-        layout, actions = ObservationLayout.from_spec(env.observation_spec), env.action_spec.shape[-1]
+        observations = {key: tuple(env.observation_spec[key].shape[1:]) if key in env.observation_spec.keys(True)
+                        else None for key in policy.in_keys}
+        actions = tuple(env.full_action_spec[env.action_key].shape[1:])
     finally:
         env.close()
-    if layout != policy.layout or actions != policy.action_spec.shape[-1]:
-        raise _Refused(f"{env_id} with {options} emits {layout} and takes {actions} actions; the policy was "
-                       f"trained on {policy.layout} with {policy.action_spec.shape[-1]} actions")
+    if observations != policy.input_shapes or actions != policy.action_shape:
+        raise _Refused(f"{env_id} with {options} emits {observations} and takes actions of shape {actions}; the "
+                       f"policy was trained on {policy.input_shapes} with actions of shape {policy.action_shape}")
 
 
 def _evaluate(args: argparse.Namespace, run: Any, plan: dict[str, Any]) -> dict[str, Any]:
@@ -187,6 +192,9 @@ def _evaluate(args: argparse.Namespace, run: Any, plan: dict[str, Any]) -> dict[
     results: dict[int, dict[str, Any]] = {}
     for seed in plan["seeds"]:
         policy = policy_of(run, seed, args.device)
+        if args.stochastic and not policy.stochastic:
+            raise _Refused(f"--stochastic samples the policy's action distribution; a {run.config.algo} actor is "
+                           f"deterministic (its exploration noise is part of training only)")
         if plan["env_id"] != policy.config.env_id or plan["env_options"] != policy.config.env_options:
             _check_observations(policy, plan["env_id"], plan["env_options"])
         result: dict[str, Any] = {"policy": policy}

@@ -1,24 +1,27 @@
 """A trained policy as one file that runs without sg_torchrl: ``torch.export``, observation -> mean action.
 
-:func:`export_policy` exports the policy's :class:`~sg_torchrl.evaluation.policy.PolicyNetwork` (the
-frozen observation normaliser, the actor's network) as its mean action with ``torch.export.export``, a
-dynamic batch dimension, and saves the program with ``torch.export.save``. Reading it back needs torch
-alone (not sg_torchrl, TorchRL or tensordict: the graph is ATen operators and the weights are tensors)::
+:func:`export_policy` exports the policy's network (:mod:`~sg_torchrl.evaluation.networks`: the frozen
+observation normaliser, the actor's network) as its mean action with ``torch.export.export``, a dynamic
+batch dimension, and saves the program with ``torch.export.save``. Reading it back needs torch alone (not
+sg_torchrl, TorchRL or tensordict: the graph is ATen operators and the weights are tensors)::
 
     import torch
     policy = torch.export.load("policy.pt2").module()
     action = policy(obs)            # obs (B, obs_dim) float32 -> (B, action_dim), the mean action
 
-A pixel run's program takes the raw images too, in ``in_keys`` order (``pixels`` ``(B, H, W, 3)``
-``uint8``, ``depth`` ``(B, H, W, 1)``, then ``observation``). ``torch.export.load(path,
-extra_files={"sg_torchrl.json": ""})`` also returns a description (``in_keys``, shapes, env id,
-env options, seed, epoch).
+Every family exports alike: an on-policy actor's Gaussian mean, SAC's squashed mean, TD3's and DDPG's
+deterministic action, and a multi-agent team's mean actions (``(B, n_agents, obs_dim)`` -> ``(B, n_agents,
+max action size)``; an agent with fewer actuators has zeros in its padding slots). A pixel run's program
+takes the raw images too, in ``in_keys`` order (``pixels`` ``(B, H, W, 3)`` ``uint8``, ``depth`` ``(B, H, W,
+1)``, then ``observation``). ``torch.export.load(path, extra_files={"sg_torchrl.json": ""})`` also returns a
+description (``in_keys``, shapes, env id, env options, seed, epoch).
 
 Why ``torch.export`` and not TorchScript: TorchScript (``torch.jit.script`` / ``trace``) is deprecated
 in torch 2.x and no longer developed, while ``torch.export`` is the supported format (ahead-of-time
 compilation, ExecuTorch and other runtimes start from it), its loader reads the weights without
 unpickling arbitrary objects, and it keeps the normaliser's float64 arithmetic as it is, so the
-exported actions are the library policy's bit for bit (``tests/test_evaluation.py``).
+exported actions are the library policy's (``tests/test_evaluation.py``,
+``tests/test_evaluation_families.py``).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from sg_torchrl.evaluation.policy import PolicyNetwork, TrainedPolicy
+from sg_torchrl.evaluation.networks import TrainedPolicy, input_dtype, key_name
 from sg_torchrl.train.writes import write_atomic
 
 __all__ = ["DESCRIPTION_FILE", "export_policy"]
@@ -42,33 +45,25 @@ DESCRIPTION_FILE = "sg_torchrl.json"
 
 
 class _MeanAction(nn.Module):
-    """A :class:`PolicyNetwork` reduced to its mean action (what a deployed policy does)."""
+    """A policy's network reduced to its mean action (what a deployed policy does)."""
 
-    def __init__(self, network: PolicyNetwork) -> None:
+    def __init__(self, network: nn.Module) -> None:
         super().__init__()
         self.network = network
 
     def forward(self, *inputs: Tensor) -> Tensor:
-        return self.network(*inputs)[0]
+        return self.network.mean_action(*inputs)
 
 
 def _example_inputs(policy: TrainedPolicy, batch: int) -> tuple[Tensor, ...]:
-    layout, inputs = policy.layout, []
-    for key in policy.in_keys:
-        if key == "observation":
-            inputs.append(torch.zeros(batch, layout.vector_dim))
-        elif key == "pixels":
-            inputs.append(torch.zeros(batch, *layout.image_shape, 3, dtype=torch.uint8))
-        else:
-            inputs.append(torch.zeros(batch, *layout.image_shape, 1))
-    return tuple(inputs)
+    return tuple(torch.zeros(batch, *policy.input_shapes[key], dtype=input_dtype(key)) for key in policy.in_keys)
 
 
 def export_policy(policy: TrainedPolicy, path: str | os.PathLike) -> Path:
     """Write ``policy``'s mean action as a ``torch.export`` program to ``path`` (atomically); returns ``path``.
 
     The program runs on the CPU, takes the raw observation entries ``(B, ...)`` (any ``B >= 1``) in
-    ``policy.in_keys`` order and returns the mean action ``(B, action_dim)`` ``float32``.
+    ``policy.in_keys`` order and returns the mean action ``(B, *policy.action_shape)`` ``float32``.
 
     Raises:
         RunWriteError: ``path`` could not be written.
@@ -81,10 +76,12 @@ def export_policy(policy: TrainedPolicy, path: str | os.PathLike) -> Path:
         program = torch.export.export(module, examples, dynamic_shapes={"inputs": tuple({0: batch} for _ in examples)})
     cfg = policy.config
     description = {
-        "format": "torch.export program: torch.export.load(path).module()(*inputs) -> mean action (B, action_dim)",
-        "in_keys": policy.in_keys,
-        "input_shapes": {key: list(x.shape[1:]) for key, x in zip(policy.in_keys, examples)},
+        "format": "torch.export program: torch.export.load(path).module()(*inputs) -> mean action "
+                  "(B, *action_shape)",
+        "in_keys": [key_name(key) for key in policy.in_keys],
+        "input_shapes": {key_name(key): list(x.shape[1:]) for key, x in zip(policy.in_keys, examples)},
         "action_dim": int(policy.action_spec.shape[-1]),
+        "action_shape": list(policy.action_shape),
         "observation_normalized_inside": policy.network.scaler is not None,
         "env_id": cfg.env_id, "env_options": cfg.env_options, "algo": cfg.algo, "seed": policy.seed,
         "epoch": policy.epoch,

@@ -56,7 +56,8 @@ from sg_torchrl.objectives.multi_agent import (
 )
 from sg_torchrl.train.config import TrainConfig
 
-__all__ = ["MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "num_minibatches", "observation_norms"]
+__all__ = ["MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "make_team_networks", "num_minibatches",
+           "observation_norms"]
 
 MakeUpdate = Callable[[MultiAgentNetworks, TrainConfig, torch.Generator], MultiAgentUpdate]
 
@@ -138,6 +139,14 @@ def observation_norms(env: EnvBase, *, groups: int) -> list[RunningObservationNo
     ]
 
 
+def make_team_networks(env: EnvBase, cfg: TrainConfig) -> MultiAgentNetworks:
+    """A team's networks for ``env``'s agents at ``cfg``'s sizes, initialised from the global torch RNG (a run's
+    team, and the networks a loaded policy's checkpoint entry is read into)."""
+    return make_multi_agent_networks(
+        env.observation_dim, env.action_sizes, env.state_dim, hidden_sizes=cfg.network_sizes, group=GROUP
+    )
+
+
 @dataclass
 class MultiAgentTeam:
     """One multi-agent run's learning parts: the team's networks, both GAEs and the algorithm's round.
@@ -160,9 +169,7 @@ class MultiAgentTeam:
 
         The networks are initialised from the global torch RNG (as it stands: the caller seeds it).
         """
-        networks = make_multi_agent_networks(
-            env.observation_dim, env.action_sizes, env.state_dim, hidden_sizes=cfg.network_sizes, group=GROUP
-        )
+        networks = make_team_networks(env, cfg)
         update_rng = seeding.generator(cfg.seed, seeding.Purpose.MINIBATCHES)
         return cls(
             networks=networks,

@@ -53,7 +53,8 @@ from sg_torchrl.train.replay import SeedReplay
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
 from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout
 
-__all__ = ["OffPolicyGroupTrainer", "SingleSeedOffPolicyTrainer", "make_loss", "off_policy_objective_of"]
+__all__ = ["OffPolicyGroupTrainer", "SingleSeedOffPolicyTrainer", "make_loss", "off_policy_network_options",
+           "off_policy_objective_of"]
 
 _METRICS = ("Loss/Loss_reward_critic", "Loss/Loss_cost_critic", "Loss/Loss_pi", "Value/reward_critic",
             "Value/cost_critic")
@@ -71,6 +72,16 @@ def off_policy_objective_of(loss) -> OffPolicyObjective:
         raise TypeError(f"{type(loss).__name__} has no seed_batched_objective() giving an OffPolicyObjective: the "
                         f"off-policy engine trains SACLagLoss, TD3LagLoss, DDPGLagLoss (or subclasses)")
     return objective
+
+
+def off_policy_network_options(algo: str) -> dict[str, Any]:
+    """The :func:`make_off_policy_networks` keywords of an off-policy row: SAC's stochastic actor, DDPG's one
+    critic of each kind (TD3's and SAC's two), cost critics for a constrained row (a run's networks and a
+    loaded policy's actor are built from these alone)."""
+    entry = manifest.get(algo)
+    return {"stochastic": entry.loss.endswith(":SACLagLoss"),
+            "num_critics": 1 if entry.loss.endswith(":DDPGLagLoss") else 2,
+            "constrained": entry.multiplier != "none"}
 
 
 def make_loss(cfg: TrainConfig, networks, multiplier, action_spec):
@@ -174,16 +185,16 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
                                         **cfg.env_options)
         self.env = self.base_env
         spec, obs_dim = _row_spec(self.base_env), self.base_env.observation_spec["observation"].shape[-1]
-        stochastic, num_critics = entry.loss.endswith(":SACLagLoss"), 1 if entry.loss.endswith(":DDPGLagLoss") else 2
+        options = off_policy_network_options(cfg.algo)
         singles = []
         for seed in seeds:  # each seed's networks as its --seed run builds them
             seeding.seed_torch(seed)
-            singles.append(make_off_policy_networks(obs_dim, spec, cfg.network_sizes, stochastic=stochastic,
-                                                    num_critics=num_critics, constrained=entry.multiplier != "none"))
+            singles.append(make_off_policy_networks(obs_dim, spec, cfg.network_sizes, **options))
         self.multipliers = [make_multiplier(entry.multiplier, cfg) for _ in seeds]
         # One seed's loss, the LossModule users compose, names the objective and its hyper-parameters.
         self.objective = off_policy_objective_of(make_loss(cfg, singles[0], self.multipliers[0], spec))
-        self.nets = StackedOffPolicyNets.from_single(singles, obs_dim, spec, cfg.network_sizes, stochastic=stochastic)
+        self.nets = StackedOffPolicyNets.from_single(singles, obs_dim, spec, cfg.network_sizes,
+                                                     stochastic=options["stochastic"])
         self.optimizers = {name: SeedMaskedAdam([{"params": [rows], "lr": cfg.actor_lr if name == "actor"
                                                   else cfg.critic_lr}], max_grad_norm=cfg.max_grad_norm)
                            for name, rows in self.nets.trained().items()}
