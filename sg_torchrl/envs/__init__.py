@@ -7,9 +7,7 @@ nor MuJoCo; ``SafeEnv``, ``CostMode`` and ``EpisodeSum`` load them and are impor
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
+from sg_torchrl.lazy import lazy_exports
 from sg_torchrl.envs.options import EnvOptionTypeError, InvalidEnvOptionError, UnknownEnvOptionError
 from sg_torchrl.envs.registry import (
     EnvEntry,
@@ -41,13 +39,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -18,8 +18,7 @@ are imported from their module on first access (PEP 562).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from sg_torchrl.lazy import lazy_exports
 
 #: Public name -> the module of this package that defines it.
 _HOMES = {
@@ -37,12 +36,4 @@ _HOMES = {
 __all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _HOMES:
-        value = globals()[name] = getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_HOMES))
+__getattr__, __dir__ = lazy_exports(__name__, {name: f"{__name__}.{home}" for name, home in _HOMES.items()})

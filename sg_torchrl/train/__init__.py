@@ -32,13 +32,13 @@ first use (PEP 562); the functions below import what they need inside, once the 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sg_torchrl.algorithms import manifest
+from sg_torchrl.lazy import lazy_exports
 from sg_torchrl.train.config import (
     MULTI_AGENT_ALGORITHM_NAMES,
     PRESETS,
@@ -67,11 +67,7 @@ _HEAVY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _HEAVY:
-        value = globals()[name] = getattr(importlib.import_module(_HEAVY[name]), name)
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _HEAVY)
 
 
 __all__ = [
