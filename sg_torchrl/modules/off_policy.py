@@ -28,6 +28,8 @@ from torch.nn import functional as F
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 
+from sg_torchrl.modules.stacked_layers import stacked_mlp_forward
+
 __all__ = ["FlatMLP", "SCALE_MAPPING", "StackedOffPolicyNets", "make_off_policy_networks"]
 
 #: SAC's scale from the actor's second half of outputs (``NormalParamExtractor``'s default mapping).
@@ -92,14 +94,10 @@ class FlatMLP:
 
     def forward(self, flat: Tensor, x: Tensor) -> Tensor:
         """``flat`` ``(R, numel)`` rows, ``x`` ``(R, B, in)`` to ``(R, B, out)``: row ``r`` sees its own weights."""
-        rows, last = flat.shape[0], len(self.layers) - 1
-        for i, (offset, a, b) in enumerate(self.layers):
-            weight = flat[:, offset : offset + a * b].view(rows, a, b)
-            bias = flat[:, offset + a * b : offset + a * b + b].view(rows, 1, b)
-            x = torch.baddbmm(bias, x, weight)
-            if i < last:
-                x = F.relu(x)
-        return x
+        rows = flat.shape[0]
+        layers = ((flat[:, offset : offset + a * b].view(rows, a, b), flat[:, offset + a * b : offset + a * b + b]
+                   .view(rows, 1, b)) for offset, a, b in self.layers)
+        return stacked_mlp_forward(x, layers, F.relu)
 
     def _linears(self, module: nn.Module) -> list[nn.Linear]:
         linears = [m for m in _only_mlp(module).modules() if isinstance(m, nn.Linear)]

@@ -20,7 +20,7 @@ so batches keep them in ``uint8``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -31,7 +31,10 @@ from torchrl.modules import MLP, ConvNet
 from sg_torchrl.modules.cnn import DEFAULT_CNN, CNNArchitecture
 from sg_torchrl.modules.mlp import DEPTH_RANGE, ObservationLayout
 
-__all__ = ["StackedConvNet", "StackedEncodedMLP", "StackedEncoder", "StackedMLP", "conv_layers", "linear_layers"]
+__all__ = [
+    "StackedConvNet", "StackedEncodedMLP", "StackedEncoder", "StackedMLP", "conv_layers", "linear_layers",
+    "stacked_mlp_forward",
+]
 
 
 def linear_layers(mlp: nn.Module) -> list[nn.Linear]:
@@ -43,6 +46,19 @@ def linear_layers(mlp: nn.Module) -> list[nn.Linear]:
     if not shapes_ok or not all(child.bias is not None for child in children[::2]):
         raise TypeError(f"expected a tanh MLP (Linear, Tanh, ..., Linear, with biases), got {mlp}")
     return children[::2]
+
+
+def stacked_mlp_forward(x: Tensor, layers: Iterable[tuple[Tensor, Tensor]],
+                        activation: Callable[[Tensor], Tensor]) -> Tensor:
+    """Many MLPs at once: ``x`` ``(R, B, in)`` through ``layers`` of ``(R, in_i, out_i)`` weights (``nn.Linear``'s
+    transposed) and ``(R, 1, out_i)`` biases, ``activation`` between layers and none after the last; row ``r``
+    only sees its own weights. The one stacked forward pass (tanh seed groups, ReLU off-policy networks)."""
+    layers = list(layers)
+    for i, (weight, bias) in enumerate(layers):
+        x = torch.baddbmm(bias, x, weight)
+        if i < len(layers) - 1:
+            x = activation(x)
+    return x
 
 
 class StackedMLP(nn.Module):
@@ -89,12 +105,7 @@ class StackedMLP(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """``x`` of shape ``(S, B, in)`` to ``(S, B, out)``; seed ``s`` only sees its own weights."""
-        last = len(self.weights) - 1
-        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            x = torch.baddbmm(bias, x, weight)
-            if i < last:
-                x = torch.tanh(x)
-        return x
+        return stacked_mlp_forward(x, zip(self.weights, self.biases), torch.tanh)
 
     @classmethod
     def from_modules(
