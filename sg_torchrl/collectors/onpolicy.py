@@ -74,11 +74,16 @@ class RolloutCollector:
                 carry = policy(carry)
                 transition, carry = env.step_and_maybe_reset(carry)
                 frames.append(transition)
+                self.after_step(transition)
         self._carry = carry
         self.frames += self.frames_per_batch
         batch = torch.stack(frames, dim=len(env.batch_size))
         batch.refine_names(*([None] * len(env.batch_size)), "time")
         return batch
+
+    def after_step(self, transition: TensorDictBase) -> None:
+        """Called with every step's transitions as they are collected; nothing here (a subclass's hook: the
+        off-policy engine fills its replay buffers and takes its gradient steps there)."""
 
     # ------------------------------------------------------------------ checkpointing
     def state_dict(self) -> dict[str, Any]:

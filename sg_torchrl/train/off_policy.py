@@ -143,28 +143,16 @@ class OffPolicyStackedPolicy(TensorDictModuleBase):
 
 
 class InterleavedCollector(RolloutCollector):
-    """:class:`~sg_torchrl.collectors.RolloutCollector` calling ``after_step(transition)`` after every env step
-    (the replay buffers and the gradient steps), with gradients enabled there."""
+    """:class:`~sg_torchrl.collectors.RolloutCollector` whose :meth:`after_step` hands every step's transitions to
+    ``after_step`` (the replay buffers and the gradient steps), with gradients enabled there."""
 
     def __init__(self, env, policy, steps: int, after_step) -> None:
         super().__init__(env, policy, steps)
-        self.after_step = after_step
+        self._after_step = after_step
 
-    @torch.no_grad()
-    def collect(self) -> TensorDictBase:
-        carry, env, policy = self._carry, self.env, self.policy
-        frames = []
-        for _ in range(self.steps):
-            carry = policy(carry)
-            transition, carry = env.step_and_maybe_reset(carry)
-            frames.append(transition)
-            with torch.enable_grad():
-                self.after_step(transition)
-        self._carry = carry
-        self.frames += self.frames_per_batch
-        batch = torch.stack(frames, dim=len(env.batch_size))
-        batch.refine_names(*([None] * len(env.batch_size)), "time")
-        return batch
+    def after_step(self, transition: TensorDictBase) -> None:
+        with torch.enable_grad():
+            self._after_step(transition)
 
 
 class OffPolicyGroupTrainer(SeedGroupTrainer):
