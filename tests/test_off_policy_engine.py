@@ -3,7 +3,9 @@
 * seed k of ``--seeds 0 1`` trains as its ``--seed k`` run (progress rows but their ``Time/*`` columns, and the
   final networks, to the batched matmuls' float rounding);
 * ``--resume`` after an interrupted run equals the uninterrupted run bit for bit: rows, networks, targets,
-  Adam moments, multipliers, generators and the replay buffers (dumped in the run directory, nowhere else);
+  Adam moments, multipliers, generators and the replay buffers (in the run directory, nowhere else), also
+  after a kill between replay writes and the next checkpoint, where the buffer has wrapped over rows the
+  checkpoint holds (their undo files);
 * the multiplier moves with the cost (up over the limit, down under it);
 * the options the family does not take, and the family's options for the on-policy algorithms, are refused.
 """
@@ -91,7 +93,7 @@ def test_resume_equals_the_uninterrupted_run(tmp_path, algo):
     first.collector.env.close()
     del first
     cut_dir = cfg.run_dir
-    assert sorted(p.name for p in (cut_dir / "replay").iterdir() if p.name.startswith("epoch")) == ["epoch-000001"]
+    assert _replay_files(cut_dir) == _replay_layout(1)
     train(dataclasses.replace(cfg, resume=str(cut_dir)))
     whole_dir = tmp_path / "whole" / "SafetyHalfCheetahVelocity-v1" / algo / "seeds-0-1"
     for seed in (0, 1):
@@ -100,8 +102,65 @@ def test_resume_equals_the_uninterrupted_run(tmp_path, algo):
         for name in ("networks", "targets", "optimizer", "multiplier", "action_rng", "replay_rng", "update_rng"):
             for x, y in zip(_tensors(a[name]), _tensors(b[name]), strict=True):
                 assert torch.equal(x, y), name
-    # everything the runs wrote is inside their directories: the replay dumps of the last epoch only
-    assert sorted(p.name for p in (cut_dir / "replay").iterdir()) == ["epoch-000003"]
+    # everything the runs wrote is inside their directories: the memory maps, the last checkpoint's undo files
+    assert _replay_files(cut_dir) == _replay_layout(3)
+
+
+def _replay_files(run_dir: Path) -> list[str]:
+    return sorted(str(p.relative_to(run_dir / "replay")) for p in (run_dir / "replay").rglob("*") if p.is_file())
+
+
+def _replay_layout(epoch: int, seeds=(0, 1)) -> list[str]:
+    return sorted(f"live/seed-{s:03d}/{name}" for s in seeds for name in (
+        "storage/meta.json", "storage/row.memmap", "storage/storage_metadata.json", f"undo-{epoch:06d}.bin"))
+
+
+class _Killed(Exception):
+    """A SIGKILL, as far as the run directory can tell: the process stops between two writes."""
+
+
+def _kill_after(trainer, extends: int) -> None:
+    """Stop ``trainer`` after its next ``extends`` replay writes (of every seed), before any later checkpoint."""
+    original, count = trainer.replay.extend, [0]
+
+    def extend(*fields):
+        original(*fields)
+        count[0] += 1
+        if count[0] == extends:
+            raise _Killed
+
+    trainer.replay.extend = extend
+
+
+@pytest.mark.parametrize("capacity", [150, 300])
+def test_a_run_killed_between_replay_writes_and_checkpoints_resumes_exactly(tmp_path, capacity):
+    """Killed inside epoch 2 (replay rows written after checkpoint 1, over rows it holds: the small buffer
+    wraps before checkpoint 1 at capacity 150, after it at 300), resumed, killed again inside the resumed
+    epoch, resumed to the end: the uninterrupted run's rows, networks, generators, bit for bit."""
+    flags = [*FLAGS[: FLAGS.index("--replay-size")], "--replay-size", str(capacity),
+             *FLAGS[FLAGS.index("--replay-size") + 2 :]]
+    _run(["--algo", "sac_lag", "--seeds", "0", "1", "--output-dir", str(tmp_path / "whole"), *flags])
+    cfg = parse_args(["--algo", "sac_lag", "--seeds", "0", "1", "--output-dir", str(tmp_path / "cut"), *flags])
+    trainer = trainer_class(cfg)(cfg)
+    trainer.run(max_epochs=1)
+    for extends in (70, 40):  # 2 simulators: 140 rows per seed after checkpoint 1, then 80
+        _kill_after(trainer, extends)
+        with pytest.raises(_Killed):
+            trainer.run()
+        trainer.collector.env.close()
+        assert load_checkpoint(cfg.run_dir)["epoch"] == 1
+        resumed = dataclasses.replace(cfg, resume=str(cfg.run_dir))
+        trainer = trainer_class(resumed)(resumed, load_checkpoint(cfg.run_dir))
+    trainer.run()
+    trainer.collector.env.close()
+    whole_dir = tmp_path / "whole" / "SafetyHalfCheetahVelocity-v1" / "sac_lag" / "seeds-0-1"
+    for seed in (0, 1):
+        assert _rows(cfg.run_dir / f"seed-00{seed}" / "progress.csv") == _rows(whole_dir / f"seed-00{seed}" / "progress.csv")
+        a, b = _entry(cfg.run_dir, seed), _entry(whole_dir, seed)
+        for name in ("networks", "targets", "optimizer", "multiplier", "action_rng", "replay_rng", "update_rng"):
+            for x, y in zip(_tensors(a[name]), _tensors(b[name]), strict=True):
+                assert torch.equal(x, y), name
+    assert _replay_files(cfg.run_dir) == _replay_layout(3)
 
 
 def test_multiplier_moves_with_the_cost(tmp_path):

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
+from torchrl.modules.distributions.utils import safetanh_noeps
 
 from sg_torchrl.modules.stacked_layers import stacked_mlp_forward
 
@@ -99,6 +100,22 @@ class FlatMLP:
                    .view(rows, 1, b)) for offset, a, b in self.layers)
         return stacked_mlp_forward(x, layers, F.relu)
 
+    def module_outputs(self, flat: Tensor, x: Tensor) -> list[Tensor]:
+        """Each row's :meth:`forward` as its own module computes it, one ``(B, out)`` tensor per row: one
+        ``F.linear`` per row and layer on the weight in ``nn.Linear``'s ``(out, in)`` layout, so row ``r``'s
+        output is its TorchRL module's bit for bit (a batched matmul, another weight layout, an unaligned input,
+        or one elementwise kernel over all rows rounds differently)."""
+        out = []
+        for row, h in zip(flat, x):
+            h = h.clone()  # freshly allocated: the BLAS kernels may round differently on a row not aligned as one
+            for i, (offset, a, b) in enumerate(self.layers):
+                weight = row[offset : offset + a * b].view(a, b).T.contiguous()
+                h = F.linear(h, weight, row[offset + a * b : offset + a * b + b])
+                if i < len(self.layers) - 1:
+                    h = F.relu(h)
+            out.append(h)
+        return out
+
     def _linears(self, module: nn.Module) -> list[nn.Linear]:
         linears = [m for m in _only_mlp(module).modules() if isinstance(m, nn.Linear)]
         if tuple([linears[0].in_features] + [lin.out_features for lin in linears]) != self.sizes:
@@ -149,7 +166,9 @@ class StackedOffPolicyNets:
         self.critic_layout = FlatMLP([obs_dim + action_dim, *hidden_sizes, 1])
         low, high = action_spec.space.low.float(), action_spec.space.high.float()
         self.low, self.high = low, high
-        self.squash = bool((low != -1).any() or (high != 1).any())  # TanhModule's "non trivial" bounds
+        # TanhNormal's affine map after its tanh, present when the bounds are not [-1, 1] (TanhModule always rescales)
+        self.affine = (high + low) / 2, (high - low) / 2
+        self.unit_bounds = not bool((low != -1).any() or (high != 1).any())
         self._scale_mapping = mappings(SCALE_MAPPING)
 
         def rows(width: int, grad: bool) -> Tensor:
@@ -184,32 +203,43 @@ class StackedOffPolicyNets:
         return out
 
     # ------------------------------------------------------------------ forward passes
-    def _bounded(self, squashed: Tensor) -> Tensor:
-        if not self.squash:
-            return squashed
-        return self.low + (self.high - self.low) * (squashed + 1) / 2
+    # The actions below are the TorchRL actor's operations in its order (``TanhModule.forward``; ``TanhNormal``'s
+    # transforms, ``deterministic_sample`` and ``rsample_and_log_prob``), seed by seed on that seed's own tensors
+    # (``FlatMLP.module_outputs``), so collection, the actor's steps and the exported actor compute the same bits.
+    def _squashed(self, x: Tensor) -> Tensor:
+        """``TanhNormal``'s transform: TorchRL's safe tanh, then ``loc + scale * y`` unless the bounds are [-1, 1]."""
+        y = safetanh_noeps(x)
+        return y if self.unit_bounds else self.affine[0] + self.affine[1] * y
 
     def action(self, actor: Tensor, obs: Tensor) -> Tensor:
-        """The deterministic action (SAC: the squashed mean, as ``TanhNormal``'s deterministic sample), ``(S, B, A)``."""
-        out = self.actor_layout.forward(actor, obs)
-        return self._bounded(torch.tanh(out[..., : self.action_dim] if self.stochastic else out))
+        """The deterministic action, ``(S, B, A)``: SAC's squashed mean (``TanhNormal.deterministic_sample``), TD3's
+        and DDPG's ``TanhModule`` output (``low + (high - low) * (tanh(x) + 1) / 2``, [-1, 1] bounds included)."""
+        outputs = self.actor_layout.module_outputs(actor, obs)
+        if self.stochastic:
+            return torch.stack([self._squashed(out[..., : self.action_dim]) for out in outputs])
+        return torch.stack([self.low + (self.high - self.low) * (out.tanh() + 1) / 2 for out in outputs])
 
     def sample(self, actor: Tensor, obs: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
-        """SAC's reparameterised action and its log-probability from standard-normal ``noise`` ``(S, B, A)``.
+        """SAC's reparameterised action and its log-probability from standard-normal ``noise`` ``(S, B, A)``:
+        ``TanhNormal.rsample_and_log_prob`` with ``noise`` as the Gaussian's draw.
 
-        The log-probability of the squashed Gaussian, ``TanhNormal``'s: the Gaussian's of the pre-tanh value
-        minus :math:`\\sum \\log |d\\,\\text{action} / d x|` (tanh's :math:`2 (\\log 2 - x - \\text{softplus}(-2x))`,
-        plus the bounds' scale when they are not [-1, 1]).
+        The log-probability is the Gaussian's (``Normal.log_prob``) of the pre-tanh value minus the transforms'
+        :math:`\log |d\,\text{action} / d x|` (tanh's :math:`2 (\log 2 - x - \text{softplus}(-2x))`, plus
+        :math:`\log` of the affine scale when the bounds are not [-1, 1]), each summed over the action.
         """
-        out = self.actor_layout.forward(actor, obs)
-        loc, raw = out.chunk(2, -1)
-        scale = self._scale_mapping(raw).clamp_min(_SCALE_LB)
-        pre = loc + scale * noise
-        log_prob = (-0.5 * noise.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
-        log_prob = log_prob - (2 * (math.log(2) - pre - F.softplus(-2 * pre))).sum(-1)
-        if self.squash:
-            log_prob = log_prob - ((self.high - self.low) / 2).log().sum()
-        return self._bounded(torch.tanh(pre)), log_prob
+        actions, log_probs = [], []
+        for out, draw in zip(self.actor_layout.module_outputs(actor, obs), noise):
+            loc, raw = out.chunk(2, -1)
+            scale = self._scale_mapping(raw).clamp_min(_SCALE_LB)
+            pre = loc + draw * scale  # in TorchRL's order throughout: the gradients sum in the same order too
+            actions.append(self._squashed(pre))
+            var, log_scale = scale**2, scale.log()
+            gaussian = (-((pre - loc) ** 2) / (2 * var) - log_scale - math.log(math.sqrt(2 * math.pi))).sum(-1)
+            jacobian = 2.0 * (math.log(2.0) - pre - F.softplus(-2.0 * pre))
+            if not self.unit_bounds:
+                jacobian = jacobian + self.affine[1].abs().log()
+            log_probs.append(gaussian - jacobian.sum(-1))
+        return torch.stack(actions), torch.stack(log_probs)
 
     def q(self, rows: Tensor, obs: Tensor, action: Tensor) -> Tensor:
         """The K critics in ``rows`` (``(S, K * P)``) at ``(obs, action)`` ``(S, B, ...)``: ``(S, K, B)``."""

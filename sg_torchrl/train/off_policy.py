@@ -24,8 +24,8 @@ Random streams per seed (:mod:`sg_torchrl.seeding`): ``actions`` (warm-up action
 ``k`` of a group trains as its ``--seed k`` run (:class:`SingleSeedOffPolicyTrainer`, S = 1; the same
 numbers up to the batched matmuls' float rounding). A seed whose loss turns non-finite stops stepping at
 once and is put back to its state at the start of the epoch, then frozen. ``--resume`` continues bit for
-bit: the checkpoint holds the rows, targets, optimisers, multipliers and generators, and names the
-replay buffers' dump in the run directory.
+bit: the checkpoint holds the rows, targets, optimisers, multipliers and generators, and the replay
+buffers' state (their memory maps and undo files in the run directory, :mod:`sg_torchrl.train.replay`).
 """
 
 from __future__ import annotations
@@ -191,7 +191,6 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         self.update_generators = [seeding.generator(s, seeding.Purpose.UPDATES) for s in seeds]
         self.replay = SeedReplay(cfg.run_dir, seeds, self.replay_generators, capacity=cfg.replay_size,
                                  batch_size=cfg.minibatch_size, obs_dim=obs_dim, action_dim=self.nets.action_dim)
-        self.replay_dump: str | None = None
         self.gradient_steps = 0
         self.policy = OffPolicyStackedPolicy(self.nets, self.action_generators, cfg.exploration_noise)
         self.collector = InterleavedCollector(self.env, self.policy, cfg.steps_per_epoch // cfg.num_envs,
@@ -355,11 +354,6 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes,
                                seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), env_options=cfg.env_options)
 
-    def finish(self) -> dict[str, float]:
-        out = super().finish()
-        self.replay.remove_live()
-        return out
-
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:
         """Seed ``index``'s networks (its :func:`make_off_policy_networks` modules' state dicts), targets and Adam
@@ -400,22 +394,20 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
             generators[index].set_state(entry[key])
 
     def _run_state(self) -> dict[str, Any]:
-        """The seeds' entries, the gradient-step count, and the replay buffers' dump for this epoch."""
-        self.replay_dump = self.replay.dump(self.epoch) if len(self.replay) else None
+        """The seeds' entries, the gradient-step count, and the replay buffers' state (flushed to their memory
+        maps in the run directory: :meth:`SeedReplay.checkpoint`)."""
         return {**super()._run_state(), "off_policy": {"gradient_steps": self.gradient_steps,
-                                                       "replay": self.replay_dump}}
+                                                       "replay": self.replay.checkpoint(self.epoch)}}
 
     def save_checkpoint(self, path=None):
         saved = super().save_checkpoint(path)
-        if self.replay_dump is not None:
-            self.replay.prune(self.replay_dump)  # the checkpoint naming it is on disk: older dumps go
+        self.replay.commit()  # the checkpoint is on disk: its undo files take over, older ones go
         return saved
 
     def _load_run_state(self, state: dict[str, Any]) -> None:
         super()._load_run_state(state)
         self.gradient_steps = int(state["off_policy"]["gradient_steps"])
         self.replay.load(state["off_policy"]["replay"])
-        self.replay_dump = state["off_policy"]["replay"]
 
 
 class SingleSeedOffPolicyTrainer(SingleSeedLayout, OffPolicyGroupTrainer):

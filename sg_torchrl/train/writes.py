@@ -23,7 +23,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path, PurePath
 
-__all__ = ["EXIT_WRITE_FAILED", "RunWriteError", "append_text", "check_run_name", "make_dirs",
+__all__ = ["EXIT_WRITE_FAILED", "RunWriteError", "append_bytes", "append_text", "check_run_name", "make_dirs",
            "write_atomic", "writing"]
 
 #: ``sg-train``'s exit status when a file of the run could not be written (2 is a bad command line).
@@ -104,12 +104,24 @@ def append_text(path: str | os.PathLike, text: str) -> None:
     Raises:
         RunWriteError: naming ``path`` and the cause.
     """
-    data = memoryview(text.encode())
+    append_bytes(path, text.encode())
+
+
+def append_bytes(path: str | os.PathLike, data: bytes, *, sync: bool = False) -> None:
+    """Append ``data`` to ``path`` whole or not at all (a failed append is cut back off the file), then
+    ``fsync`` it when ``sync``.
+
+    Raises:
+        RunWriteError: naming ``path`` and the cause.
+    """
+    view = memoryview(data)
     with writing(path), open(path, "ab", buffering=0) as handle:  # unbuffered: nothing is left to flush later
         start = os.fstat(handle.fileno()).st_size
         try:
-            while data:
-                data = data[handle.write(data):]
+            while view:
+                view = view[handle.write(view):]
+            if sync:
+                os.fsync(handle.fileno())
         except OSError:
             with contextlib.suppress(OSError):
                 os.ftruncate(handle.fileno(), start)  # shrinking needs no space
