@@ -204,10 +204,14 @@ def test_resume_continues_the_group_bit_for_bit(tmp_path, algo):
         for mine, theirs in zip(parameters(resumed.teams[index]), parameters(uninterrupted.teams[index])):
             assert torch.equal(mine, theirs)
         assert torch.equal(resumed.policy.generators[index].get_state(), uninterrupted.policy.generators[index].get_state())
-        update, reference = resumed.teams[index].policy_update, uninterrupted.teams[index].policy_update
-        assert torch.equal(update.generator.get_state(), reference.generator.get_state())
-        for mine, theirs in zip(update.multipliers.state_dict().values(), reference.multipliers.state_dict().values()):
+        update, reference = resumed.round.seed_state_dict(index), uninterrupted.round.seed_state_dict(index)
+        assert torch.equal(update["generator"], reference["generator"])
+        for mine, theirs in zip(update["multipliers"].values(), reference["multipliers"].values(), strict=True):
             assert torch.equal(mine, theirs)
+        for mine, theirs in zip(update["optimizers"], reference["optimizers"], strict=True):
+            assert mine["state"].keys() == theirs["state"].keys()
+            for key in mine["state"]:
+                assert all(torch.equal(mine["state"][key][name], theirs["state"][key][name]) for name in mine["state"][key])
         rows = progress(resumed.cfg.seed_dir(seed))
         assert len(rows) == 3 and rows == progress(uninterrupted.cfg.seed_dir(seed))
     for mine, theirs in zip(resumed.obs_norms, uninterrupted.obs_norms):
@@ -244,15 +248,16 @@ def test_a_seed_whose_update_turns_non_finite_is_put_back_and_frozen(tmp_path, c
     group.run(max_epochs=1)
     team = group.teams[0]
     before = parameters(team)
-    learn = team.learn
+    step_seeds = group.round.step_seeds
 
-    def learn_then_break(*args, **kwargs):
-        row = learn(*args, **kwargs)
-        with torch.no_grad():
-            next(team.networks.reward_value.parameters()).view(-1)[0] = float("inf")
-        return row
+    def round_then_break(batches, costs):  # seed 0's update turns non-finite in the round of both seeds
+        rows = step_seeds(batches, costs)
+        if batches[0] is not None:
+            with torch.no_grad():
+                next(team.networks.reward_value.parameters()).view(-1)[0] = float("inf")
+        return rows
 
-    team.learn = learn_then_break
+    group.round.step_seeds = round_then_break
     group.run()
     assert "seed 0 diverged in epoch 2 (its update turned non-finite" in capsys.readouterr().err
     assert all(torch.equal(a, b) for a, b in zip(parameters(team), before))  # put back to before epoch 2

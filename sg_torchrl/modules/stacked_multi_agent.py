@@ -41,9 +41,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
-from sg_torchrl.modules.multi_agent import MultiAgentNetworks
+from sg_torchrl.modules.multi_agent import _HALF_LOG_2PI_E, MultiAgentNetworks
 
-__all__ = ["StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
+__all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 
 #: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
 NETWORKS = ("policy", "reward_value", "cost_value")
@@ -150,6 +150,10 @@ class StackedMultiAgentNetworks:
                 torch.addmm(bias, x, weight_t, out=result)
         return out.transpose(1, 2).masked_fill(~self.mask, 0.0)
 
+    def agent_rows(self, seeds: Tensor, agents: Tensor) -> AgentRows:
+        """Trainable copies of the networks of agent ``agents[i]`` of seed ``seeds[i]``, one row each."""
+        return AgentRows(self, seeds, agents)
+
     @torch.no_grad()
     def actor_scale(self) -> Tensor:
         """The heads' scales, ``(S, 1, A, Da)``: :math:`\\mathrm{sigmoid}(\\ell / x)\\, y`, 1 on padding slots."""
@@ -210,3 +214,81 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
         for key, value in zip(self.out_keys, (loc, scale, action, log_prob)):
             tensordict.set(key, value.reshape(-1, *value.shape[2:]))
         return tensordict
+
+
+class AgentRows:
+    """One agent per row: trainable ``(R, ...)`` copies of the ``(seeds[i], agents[i])`` rows of a stack.
+
+    The working set of a seed-batched multi-agent round (:mod:`sg_torchrl.objectives.multi_agent.updates`):
+    at stage ``k`` of a round, seed ``s`` updates agent ``order[s, k]``, so the round gathers those rows of
+    every stacked tensor (:meth:`StackedMultiAgentNetworks.agent_rows`), trains them as leaf tensors with a
+    leading row dimension (one optimiser step moves every row) and writes them back (:meth:`write_back`).
+    Row ``i`` computes what agent ``agents[i]``'s own modules compute (``nn.Linear`` layers with ReLU
+    between them, the head's ``sigmoid`` scale, 0 / 1 on the padding slots). The matrix products go row by
+    row with ``addmm``, the call of ``nn.Linear``, for the reason :class:`StackedMultiAgentNetworks` gives: a
+    batched ``baddbmm`` rounds a 1-output layer (the critics' heads) differently for 1 and for 2 rows, and
+    a row must compute the same numbers whatever the number of rows.
+
+    Attributes:
+        groups: per network of :data:`NETWORKS`, its tensors in the order of the agent's module
+            ``parameters()`` (``weight``, ``bias`` per layer; the actor's ``log_std`` last, padded).
+        mask: ``(R, Da)``, True on each row's real action slots.
+    """
+
+    def __init__(self, networks: StackedMultiAgentNetworks, seeds: Tensor, agents: Tensor) -> None:
+        self.seeds, self.agents = seeds, agents
+        self.groups: dict[str, list[Tensor]] = {}
+        for name in NETWORKS:
+            self.groups[name] = [t[seeds, agents].requires_grad_() for pair in zip(networks.weights[name],
+                                                                                   networks.biases[name])
+                                 for t in pair]
+        self.depth = {name: len(networks.weights[name]) for name in NETWORKS}
+        self.groups["policy"].append(networks.log_std[seeds, agents].requires_grad_())
+        self.std_x_coef, self.std_y_coef = networks.std_x_coef, networks.std_y_coef
+        self.mask = networks.mask[agents]
+
+    def _mlp(self, name: str, x: Tensor) -> Tensor:
+        """Network ``name`` of every row on its inputs ``x (R, N, in)``: ``addmm`` per row and layer (see the class)."""
+        tensors = [t.unbind(0) for t in self.groups[name][: 2 * self.depth[name]]]
+        outputs = []
+        for row, value in enumerate(x.unbind(0)):
+            for layer in range(self.depth[name]):
+                weight, bias = tensors[2 * layer][row], tensors[2 * layer + 1][row]
+                value = torch.addmm(bias, value, weight.t())
+                if layer < self.depth[name] - 1:
+                    value = value.relu()
+            outputs.append(value)
+        return torch.stack(outputs)
+
+    def std(self) -> Tensor:
+        """``(R, 1, Da)``: each row's scale, 1 on its padding slots."""
+        log_std = self.groups["policy"][-1]
+        return torch.where(self.mask, torch.sigmoid(log_std / self.std_x_coef) * self.std_y_coef, 1.0).unsqueeze(1)
+
+    def dist_params(self, observation: Tensor) -> tuple[Tensor, Tensor]:
+        """``observation (R, N, D)`` to the policy's ``loc (R, N, Da)`` (0 on padding) and ``scale (R, 1, Da)``."""
+        loc = self._mlp("policy", observation).masked_fill(~self.mask.unsqueeze(1), 0.0)
+        return loc, self.std()
+
+    def entropy(self) -> Tensor:
+        """``(R,)``: each row's policy entropy over its real action slots (the same in every state)."""
+        return torch.where(self.mask, _HALF_LOG_2PI_E + self.std().squeeze(1).log(), 0.0).sum(-1)
+
+    def critic(self, state: Tensor) -> Tensor:
+        """The reward critics on ``state (R, N, Ds)``: ``(R, N, 1)``."""
+        return self._mlp("reward_value", state)
+
+    def cost_critic(self, state: Tensor) -> Tensor:
+        """The cost critics on ``state (R, N, Ds)``: ``(R, N, 1)``."""
+        return self._mlp("cost_value", state)
+
+    @torch.no_grad()
+    def write_back(self, networks: StackedMultiAgentNetworks) -> None:
+        """Copy the rows into the stack they were gathered from (each seed's team sees them)."""
+        seeds, agents = self.seeds, self.agents
+        for name in NETWORKS:
+            stacked = [t for pair in zip(networks.weights[name], networks.biases[name]) for t in pair]
+            if name == "policy":
+                stacked.append(networks.log_std)
+            for target, rows in zip(stacked, self.groups[name], strict=True):
+                target[seeds, agents] = rows

@@ -191,6 +191,15 @@ class SeedShuffler:
         if not self.generators:
             raise ValueError("SeedShuffler needs seeds")
 
+    @classmethod
+    def from_generators(cls, generators: Sequence[torch.Generator]) -> SeedShuffler:
+        """A shuffler over generators the caller already holds (one per seed, in seed order)."""
+        shuffler = cls.__new__(cls)
+        shuffler.generators = list(generators)
+        if not shuffler.generators:
+            raise ValueError("SeedShuffler needs generators")
+        return shuffler
+
     def permutation(self, n: int, active: Sequence[bool] | None = None) -> Tensor:
         """One permutation of ``range(n)`` per seed, ``(S, n)``; an inactive seed draws none (``arange(n)``)."""
         if active is None:

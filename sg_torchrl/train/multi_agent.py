@@ -9,15 +9,16 @@ TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). 
 2. per-agent reward and cost GAE, standardised per agent
    (:func:`~sg_torchrl.objectives.multi_agent.make_multi_agent_gae`);
 3. the algorithm's round (:data:`MULTI_AGENT_ALGORITHMS`, built from the multi-agent rows of
-   :mod:`sg_torchrl.algorithms.manifest`): the agents updated one at a time in a
-   random order. The mean cost of the episodes finished in the epoch is handed to the round;
+   :mod:`sg_torchrl.algorithms.manifest` for all seeds of the engine at once, the round class's
+   ``for_seeds``): the agents updated one at a time in a random order per seed. The mean cost of the
+   episodes finished in the epoch is handed to the round;
    MAPPO-Lag steps each agent's multiplier inside the round, after every minibatch step, so the
    trainer updates no multiplier itself;
 4. log team metrics under SafePO's names (means over agents) and the same per agent
    (``Loss/Loss_actor/agent0``, ``Train/LagrangeMultiplier/agent1``, ...), checkpoint.
 
-Steps 2 and 3 are one run's :class:`MultiAgentTeam` (its networks, GAEs and round). The engine that
-runs the epochs is :mod:`sg_torchrl.train.multi_agent_group`: one team and one round per seed, S >= 1
+Step 2 is one run's :class:`MultiAgentTeam` (its networks and GAEs). The engine that runs the epochs is
+:mod:`sg_torchrl.train.multi_agent_group`: one team per seed and one round for all seeds, S >= 1
 (``--seeds``: :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`; ``--seed s``: the
 same engine with S = 1, :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`).
 
@@ -34,7 +35,7 @@ about 40, so the control cost swamps the reward). ``--normalize-obs false`` feed
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,31 +44,29 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from sg_torchrl import seeding
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.envs.normalization import RunningObservationNorm
 from sg_torchrl.algorithms import manifest
 from sg_torchrl.algorithms.manifest import AlgorithmEntry
 from sg_torchrl.modules.multi_agent import make_multi_agent_networks, MultiAgentNetworks
-from sg_torchrl.objectives.multi_agent import (
-    make_multi_agent_cost_gae,
-    make_multi_agent_gae,
-    MultiAgentUpdate,
-)
+from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks
+from sg_torchrl.objectives.multi_agent import make_multi_agent_cost_gae, make_multi_agent_gae
 from sg_torchrl.train.config import TrainConfig
 
 __all__ = ["MULTI_AGENT_ALGORITHMS", "MultiAgentAlgorithm", "MultiAgentTeam", "make_team_networks", "num_minibatches",
            "observation_norms"]
 
-MakeUpdate = Callable[[MultiAgentNetworks, TrainConfig, torch.Generator], MultiAgentUpdate]
+#: ``make_round(networks, cfg, generators)``: the round of S seeds' stacked teams, one generator per seed. The
+#: round answers ``step_seeds(batches, mean_episode_costs)``, ``seed_state_dict(s)``, ``load_seed_state_dict(s, state)``.
+MakeRound = Callable[[StackedMultiAgentNetworks, TrainConfig, Sequence[torch.Generator]], Any]
 
 
 @dataclass(frozen=True)
 class MultiAgentAlgorithm:
-    """How to build one multi-agent algorithm's round from the team's networks and a config."""
+    """How to build one multi-agent algorithm's round for S seeds' stacked teams from a config."""
 
     title: str
-    make_update: MakeUpdate
+    make_round: MakeRound
 
 
 def num_minibatches(cfg: TrainConfig) -> int:
@@ -75,48 +74,49 @@ def num_minibatches(cfg: TrainConfig) -> int:
     return max(1, -(-cfg.steps_per_epoch // cfg.minibatch_size))
 
 
-def _common(cfg: TrainConfig, generator: torch.Generator) -> dict[str, Any]:
-    """Options every round takes (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentUpdate`)."""
+def _common(cfg: TrainConfig) -> dict[str, Any]:
+    """Options every round takes (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`,
+    :class:`~sg_torchrl.objectives.multi_agent.MACPOUpdate`)."""
     options: dict[str, Any] = dict(
         cost_limit=cfg.cost_limit, gamma=cfg.gamma, critic_lr=cfg.critic_lr, max_grad_norm=cfg.max_grad_norm,
-        clip_epsilon=cfg.clip_ratio, generator=generator,
+        clip_epsilon=cfg.clip_ratio,
     )
     if cfg.critic_l2:
         options["loss_kwargs"] = {"critic_l2_coeff": cfg.critic_l2}
     return options
 
 
-def _ppo_round(entry: AlgorithmEntry) -> MakeUpdate:
+def _ppo_round(entry: AlgorithmEntry) -> MakeRound:
     """A first-order row's round (MAPPO, HAPPO, MAPPO-Lag): its round class, with the multiplier's options
     when the row has a Lagrange multiplier (MAPPO-Lag's, one per agent)."""
     update_class = entry.round_class()
 
-    def make(networks: MultiAgentNetworks, cfg: TrainConfig, generator: torch.Generator) -> MultiAgentUpdate:
+    def make(networks: StackedMultiAgentNetworks, cfg: TrainConfig, generators: Sequence[torch.Generator]) -> Any:
         options = dict(actor_lr=cfg.actor_lr, epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg),
-                       target_kl=cfg.target_kl, **_common(cfg, generator))
+                       target_kl=cfg.target_kl, **_common(cfg))
         if entry.multiplier == "lagrange":
             options.update(multiplier_init=cfg.lagrangian_init, multiplier_lr=cfg.lagrangian_lr)
-        return update_class(networks, **options)
+        return update_class.for_seeds(networks, generators, **options)
 
     return make
 
 
-def _cpo_round(entry: AlgorithmEntry) -> MakeUpdate:
+def _cpo_round(entry: AlgorithmEntry) -> MakeRound:
     """A CPO-step row's round (MACPO): one trust-region step per agent, then critic epochs."""
     update_class = entry.round_class()
 
-    def make(networks: MultiAgentNetworks, cfg: TrainConfig, generator: torch.Generator) -> MultiAgentUpdate:
-        return update_class(
-            networks, target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping,
+    def make(networks: StackedMultiAgentNetworks, cfg: TrainConfig, generators: Sequence[torch.Generator]) -> Any:
+        return update_class.for_seeds(
+            networks, generators, target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping,
             line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction,
-            critic_epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg), **_common(cfg, generator),
+            critic_epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg), **_common(cfg),
         )
 
     return make
 
 
 #: Round builders by a multi-agent row's update kind.
-_ROUNDS: dict[str, Callable[[AlgorithmEntry], MakeUpdate]] = {"first_order": _ppo_round, "cpo": _cpo_round}
+_ROUNDS: dict[str, Callable[[AlgorithmEntry], MakeRound]] = {"first_order": _ppo_round, "cpo": _cpo_round}
 
 #: The multi-agent algorithms of the Safety-Gymnasium paper, by ``--algo`` name (the manifest's multi-agent rows).
 MULTI_AGENT_ALGORITHMS: dict[str, MultiAgentAlgorithm] = {
@@ -149,40 +149,29 @@ def make_team_networks(env: EnvBase, cfg: TrainConfig) -> MultiAgentNetworks:
 
 @dataclass
 class MultiAgentTeam:
-    """One multi-agent run's learning parts: the team's networks, both GAEs and the algorithm's round.
+    """One multi-agent run's team: its networks and both GAEs.
 
     Built by :meth:`build` for each seed of the multi-agent engine
     (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`; one seed for ``--seed s``), so a
-    seed's team in a group is its single-seed run's. :meth:`learn` is one epoch's update of the team.
+    seed's team in a group is its single-seed run's. :meth:`estimate_advantages` is step 2 of an epoch.
     """
 
     networks: MultiAgentNetworks
     reward_gae: TensorDictModuleBase
     cost_gae: TensorDictModuleBase
-    #: Agent orders and minibatch shuffles; its state is part of the round's state dict.
-    update_rng: torch.Generator
-    policy_update: MultiAgentUpdate
 
     @classmethod
     def build(cls, env: EnvBase, cfg: TrainConfig) -> MultiAgentTeam:
-        """The team of ``cfg.algo`` for ``env``'s agents; the round's generator is seeded with ``cfg.seed``.
-
-        The networks are initialised from the global torch RNG (as it stands: the caller seeds it).
-        """
+        """The team for ``env``'s agents, initialised from the global torch RNG (as it stands: the caller seeds it)."""
         networks = make_team_networks(env, cfg)
-        update_rng = seeding.generator(cfg.seed, seeding.Purpose.MINIBATCHES)
         return cls(
             networks=networks,
             reward_gae=make_multi_agent_gae(networks.reward_critic, gamma=cfg.gamma, lmbda=cfg.gae_lambda),
             cost_gae=make_multi_agent_cost_gae(networks.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda),
-            update_rng=update_rng,
-            policy_update=MULTI_AGENT_ALGORITHMS[cfg.algo].make_update(networks, cfg, update_rng),
         )
 
-    def learn(self, batch: TensorDictBase, mean_episode_cost: float, actor_lr: float) -> dict[str, float]:
-        """Per-agent GAEs on the ``(N, T)`` batch, then the round (which steps MAPPO-Lag's multipliers)."""
-        with torch.no_grad():
-            self.reward_gae(batch)
-            self.cost_gae(batch)
-        info = self.policy_update(batch, mean_episode_cost)
-        return {"Train/LagrangeMultiplier": info.pop("Train/LagrangeMultiplier"), "Train/LR": actor_lr, **info}
+    @torch.no_grad()
+    def estimate_advantages(self, batch: TensorDictBase) -> None:
+        """Per-agent reward and cost GAEs on the ``(N, T)`` batch, written into it."""
+        self.reward_gae(batch)
+        self.cost_gae(batch)

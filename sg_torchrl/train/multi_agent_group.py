@@ -9,12 +9,11 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
   ``num_envs``, seeded as a ``num_envs``-simulator env with seed ``s`` (``sg_torchrl.make(...,
   seed=[s0, s1, ...])``), collected at once by one :class:`~sg_torchrl.collectors.RolloutCollector`;
 * **team**: per seed its own :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` (networks, both
-  GAEs, the algorithm's round with its optimisers, multipliers, value normalisers and generator),
-  built by :meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.build` after ``torch.manual_seed(s)``
+  GAEs), built by :meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.build` after ``torch.manual_seed(s)``
   (:func:`~sg_torchrl.seeding.seed_torch`);
 * **stacked networks**: the teams' parameters then move into ``(S, A, ...)`` tensors, one per layer
   (:class:`~sg_torchrl.modules.stacked_multi_agent.StackedMultiAgentNetworks`, :attr:`networks`); each
-  team's parameters are views of its rows, so its round and its checkpoint entry work on the stack;
+  team's parameters are views of its rows, so its checkpoint entry and evaluation work on the stack;
 * **observation normalisers**: one row of running statistics per seed for ``("agents",
   "observation")`` (per agent and feature) and ``"state"`` (``RunningObservationNorm(groups=S)``);
 * **action noise**: one actor call per collection step for every seed
@@ -23,16 +22,17 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
   built, drawing what its single-seed actor drew from the global RNG. Nothing else in a multi-agent
   run draws random numbers from the global RNG (the simulators and the rounds use generators of
   their own, the evaluation is deterministic);
-* **update**: per live seed, its GAEs on its block of the batch and its round,
-  ``round(block, mean_episode_cost)`` (:meth:`~sg_torchrl.train.multi_agent.MultiAgentTeam.learn`),
-  one seed after another.
+* **update**: per live seed its GAEs on its block of the batch, then one round for every live seed
+  (:attr:`round`, built by the algorithm's round class for all seeds, ``for_seeds``; each seed's agent
+  orders and minibatch shuffles from its own generator, seeded as its single-seed run seeds it).
+  MAPPO, HAPPO and MAPPO-Lag update the stage's agent of every seed in one call
+  (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`); MACPO runs the seeds' rounds one
+  after another (:class:`~sg_torchrl.objectives.multi_agent.SeedRounds`).
 
-The rounds are not seed-batched: a round updates one agent at a time in a random order with a KL stop
-(or a line search) per agent, through the TorchRL loss modules and ``torch.optim.Adam`` of its single-seed
-run. At the paper's settings the update is bound by its matrix products (10,000 samples through
-[128, 128] networks, 5 epochs per agent), not by per-operator overhead, so running the seeds' rounds
-one after another costs little more than batching them would. A seed's trajectories, metrics and
-parameters are bit for bit those of its single-seed run (S = 1), for every epoch.
+The S = 1 run is the same code as a group's, so seed ``s`` of a group is its single-seed run; the
+seed-batched rows multiply their matrices with one ``baddbmm`` per layer for all rows, whose rounding
+may depend on how many rows there are (about 1e-7), so a group's seed follows its single-seed run to
+float rounding in the first update, and its trajectories can part from there.
 
 Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
 update turn non-finite is put back to its parameters before that update and frozen; its simulators
@@ -71,7 +71,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
     """Build and run a seed group (``cfg.seeds``) of a multi-agent algorithm; see the module docstring.
 
     Attributes: ``teams`` (one :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` per seed),
-    ``networks`` (their parameters stacked), ``obs_norms`` (grouped normalisers, a row per seed),
+    ``networks`` (their parameters stacked), ``round`` (every seed's round state), ``obs_norms`` (grouped normalisers, a row per seed),
     ``policy`` (every seed's actor in one call, with each seed's noise generator), ``collector``,
     ``env`` / ``base_env``, ``runs``.
 
@@ -108,6 +108,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
             # where that run's action noise starts: its global RNG's state once its team is built
             generators.append(torch.Generator().set_state(torch.get_rng_state()))
         self.networks = StackedMultiAgentNetworks([team.networks for team in self.teams])
+        self.round = self.algorithm.make_round(
+            self.networks, cfg, [seeding.generator(run.seed, seeding.Purpose.MINIBATCHES) for run in self.runs])
         self.policy = StackedMultiAgentPolicy(self.networks, generators, cfg.num_envs)
         self.collector = RolloutCollector(self.env, self.policy, steps=cfg.steps_per_epoch // cfg.num_envs)
         self._start(checkpoint)
@@ -117,27 +119,35 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         return self.networks.finite_seeds()
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float] | None], list[bool]]:
-        """Each live seed's GAEs and round on its block, one seed after another.
+        """Each live seed's GAEs on its block, then one round of every live seed.
 
         A seed whose networks or round state (optimiser moments, multipliers, value normalisers) turn
         non-finite is put back to its state before the round and flagged (:meth:`_train_epoch`
         freezes it).
         """
+        blocks = [block if run.alive else None for run, block in zip(self.runs, batch.split(self.cfg.num_envs, 0))]
+        before = {}
+        for index, (team, block) in enumerate(zip(self.teams, blocks)):
+            if block is not None:
+                team.estimate_advantages(block)
+                before[index] = copy.deepcopy(self._seed_update_state(index))
+        outs = self.round.step_seeds(blocks, [run.last_mean_cost for run in self.runs])
         rows: list[dict[str, float] | None] = []
         diverged: list[bool] = []
-        for index, (run, team, block) in enumerate(zip(self.runs, self.teams, batch.split(self.cfg.num_envs, 0))):
-            if not run.alive:
-                rows.append(None)
-                diverged.append(False)
-                continue
-            before = _team_state(team)
-            rows.append(team.learn(block, run.last_mean_cost, self.cfg.actor_lr))
-            bad = not _finite(_team_state(team, copy_=False))
+        for index, out in enumerate(outs):
+            bad = out is not None and not _finite(self._seed_update_state(index))
             if bad:
-                team.networks.load_state_dict(before["networks"])
-                team.policy_update.load_state_dict(before["update"])
+                self.teams[index].networks.load_state_dict(before[index]["networks"])
+                self.round.load_seed_state_dict(index, before[index]["update"])
+            rows.append(None if out is None else
+                        {"Train/LagrangeMultiplier": out.pop("Train/LagrangeMultiplier"), "Train/LR": self.cfg.actor_lr,
+                         **out})
             diverged.append(bad)
         return rows, diverged
+
+    def _seed_update_state(self, index: int) -> dict[str, Any]:
+        """Seed ``index``'s networks and round state dicts (what an update changes)."""
+        return {"networks": self.teams[index].networks.state_dict(), "update": self.round.seed_state_dict(index)}
 
     # ------------------------------------------------------------------ evaluation
     def _evaluate_seed(self, index: int) -> dict[str, float]:
@@ -151,18 +161,16 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:
         """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG."""
-        team = self.teams[index]
         return {
-            "networks": team.networks.state_dict(),
-            "update": team.policy_update.state_dict(),
+            "networks": self.teams[index].networks.state_dict(),
+            "update": self.round.seed_state_dict(index),
             "obs_norms": [norm.group_state_dict(index) for norm in self.obs_norms],
             "torch_rng": self.policy.generators[index].get_state(),
         }
 
     def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
-        team = self.teams[index]
-        team.networks.load_state_dict(entry["networks"])
-        team.policy_update.load_state_dict(entry["update"])
+        self.teams[index].networks.load_state_dict(entry["networks"])
+        self.round.load_seed_state_dict(index, entry["update"])
         for norm, state in zip(self.obs_norms, entry["obs_norms"], strict=True):
             norm.load_group_state_dict(index, state)
         self.policy.generators[index].set_state(entry["torch_rng"])
@@ -210,12 +218,6 @@ def team_checkpoint_as_group(checkpoint: dict[str, Any]) -> dict[str, Any]:
              "torch_rng": checkpoint["torch_rng"], "diverged": None}
     rest = {name: value for name, value in checkpoint.items() if name not in _TEAM_ENTRIES}
     return {**rest, "seeds": [entry], "seed_group": {"seeds": [seed]}}
-
-
-def _team_state(team: MultiAgentTeam, copy_: bool = True) -> dict[str, Any]:
-    """The team's networks and round state dicts (deep copies unless ``copy_`` is false)."""
-    state = {"networks": team.networks.state_dict(), "update": team.policy_update.state_dict()}
-    return copy.deepcopy(state) if copy_ else state
 
 
 def _finite(value: Any) -> bool:

@@ -33,7 +33,8 @@ def clip_grad_norm_per_seed_(grads: Sequence[Tensor], max_norm: float, *, eps: f
     ``min(max_norm / (norm + 1e-6), 1)``.
     """
     norms = [torch.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))) if g.dim() > 1 else g.abs() for g in grads]
-    total = norms[0] if len(norms) == 1 else torch.linalg.vector_norm(torch.stack(norms), dim=0)
+    # (S, tensors): each seed's norms contiguous, reduced as one seed's alone are (S-independent rounding)
+    total = norms[0] if len(norms) == 1 else torch.linalg.vector_norm(torch.stack(norms, dim=-1), dim=-1)
     coef = (max_norm / (total + eps)).clamp_(max=1.0)
     torch._foreach_mul_(list(grads), [coef.view(-1, *([1] * (g.dim() - 1))) for g in grads])
     return total

@@ -10,15 +10,16 @@ global ``"state"`` for the centralised critics):
 * :func:`make_multi_agent_gae`, :func:`make_multi_agent_cost_gae`: per-agent reward and cost GAE
   (:func:`~sg_torchrl.objectives.make_gae` / :func:`~sg_torchrl.objectives.make_cost_gae` with TorchRL's
   :class:`~torchrl.objectives.value.MultiAgentGAE` over the group keys), standardised per agent;
-* :class:`SequentialAgentUpdate`: the random-order, one-agent-at-a-time round with HAPPO's running
-  ratio product :math:`M` (Kuba et al. 2022), the one piece every algorithm below runs through;
-* :class:`AgentPPOLoss`: one agent's factor-weighted clipped PPO with reward and cost critics
-  (TorchRL's :class:`~torchrl.objectives.multiagent.MAPPOLoss` with sg_torchrl's
-  :class:`~sg_torchrl.objectives.PPOLagLoss`); :class:`MAPPOLagMultiplier`: MAPPO-Lagrangian's
-  per-agent multiplier (Gu et al. 2023);
+* :class:`AgentObjective`: one agent's factor-weighted clipped PPO with reward and cost critics, written
+  once for a leading seed dimension; :class:`AgentPPOLoss` is its TorchRL LossModule view (TorchRL's
+  :class:`~torchrl.objectives.multiagent.MAPPOLoss` with sg_torchrl's :class:`~sg_torchrl.objectives.PPOLagLoss`),
+  which hands the rounds the objective (:meth:`AgentPPOLoss.seed_batched_objective`);
+  :class:`MAPPOLagMultiplier`: MAPPO-Lagrangian's per-agent multiplier (Gu et al. 2023);
 * the rounds, ``update(batch, mean_episode_cost) -> dict[str, float]``: :class:`MAPPOUpdate`
-  (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate` and
-  :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPOStep` is the single-agent
+  (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate`
+  (:class:`MultiAgentPPOUpdate`: S seeds' rounds in one update call, ``for_seeds``) and
+  :class:`MACPOUpdate` (Gu et al. 2023, one seed at a time: :class:`SequentialAgentUpdate`, the
+  random-order round with HAPPO's running ratio product; :class:`MACPOStep` is the single-agent
   :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy). Their minibatch epochs
   are the package's one update loop, :func:`~sg_torchrl.objectives.run_passes`.
 """
@@ -30,19 +31,15 @@ from sg_torchrl.objectives.multi_agent.advantages import (
     make_multi_agent_gae,
 )
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
-from sg_torchrl.objectives.multi_agent.macpo import MACPOStep, MACPOUpdate
+from sg_torchrl.objectives.multi_agent.macpo import MACPOStep, MACPOUpdate, SeedRounds
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
+from sg_torchrl.objectives.multi_agent.objective import AgentObjective
 from sg_torchrl.objectives.multi_agent.sequential import AgentStage, SequentialAgentUpdate, SequentialResult
-from sg_torchrl.objectives.multi_agent.updates import (
-    HAPPOUpdate,
-    MAPPOLagUpdate,
-    MAPPOUpdate,
-    MultiAgentPPOUpdate,
-    MultiAgentUpdate,
-)
+from sg_torchrl.objectives.multi_agent.updates import HAPPOUpdate, MAPPOLagUpdate, MAPPOUpdate, MultiAgentPPOUpdate
 
 __all__ = [
     "AGENT_VIEW_KEYS",
+    "AgentObjective",
     "AgentPPOLoss",
     "AgentStage",
     "HAPPOUpdate",
@@ -52,7 +49,7 @@ __all__ = [
     "MAPPOLagUpdate",
     "MAPPOUpdate",
     "MultiAgentPPOUpdate",
-    "MultiAgentUpdate",
+    "SeedRounds",
     "SequentialAgentUpdate",
     "SequentialResult",
     "agent_view",

@@ -14,8 +14,13 @@ advantage is multiplied by the sequential update's factor :math:`M` (HAPPO, Kuba
     = -\\mathbb E\\left[\\min\\big(r\\, (M A),\\ \\mathrm{clip}(r, 1 - \\epsilon, 1 + \\epsilon)\\, (M A)\\big)\\right],
 
 the two forms being equal because :math:`M > 0` (a product of probability ratios). So the factor is
-folded into the advantage (:meth:`_combined_advantage`) and the clipped surrogate, ratio
-diagnostics, entropy bonus and critic losses are the parent classes' own.
+folded into the advantage and the clipped surrogate, ratio diagnostics, entropy bonus and critic losses
+are the parent classes' own.
+
+The loss is a view of the seed-batched definition the rounds train
+(:class:`~sg_torchrl.objectives.multi_agent.AgentObjective`, handed out by
+:meth:`AgentPPOLoss.seed_batched_objective`): the weighted advantage and the cost surrogate are computed
+by that object, the clipped surrogate is the same :class:`~sg_torchrl.objectives.surrogates.ClipSurrogate`.
 
 With ``weighted=False`` the factor is ignored: independent per-agent PPO with centralised critics,
 i.e. MAPPO with separate per-agent networks (what SafePO's ``mappo.py`` runs). The ratio is the
@@ -29,7 +34,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
@@ -37,9 +41,9 @@ from torch import distributions as D, Tensor
 from torchrl.modules import ValueNorm
 from torchrl.objectives.multiagent import MAPPOLoss
 
+from sg_torchrl.objectives.multi_agent.objective import AgentObjective
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.ppo_lag import PPOLagLoss
-from sg_torchrl.objectives.surrogates import Surrogate
 
 __all__ = ["AgentPPOLoss"]
 
@@ -134,25 +138,52 @@ class AgentPPOLoss(PPOLagLoss, MAPPOLoss):
         if getattr(self, "weighted", False):
             self._in_keys = list(dict.fromkeys([*self._in_keys, self.tensor_keys.factor]))
 
+    def seed_batched_objective(self, *, critics_only: bool = False) -> AgentObjective:
+        """This loss in the seed-batched form the multi-agent rounds train (the public protocol).
+
+        Raises:
+            ValueError: ``critics_only`` (MACPO's critics train through this loss itself), or options the
+                seed-batched form does not implement (value clipping, non-MSE critics, critic coefficients
+                other than 1, ``delay_actor`` / ``max_importance_ratio``).
+        """
+        unsupported = {
+            "critics_only": critics_only,
+            "clip_value": self.clip_value is not None,
+            "loss_critic_type != 'l2'": self.loss_critic_type != "l2",
+            "critic_coeff != 1": self.critic_coeff is not None and float(self.critic_coeff) != 1.0,
+            "cost_critic_coeff != 1": float(self.cost_critic_coeff) != 1.0,
+            "delay_actor / max_importance_ratio": bool(self.delay_actor) or self.max_importance_ratio is not None,
+        }
+        used = [name for name, present in unsupported.items() if present]
+        if used:
+            raise ValueError(f"the seed-batched multi-agent round does not implement: {', '.join(used)}")
+        return AgentObjective(self.surrogate, combine=self.multiplier.combine_rule, weighted=self.weighted,
+                              entropy_coeff=float(self.entropy_coeff) if self.entropy_bonus else 0.0,
+                              critic_l2=0.0 if self.critic_l2_coeff is None else float(self.critic_l2_coeff))
+
     def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
-        """``multiplier.combine(A_r, A_c)``, times the factor :math:`M` when ``weighted``."""
-        advantage = super()._combined_advantage(tensordict)
-        if not self.weighted:
-            return advantage
-        factor = tensordict.get(self.tensor_keys.factor, None)
-        if factor is None:
-            raise KeyError(
-                f"AgentPPOLoss(weighted=True) needs the sequential update's factor under "
-                f"{self.tensor_keys.factor!r} (1 for the first agent of a round); use weighted=False to ignore it."
-            )
-        if factor.shape == advantage.shape[:-1]:
-            factor = factor.unsqueeze(-1)
-        if factor.shape != advantage.shape:
-            raise ValueError(
-                f"the factor has shape {tuple(factor.shape)}; expected {tuple(advantage.shape)} or "
-                f"{tuple(advantage.shape[:-1])} (one value per sample)."
-            )
-        return factor.detach() * advantage
+        """``multiplier.combine(A_r, A_c)``, times the factor :math:`M` when ``weighted`` (:meth:`AgentObjective.advantage`)."""
+        advantage = self._get_required(tensordict, self.tensor_keys.advantage, "make_gae(critic)")
+        cost_advantage = self._get_required(tensordict, self.tensor_keys.cost_advantage, "make_cost_gae(cost_critic)")
+        if advantage.shape != cost_advantage.shape:
+            raise ValueError(f"advantage {tuple(advantage.shape)} and cost advantage {tuple(cost_advantage.shape)} "
+                             f"differ in shape")
+        factor = None
+        if self.weighted:
+            factor = tensordict.get(self.tensor_keys.factor, None)
+            if factor is None:
+                raise KeyError(
+                    f"AgentPPOLoss(weighted=True) needs the sequential update's factor under "
+                    f"{self.tensor_keys.factor!r} (1 for the first agent of a round); use weighted=False to ignore it."
+                )
+            if factor.shape == advantage.shape[:-1]:
+                factor = factor.unsqueeze(-1)
+            if factor.shape != advantage.shape:
+                raise ValueError(
+                    f"the factor has shape {tuple(factor.shape)}; expected {tuple(advantage.shape)} or "
+                    f"{tuple(advantage.shape[:-1])} (one value per sample)."
+                )
+        return self.seed_batched_objective().advantage(advantage, cost_advantage, self.multiplier.value, factor)
 
     def _surrogate(
         self,
@@ -165,7 +196,6 @@ class AgentPPOLoss(PPOLagLoss, MAPPOLoss):
     ) -> tuple[Tensor, dict[str, Tensor]]:
         loss, diagnostics = super()._surrogate(log_weight, advantage, dist, tensordict, log_is_weight=log_is_weight)
         cost_advantage = tensordict.get(self.tensor_keys.cost_advantage)
-        with torch.no_grad():
-            ratio = Surrogate.log_ratio(log_weight, log_is_weight).exp()
-            diagnostics["cost_surrogate"] = (ratio * cost_advantage.reshape(ratio.shape)).mean()
+        log_ratio = log_weight if log_is_weight is None else log_weight + log_is_weight
+        diagnostics["cost_surrogate"] = AgentObjective.cost_surrogate(log_ratio, cost_advantage.reshape(log_ratio.shape))
         return loss, diagnostics

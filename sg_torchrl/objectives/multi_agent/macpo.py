@@ -27,26 +27,38 @@ computes), fed :math:`M A_r` and :math:`M A^i_c` as advantages; only its step-si
 
 After its step each agent's critics take ``critic_epochs`` (15, the paper's "SGD iters") passes of
 Adam at 5e-4 (SafePO's script: one step at 5e-3 per round).
+
+MACPO's round is not seed-batched: a seed group runs its seeds' rounds one after another
+(:class:`SeedRounds`, what :meth:`MACPOUpdate.for_seeds` builds). Its trust-region step is already the
+seed-batched step on one row (:class:`~sg_torchrl.objectives.CPOStep`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
-from torch import Tensor
+from torch import nn, Tensor
+from torchrl.modules import PopArtValueNorm
 
+from sg_torchrl import seeding
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks
-from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS, MultiAgentUpdate
-from sg_torchrl.objectives.passes import run_passes, shuffled_chunks
+from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks
+from sg_torchrl.objectives.multi_agent.advantages import agent_view, AGENT_VIEW_KEYS
+from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
+from sg_torchrl.objectives.multi_agent.sequential import episode_costs, round_metrics, SequentialAgentUpdate
+from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS
+from sg_torchrl.objectives.multipliers import NoMultiplier
+from sg_torchrl.objectives.passes import ClipGroup, GradientStep, run_passes, shuffled_chunks
 from sg_torchrl.objectives.second_order import Linearisation
 from sg_torchrl.objectives.step_rules import Proposal
 from sg_torchrl.objectives.trust_region import CPOStep
 
-__all__ = ["MACPOStep", "MACPOUpdate"]
+__all__ = ["MACPOStep", "MACPOUpdate", "SeedRounds"]
 
 
 class MACPOStep(CPOStep):
@@ -108,7 +120,7 @@ class MACPOStep(CPOStep):
         )
 
 
-class MACPOUpdate(MultiAgentUpdate):
+class MACPOUpdate:
     """MACPO's round: per agent in random order, a :class:`MACPOStep` on the factor-weighted surrogates, then critic epochs.
 
     Args:
@@ -123,8 +135,16 @@ class MACPOUpdate(MultiAgentUpdate):
         cg_damping (float): defaults to ``0.1``.
         critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
         num_minibatches (int): critic minibatches per pass. Defaults to ``1``.
-        **kwargs: see :class:`~sg_torchrl.objectives.multi_agent.MultiAgentUpdate` (``cost_limit``,
-            ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ...).
+        cost_limit (float): :math:`d`. Defaults to ``25.0`` (paper).
+        gamma (float): discount of the :math:`(1 - \\gamma)` constraint scaling. Defaults to ``0.99``.
+        critic_lr (float): Adam learning rate of both critics. Defaults to ``5e-4`` (paper).
+        max_grad_norm (float): gradient-norm clip of each critic on its own (SafePO). Defaults to ``10.0``.
+        adam_eps (float): Adam's eps. Defaults to ``1e-5`` (SafePO).
+        value_norm (bool): PopArt normalisation of each reward critic's loss. Defaults to ``True`` (SafePO).
+        shuffle (bool): random agent order per round. Defaults to ``True``.
+        generator (torch.Generator, optional): agent orders and minibatch shuffles.
+        group (str): the group key. Defaults to ``"agents"``.
+        loss_kwargs (dict, optional): extra :class:`AgentPPOLoss` options for the critics' losses.
 
     Per-agent metrics: the step's (``Misc/CPOCase``, ``Misc/AcceptanceStep``, ``Misc/FinalStepNorm``,
     ``Misc/StepNormRaw``, ``Misc/Lambda_star``, ``Misc/Nu_star``, ``Misc/xHx``, ``Misc/gradient_norm``,
@@ -134,8 +154,6 @@ class MACPOUpdate(MultiAgentUpdate):
     ``Misc/Cost_critic_norm``), ``Misc/Entropy``, ``Misc/Ratio``, ``Misc/Factor`` and
     ``Misc/ConstraintValue`` (:math:`c`).
     """
-
-    weighted = True
 
     def __init__(
         self,
@@ -150,25 +168,79 @@ class MACPOUpdate(MultiAgentUpdate):
         cg_damping: float = 0.1,
         critic_epochs: int = 15,
         num_minibatches: int = 1,
-        **kwargs: Any,
+        cost_limit: float = 25.0,
+        gamma: float = 0.99,
+        critic_lr: float = 5e-4,
+        max_grad_norm: float = 10.0,
+        adam_eps: float = 1e-5,
+        value_norm: bool = True,
+        clip_epsilon: float = 0.2,
+        shuffle: bool = True,
+        generator: torch.Generator | None = None,
+        group: str = "agents",
+        loss_kwargs: dict[str, Any] | None = None,
     ) -> None:
         if critic_epochs < 1 or num_minibatches < 1:
             raise ValueError(f"need critic_epochs >= 1 and num_minibatches >= 1, got {critic_epochs}, {num_minibatches}.")
-        kwargs.setdefault("entropy_coeff", 0.0)  # the critic losses only; the CPO step has no entropy term
-        super().__init__(networks, **kwargs)
-        self.critic_epochs = int(critic_epochs)
-        self.num_minibatches = int(num_minibatches)
+        n = networks.n_agents
+        self.networks, self.n_agents, self.group = networks, n, group
+        self.gamma, self.max_grad_norm = float(gamma), float(max_grad_norm)
+        self.critic_epochs, self.num_minibatches = int(critic_epochs), int(num_minibatches)
+        self.generator = generator if generator is not None else seeding.generator(0, seeding.Purpose.MINIBATCHES)
+        self.multipliers = nn.ModuleList(NoMultiplier(cost_limit) for _ in range(n))  # they hold the cost limit
+        self.value_norms = nn.ModuleList(PopArtValueNorm(shape=1) for _ in range(n)) if value_norm else None
+        # the losses train the critics only (no entropy term: the CPO step moves the actor); the factor enters
+        # through the step
+        self.losses = [
+            AgentPPOLoss(networks.agent_actor(i), networks.agent_critic(i), networks.agent_cost_critic(i),
+                         self.multipliers[i], weighted=False, clip_epsilon=clip_epsilon, entropy_coeff=0.0,
+                         value_norm=None if self.value_norms is None else self.value_norms[i], functional=False,
+                         **(loss_kwargs or {}))
+            for i in range(n)
+        ]
+        self.sequential = SequentialAgentUpdate(n, weighted=True, shuffle=shuffle, generator=self.generator)
+        self._critic_params = [(list(networks.agent_critic(i).parameters()),
+                                list(networks.agent_cost_critic(i).parameters())) for i in range(n)]
+        self.optimizers = [torch.optim.Adam([{"params": [*reward, *cost], "lr": critic_lr}], eps=adam_eps)
+                           for reward, cost in self._critic_params]
         self.steps = [
             MACPOStep(
                 networks.agent_actor(i), target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
                 line_search_steps=line_search_steps, step_fraction=step_fraction, max_step_norm=max_step_norm,
                 initial_step_fraction=initial_step_fraction,
             )
-            for i in range(networks.n_agents)
+            for i in range(n)
         ]
 
-    def _loss_weighted(self) -> bool:
-        return False  # the losses only train the critics here; the factor enters through the step
+    @classmethod
+    def for_seeds(cls, networks: StackedMultiAgentNetworks, generators: Sequence[torch.Generator],
+                  **options: Any) -> SeedRounds:
+        """S seeds' rounds (one per team of the stack, each with its generator), run one after another."""
+        return SeedRounds([cls(team, generator=generator, **options)
+                           for team, generator in zip(networks.teams, generators, strict=True)])
+
+    def __call__(self, data: TensorDictBase, mean_episode_cost: float | Tensor) -> dict[str, float]:
+        """One round on ``data`` (the keys of :class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`).
+
+        Returns the team metrics (mean over agents) under SafePO's names, the same per agent under
+        ``"<name>/agent<i>"``, and ``Train/AgentOrder/agent<i>``.
+        """
+        costs = episode_costs(mean_episode_cost, self.n_agents)
+        keys = AGENT_VIEW_KEYS
+        if self.losses[0].clip_value is not None:
+            keys = (*keys, "state_value", "cost_value")
+        views = [agent_view(data, i, group=self.group, keys=keys) for i in range(self.n_agents)]
+        result = self.sequential.run(
+            lambda i, factor: self._update_agent(i, views[i], factor, costs[i]),
+            lambda i: self._log_prob(i, views[i]),
+            views[0].batch_size[0],
+        )
+        return round_metrics([(stage.agent, stage.metrics) for stage in result.stages],
+                             [float(m.value) for m in self.multipliers])
+
+    def _log_prob(self, agent: int, view: TensorDictBase) -> Tensor:
+        actor = self.networks.agent_actor(agent)
+        return actor.get_dist(view.select(*actor.in_keys)).log_prob(view.get("action"))
 
     def cost_violation(self, agent: int, episode_cost: float) -> float:
         """:math:`c = (J_c - d)(1 - \\gamma)`, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
@@ -190,7 +262,51 @@ class MACPOUpdate(MultiAgentUpdate):
         return metrics
 
     def _critic_epochs(self, agent: int, view: TensorDictBase) -> dict[str, float]:
-        """``critic_epochs`` passes of ``num_minibatches`` Adam steps on the agent's two critics, no early stop."""
-        step = self._gradient_step(agent, self.losses[agent].critic_losses, ("loss_critic", "loss_cost_critic"), actor=False)
+        """``critic_epochs`` passes of ``num_minibatches`` Adam steps on the agent's two critics, each clipped
+        on its own, no early stop."""
+        reward, cost = self._critic_params[agent]
+        groups = (ClipGroup(reward, "Misc/Reward_critic_norm"), ClipGroup(cost, "Misc/Cost_critic_norm"))
+        step = GradientStep(self.losses[agent].critic_losses, self.optimizers[agent],
+                            ("loss_critic", "loss_cost_critic"), groups, self.max_grad_norm)
         return run_passes(view, step, passes=self.critic_epochs, order=shuffled_chunks(self.num_minibatches),
                           generator=self.generator, metrics=CRITIC_METRICS).means
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Optimiser states, multipliers, value normalisers and the generator (the networks are the caller's)."""
+        return {
+            "optimizers": [opt.state_dict() for opt in self.optimizers],
+            "multipliers": self.multipliers.state_dict(),
+            "value_norms": None if self.value_norms is None else self.value_norms.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for opt, opt_state in zip(self.optimizers, state["optimizers"], strict=True):
+            opt.load_state_dict(opt_state)
+        self.multipliers.load_state_dict(state["multipliers"])
+        if self.value_norms is not None:
+            self.value_norms.load_state_dict(state["value_norms"])
+        self.generator.set_state(state["generator"])
+
+
+class SeedRounds:
+    """S single-team rounds side by side with the seed-batched round's interface, run one after another.
+
+    What a seed group trains MACPO with (:meth:`MACPOUpdate.for_seeds`); seed ``s`` is its round alone.
+    """
+
+    def __init__(self, rounds: Sequence[MACPOUpdate]) -> None:
+        self.rounds = list(rounds)
+
+    def step_seeds(self, batches: Sequence[TensorDictBase | None],
+                   mean_episode_costs: Sequence[float | Tensor | None]) -> list[dict[str, float] | None]:
+        """Each seed's round on its batch (``None``: a frozen seed, untouched)."""
+        return [None if batch is None else update(batch, cost)
+                for update, batch, cost in zip(self.rounds, batches, mean_episode_costs, strict=True)]
+
+    def seed_state_dict(self, seed: int) -> dict[str, Any]:
+        return self.rounds[seed].state_dict()
+
+    def load_seed_state_dict(self, seed: int, state: dict[str, Any]) -> None:
+        self.rounds[seed].load_state_dict(state)

@@ -81,9 +81,22 @@ class MAPPOLagMultiplier(Multiplier):
             The new multiplier (detached ``float64`` scalar).
         """
         surrogate = _as_finite_float(cost_surrogate, "cost_surrogate")
-        delta = -(self.violation(mean_episode_cost) * (1.0 - self.gamma) + surrogate)
-        self.multiplier.fill_(max(0.0, float(self.multiplier) - self.lr * delta))
+        f64 = dict(dtype=torch.float64)
+        self.multiplier.copy_(self.step_rule(self.multiplier, torch.tensor(self.violation(mean_episode_cost), **f64),
+                                             torch.tensor(surrogate, **f64), self.lr, self.gamma))
         return self.value
+
+    @staticmethod
+    def step_rule(value: Tensor, violation: Tensor, cost_surrogate: Tensor, lr: float | Tensor,
+                  gamma: float | Tensor) -> Tensor:
+        """The rule of :meth:`update` on ``float64`` tensors of any shape (one multiplier per entry):
+        :math:`\mathrm{relu}(\lambda - \alpha \delta)`, :math:`\delta = -[(J_c - d)(1 - \gamma) + \mathbb E[r A_c]]`.
+
+        ``violation``: :math:`J_c - d` (:meth:`violation`). The seed-batched round steps S agents' multipliers
+        at once with it.
+        """
+        delta = -(violation * (1.0 - gamma) + cost_surrogate)
+        return (value - lr * delta).clamp_min(0.0)
 
     def extra_repr(self) -> str:
         return f"cost_limit={float(self.cost_limit)}, lr={self.lr}, gamma={self.gamma}"

@@ -19,12 +19,15 @@ Artificial Intelligence; MACPO and MAPPO-Lagrangian) use the same scheme for the
 draws the permutation, keeps the running factor (a per-sample tensor, detached), hands it to the
 caller's per-agent update and multiplies in the updated agent's ratio afterwards. HAPPO and
 MAPPO-Lag plug in clipped-PPO epochs, MACPO a CPO step; MAPPO runs through it with
-``weighted=False`` (the factor stays 1 and no ratio is computed).
+``weighted=False`` (the factor stays 1 and no ratio is computed). The seed-batched round of MAPPO,
+HAPPO and MAPPO-Lag (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`) runs the same scheme
+for S seeds at once, with one order per seed; :func:`episode_costs` and :func:`round_metrics` serve both.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections import defaultdict
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -32,7 +35,7 @@ from torch import Tensor
 
 from sg_torchrl import seeding
 
-__all__ = ["AgentStage", "SequentialAgentUpdate", "SequentialResult"]
+__all__ = ["AgentStage", "SequentialAgentUpdate", "SequentialResult", "episode_costs", "round_metrics"]
 
 #: ``update_agent(agent, factor) -> metrics``: one agent's whole update for the round.
 UpdateAgent = Callable[[int, Tensor], dict[str, float]]
@@ -142,3 +145,34 @@ class SequentialAgentUpdate:
         if value.dim() != 1:
             raise ValueError(f"log_prob({agent}) must return a vector [batch], got shape {tuple(value.shape)}.")
         return value
+
+
+def episode_costs(mean_episode_cost: float | Tensor, n_agents: int) -> list[float]:
+    """:math:`J_c` per agent: one finite value for the team (every agent's), or one per agent."""
+    value = torch.as_tensor(mean_episode_cost, dtype=torch.float64).detach().reshape(-1)
+    if value.numel() == 1:
+        value = value.expand(n_agents)
+    if value.numel() != n_agents or not torch.isfinite(value).all():
+        raise ValueError(f"mean_episode_cost must be one finite value or one per agent ({n_agents}), "
+                         f"got {mean_episode_cost!r}.")
+    return value.tolist()
+
+
+def round_metrics(stages: Sequence[tuple[int, Mapping[str, float]]], multipliers: Sequence[float]) -> dict[str, float]:
+    """A round's metrics from its stages ``(agent, metrics)`` in update order and the agents' multiplier values.
+
+    ``Train/AgentOrder/agent<i>`` (the stage at which agent ``i`` was updated), each metric per agent as
+    ``"<name>/agent<i>"`` and its mean over the agents under ``<name>``; ``Train/LagrangeMultiplier`` is the
+    mean multiplier.
+    """
+    per_name: dict[str, list[float]] = defaultdict(list)
+    metrics: dict[str, float] = {}
+    for position, (agent, values) in enumerate(stages):
+        metrics[f"Train/AgentOrder/agent{agent}"] = float(position)
+        for name, value in values.items():
+            per_name[name].append(float(value))
+            metrics[f"{name}/agent{agent}"] = float(value)
+    for name, values in per_name.items():
+        metrics[name] = sum(values) / len(values)
+    metrics["Train/LagrangeMultiplier"] = sum(multipliers) / len(multipliers)
+    return metrics
