@@ -84,10 +84,9 @@ def test_every_row_resolves_its_loss_and_builds(entry):
     torchrl_objectives = pytest.importorskip("torchrl.objectives")
     assert issubclass(entry.loss_class(), torchrl_objectives.LossModule)
     if entry.multi_agent:
-        from sg_torchrl.objectives.multi_agent import MultiAgentUpdate
         from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS
 
-        assert issubclass(entry.round_class(), MultiAgentUpdate)
+        assert callable(entry.round_class().for_seeds)  # the engine builds every seed's round from the class
         assert MULTI_AGENT_ALGORITHMS[entry.name].title == entry.title
     elif entry.off_policy:  # built by the off-policy engine from the row alone
         import torch

@@ -18,6 +18,8 @@ from tensordict import TensorDict  # noqa: E402
 from torch import distributions as D  # noqa: E402
 
 from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
+from torchrl.modules import PopArtValueNorm  # noqa: E402
+
 from sg_torchrl.objectives import gaussian_kl, NoMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     agent_view,
@@ -219,16 +221,17 @@ class TestSequentialUpdate:
         nets = make_nets([3, 2, 1])
         td = make_rollout(nets)
         update = HAPPOUpdate(nets, epochs=2, target_kl=None)
-        inner = update._update_agent
+        inner = update._stage
         changed: list[tuple[int, list[bool]]] = []
 
-        def spy(agent, view, factor, cost):
+        def spy(seeds, agents, fields, factor, costs):
             before = [agent_params(nets, j) for j in range(3)]
-            out = inner(agent, view, factor, cost)
+            out = inner(seeds, agents, fields, factor, costs)
+            agent = int(agents[0])
             changed.append((agent, [not torch.equal(b, agent_params(nets, j)) for j, b in enumerate(before)]))
             return out
 
-        update._update_agent = spy
+        update._stage = spy
         update(td, 10.0)
         assert sorted(agent for agent, _ in changed) == [0, 1, 2]
         for agent, flags in changed:
@@ -241,20 +244,23 @@ class TestSequentialUpdate:
         views = [agent_view(td, i) for i in range(2)]
         old_per_dim = hand_log_prob_per_dim(nets, 0, views[0])
         received: dict[int, torch.Tensor] = {}
-        inner = update._update_agent
+        inner = update._stage
 
-        def spy(agent, view, factor, cost):
-            received[agent] = factor.clone()
-            if agent == 1:  # agent 1's loss with the factor it was given, by hand
-                view.set("factor", factor)
-                loss = update.losses[1](view)
+        def spy(seeds, agents, fields, factor, costs):
+            agent = int(agents[0])
+            received[agent] = factor[0].clone()
+            if agent == 1:  # agent 1's loss (the LossModule view) with the factor it was given, by hand
+                view = views[1].clone()
+                view.set("factor", factor[0])
+                loss = AgentPPOLoss(nets.agent_actor(1), nets.agent_critic(1), nets.agent_cost_critic(1),
+                                    NoMultiplier(), functional=False)(view)
                 r = (hand_log_prob_per_dim(nets, 1, view).sum(-1) - view["action_log_prob"]).exp()
                 adv = view["advantage"].squeeze(-1)
-                expected = -(factor * torch.minimum(r * adv, r.clamp(0.8, 1.2) * adv)).mean()
+                expected = -(factor[0] * torch.minimum(r * adv, r.clamp(0.8, 1.2) * adv)).mean()
                 torch.testing.assert_close(loss["loss_objective"], expected)
-            return inner(agent, view, factor, cost)
+            return inner(seeds, agents, fields, factor, costs)
 
-        update._update_agent = spy
+        update._stage = spy
         update(td, 0.0)
         new_per_dim = hand_log_prob_per_dim(nets, 0, views[0])
         hand = (new_per_dim - old_per_dim).exp().prod(-1)  # product over agent 0's action dims
@@ -262,22 +268,60 @@ class TestSequentialUpdate:
         torch.testing.assert_close(received[1], hand)
         assert (hand - 1).abs().max() > 1e-2  # agent 0 really moved: the check is not trivial
 
-    @pytest.mark.parametrize("target_kl", [None, 1e9], ids=["KL after the last pass", "KL after every pass"])
-    def test_a_stage_evaluates_the_agents_policy_once_before_and_once_after_its_steps(self, target_kl):
-        # The factor's log-probabilities before and after the agent's update are read from the policy the
-        # epochs' KL reference and the KL after the last pass evaluate (nothing moves the agent in between).
-        nets = make_nets([2, 3])
-        td = make_rollout(nets)
-        update = HAPPOUpdate(nets, epochs=3, target_kl=target_kl)
-        calls = [0, 0]
+    @pytest.mark.parametrize(("target_kl", "max_grad_norm"), [(None, 10.0), (0.005, 10.0), (None, 0.05)],
+                             ids=["no KL stop", "KL stop", "every network clipped"])
+    def test_a_users_loop_over_agent_ppo_loss_is_the_rounds_update(self, target_kl, max_grad_norm):
+        """S = 1: each agent's AgentPPOLoss, torch.optim.Adam, the per-network clip, the multiplier step after every
+        step, the KL stop and the factor by hand give what the seed-batched round gives, to float rounding."""
+        nets = make_nets([3, 2], seed=3)
+        td = make_rollout(nets, seed=3)
+        mine = copy.deepcopy(nets)
+        update = MAPPOLagUpdate(nets, epochs=4, num_minibatches=2, target_kl=target_kl, multiplier_init=0.1,
+                                multiplier_lr=0.5, actor_lr=1e-2, max_grad_norm=max_grad_norm,
+                                generator=torch.Generator().manual_seed(4))
+        metrics = update(td, 40.0)
+
+        generator = torch.Generator().manual_seed(4)
+        order = torch.randperm(2, generator=generator).tolist()
+        factor = torch.ones(N * T)
+        multipliers = [MAPPOLagMultiplier(25.0, init=0.1, lr=0.5) for _ in range(2)]
+        stops, clipped = {}, []
+        for i in order:
+            actor = mine.agent_actor(i)
+            loss = AgentPPOLoss(actor, mine.agent_critic(i), mine.agent_cost_critic(i), multipliers[i],
+                                value_norm=PopArtValueNorm(shape=1), functional=False)
+            view = agent_view(td, i)
+            view["factor"] = factor
+            groups = [list(m.parameters()) for m in (actor, mine.agent_critic(i), mine.agent_cost_critic(i))]
+            opt = torch.optim.Adam([{"params": groups[0], "lr": 1e-2}, {"params": groups[1] + groups[2], "lr": 5e-4}],
+                                   eps=1e-5)
+            with torch.no_grad():
+                old = actor.get_dist(view.select("observation"))
+                before = old.log_prob(view["action"])
+            for epoch in range(1, 5):
+                for index in torch.randperm(N * T, generator=generator).chunk(2):
+                    out = loss(view[index])
+                    opt.zero_grad()
+                    sum(out[k] for k in ("loss_objective", "loss_critic", "loss_cost_critic", "loss_entropy")).backward()
+                    norms = [torch.nn.utils.clip_grad_norm_(group, max_grad_norm) for group in groups]
+                    clipped.append(all(norm > max_grad_norm for norm in norms))
+                    opt.step()
+                    multipliers[i].update(40.0, cost_surrogate=out["cost_surrogate"])
+                with torch.no_grad():
+                    new = actor.get_dist(view.select("observation"))
+                    kl = gaussian_kl(old.mean, old.stddev, new.mean, new.stddev).mean().item()
+                stops[i] = epoch
+                if target_kl is not None and kl > target_kl:
+                    break
+            with torch.no_grad():
+                factor = factor * (actor.get_dist(view.select("observation")).log_prob(view["action"]) - before).exp()
         for i in range(2):
-            actor = nets.agent_actor(i)
-            inner = actor.get_dist
-            actor.get_dist = lambda *args, _i=i, _inner=inner, **kwargs: calls.__setitem__(_i, calls[_i] + 1) or _inner(
-                *args, **kwargs)
-        update(td, 10.0)
-        kl_checks = 3 if target_kl else 1
-        assert calls == [1 + 3 + kl_checks] * 2  # reference, the loss in each epoch, the KL checks
+            torch.testing.assert_close(agent_params(nets, i), agent_params(mine, i), rtol=1e-5, atol=1e-6)
+            assert float(update.multipliers[i].value) == pytest.approx(float(multipliers[i].value), rel=1e-5)
+            assert metrics[f"Train/StopIter/agent{i}"] == stops[i]
+        if target_kl is not None:
+            assert min(stops.values()) < 4  # the stop fired: the check is not trivial
+        assert all(clipped) == (max_grad_norm < 1)  # each network clipped on its own at every step
 
     def test_mappo_is_independent_per_agent_ppo(self):
         nets = make_nets([3, 2, 1], seed=2)
@@ -289,11 +333,11 @@ class TestSequentialUpdate:
             copy_nets = copy.deepcopy(nets)
             update = MAPPOUpdate(copy_nets, shuffle=shuffle, generator=torch.Generator().manual_seed(seed), **options)
             factors = []
-            inner = update._update_agent
-            update._update_agent = lambda i, v, f, c: factors.append(f) or inner(i, v, f, c)
+            inner = update._stage
+            update._stage = lambda s, a, fields, f, c: factors.append(f) or inner(s, a, fields, f, c)
             update(td, 30.0)
-            assert all(torch.equal(f, torch.ones_like(f)) for f in factors)
-            assert "factor" not in update.losses[0].in_keys
+            assert factors == [None] * 3  # no factor is kept
+            assert "factor" not in update.loss.in_keys and not update.objective.weighted
             results.append([agent_params(copy_nets, i) for i in range(3)])
         for a, b in zip(*results):
             torch.testing.assert_close(a, b)

@@ -136,9 +136,10 @@ def test_a_subclass_that_overrides_the_math_hooks_is_refused():
         loss = loss_class(*_networks(0), NoMultiplier(), functional=False)
         with pytest.raises(TypeError, match=f"overrides {loss_class.__name__}.{hook} but not seed_batched_objective"):
             objective_of(loss)
-    # the multi-agent loss weights its advantage by the sequential factor: not a seed-batched first-order loss
+    # the multi-agent loss weights its advantage by the sequential factor: its seed-batched form is the multi-agent
+    # rounds' objective, which the single-agent engine refuses
     actor, critic, cost_critic = _networks(0)
-    with pytest.raises(TypeError, match="AgentPPOLoss overrides"):
+    with pytest.raises(TypeError, match="returned AgentObjective, not a SeedBatchedObjective"):
         objective_of(AgentPPOLoss(actor, critic, cost_critic, NoMultiplier(), functional=False))
 
 

@@ -173,22 +173,6 @@ class TestStep:
             GradientStep(model, torch.optim.SGD(model.parameters(), lr=0.1), (), (), 1.0)
 
 
-def test_multi_agent_steps_clip_each_network_separately():
-    from sg_torchrl.modules import make_multi_agent_networks
-    from sg_torchrl.objectives.multi_agent import MAPPOLagUpdate
-
-    torch.manual_seed(0)
-    nets = make_multi_agent_networks(4, [2, 1], 5, hidden_sizes=(8,))
-    update = MAPPOLagUpdate(nets)
-    loss = update.losses[1]
-    step = update._gradient_step(1, loss, ("loss_objective",), actor=True)
-    networks = (nets.agent_actor(1), nets.agent_critic(1), nets.agent_cost_critic(1))
-    assert [list(group.parameters) for group in step.clip_groups] == [list(m.parameters()) for m in networks]
-    assert [group.norm_metric for group in step.clip_groups] == [None, "Misc/Reward_critic_norm", "Misc/Cost_critic_norm"]
-    critics = update._gradient_step(1, loss.critic_losses, ("loss_critic",), actor=False)
-    assert len(critics.clip_groups) == 2 and critics.optimizer is update.optimizers[1]
-
-
 class TestGeneralisedLoop:
     def test_any_callable_is_an_order(self):
         calls = []
