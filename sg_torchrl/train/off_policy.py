@@ -408,4 +408,3 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         super()._load_run_state(state)
         self.gradient_steps = int(state["off_policy"]["gradient_steps"])
         self.replay.load(state["off_policy"]["replay"])
-

@@ -355,4 +355,3 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
             self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
         self.shuffler.generators[index].set_state(entry["minibatch_rng"])
         self.action_generators[index].set_state(entry["action_rng"])
-
