@@ -36,8 +36,8 @@ and MuJoCo included), reported whole and per seed.
     python benchmarks/seed_group_throughput.py --multi-agent        # MAPPO-Lag on Safety2x3HalfCheetahVelocity-v0
 
 Multi-agent rows (``--multi-agent``) compare the single-seed run (``sg-train --seed 0``:
-:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, the multi-agent engine with
-S = 1 in the single-seed layout, so the ``group S=1`` row is the same code writing the group layout) with
+:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` with S = 1 in a single run's
+layout, so the ``group S=1`` row is the same code writing the group layout) with
 multi-agent seed groups (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: simulators
 batched over the seeds, the seeds' networks stacked and acting in one call per step, each seed's round run
 after the others'), eager, at the paper's multi-agent settings. ``benchmarks/revision_speed.py`` measures

@@ -27,7 +27,7 @@ import tempfile
 import torch
 
 from _report import write_json
-from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig
 
 
 def minibatch_steps(cfg: TrainConfig, metrics: dict[str, float]) -> int:
@@ -39,7 +39,7 @@ def minibatch_steps(cfg: TrainConfig, metrics: dict[str, float]) -> int:
 
 def measure(algo: str, env_id: str, epochs: int, output_dir: str) -> dict[str, float]:
     trainers = {
-        mode: SingleSeedGroupTrainer(TrainConfig(
+        mode: OnPolicyGroupTrainer(TrainConfig(
             algo=algo, env_id=env_id, compile=mode == "compiled", total_steps=epochs * 20_000, wandb="disabled",
             eval_episodes=0, progress=False, output_dir=output_dir, run_name=f"{algo}-{mode}"))
         for mode in ("eager", "compiled")

@@ -20,7 +20,7 @@ purpose         rule                                          consumers
                                                               group's or ``--seed``'s, whose state is kept
                                                               per seed after its team is built)
 ``actions``     ``Generator().manual_seed(a)``,               a single-agent seed group's per-seed action
-                ``a = SeedSequence([s, 1])``'s first uint64   noise (``GroupTrainer``, ``StackedPolicy``)
+                ``a = SeedSequence([s, 1])``'s first uint64   noise (``OnPolicyGroupTrainer``, ``StackedPolicy``)
                 (:func:`action_seed`)
 ``minibatches`` ``Generator().manual_seed(s)``                a single-agent seed's minibatch order (a seed
                                                               group's ``SeedShuffler``); a multi-agent

@@ -21,7 +21,7 @@ from tensordict import TensorDict
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import (  # noqa: E402
     CheckpointError,
     RunDirectoryError,
@@ -281,7 +281,7 @@ def test_rerunning_over_a_run_is_refused_and_overwrite_starts_over(finished_run,
     assert progress_epochs(run_copy) == [1, 2]  # a new log, not appended to the old one
     assert (run_copy / "notes.txt").read_text() == "mine"  # only the run's own files were replaced
     with pytest.raises(RunDirectoryError, match="already holds a run"):
-        SingleSeedGroupTrainer(tiny_config(tmp_path, run_name="copy"))  # the library refuses the same way
+        OnPolicyGroupTrainer(tiny_config(tmp_path, run_name="copy"))  # the library refuses the same way
     check_new_run_dir(tmp_path / "new")  # an empty or missing directory is fine
 
 
@@ -309,11 +309,11 @@ def test_checkpoint_schedule(monkeypatch):
 
 def test_a_checkpoint_carries_its_progress_row(tmp_path):
     # Killed between writing epoch 1's checkpoint and logging it: the resumed run writes the row.
-    first = SingleSeedGroupTrainer(tiny_config(tmp_path))
+    first = OnPolicyGroupTrainer(tiny_config(tmp_path))
     first.run(max_epochs=1)
     progress = tmp_path / "run" / "progress.csv"
     progress.write_text(progress.read_text().splitlines()[0] + "\n")
-    SingleSeedGroupTrainer(tiny_config(tmp_path), SingleSeedGroupTrainer.load_checkpoint(tmp_path / "run")).run()
+    OnPolicyGroupTrainer(tiny_config(tmp_path), OnPolicyGroupTrainer.load_checkpoint(tmp_path / "run")).run()
     assert progress_epochs(tmp_path / "run") == [1, 2, 3]
 
 

@@ -11,7 +11,7 @@ torch.set_num_threads(1)
 from torch._dynamo.utils import counters  # noqa: E402
 
 from sg_torchrl.objectives import FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
-from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig  # noqa: E402
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from test_first_order_losses import make_batch, make_modules  # noqa: E402
 
@@ -70,7 +70,7 @@ def _config(tmp_path, **overrides) -> TrainConfig:
 # CUP runs the first-order loop (its stage one, as PPO-Lag's) and the projection passes; CPO the critic passes.
 @pytest.mark.parametrize("algo", ["cup", "cpo"])
 def test_compiled_training_reuses_its_graphs_after_the_first_epoch(tmp_path, algo):
-    trainer = SingleSeedGroupTrainer(_config(tmp_path, algo=algo))
+    trainer = OnPolicyGroupTrainer(_config(tmp_path, algo=algo))
     first = trainer.train_epoch()
     graphs = counters["stats"]["unique_graphs"]
     later = [trainer.train_epoch() for _ in range(2)]

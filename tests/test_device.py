@@ -32,7 +32,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import GroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint  # noqa: E402
 from sg_torchrl.train.devices import check_device_available  # noqa: E402
 from sg_torchrl.train.group_updates import MaskedSeedStep  # noqa: E402
@@ -118,7 +118,7 @@ def epoch_host_reads(tmp_path, monkeypatch, algo: str, minibatch_size: int) -> c
     """
     cfg = group_config(tmp_path / f"{algo}-{minibatch_size}", algo=algo, minibatch_size=minibatch_size,
                        target_kl=1e9)
-    trainer = GroupTrainer(cfg)
+    trainer = OnPolicyGroupTrainer(cfg)
     with counting_host_reads(monkeypatch) as counts:
         trainer.train_epoch()
     return counts
@@ -164,7 +164,7 @@ def test_cuda_without_cuda_is_refused_on_the_command_line(tmp_path, capsys, no_c
 def test_cuda_without_cuda_is_refused_by_the_python_api(tmp_path, no_cuda):
     cfg = group_config(tmp_path, device="cuda:0")  # the config itself is valid: it may be read on any machine
     with pytest.raises(ValueError, match="device 'cuda:0' asks for CUDA"):
-        GroupTrainer(cfg)
+        OnPolicyGroupTrainer(cfg)
 
 
 def test_a_cuda_index_the_machine_lacks_is_refused(monkeypatch):
@@ -213,16 +213,16 @@ def test_checkpoints_hold_cpu_tensors_and_a_cuda_run_continues_on_the_cpu(tmp_pa
 # --------------------------------------------------------------------------- on a GPU
 @CUDA
 def test_a_group_trains_an_epoch_on_cuda_and_continues_on_the_cpu(tmp_path):
-    trainer = GroupTrainer(group_config(tmp_path, device="cuda", total_steps=512))
+    trainer = OnPolicyGroupTrainer(group_config(tmp_path, device="cuda", total_steps=512))
     trainer.run(max_epochs=1)
     assert all(t.is_cuda for t in trainer.model.parameters())
     assert all(t.is_cuda and t.grad.is_cuda for t in trainer.model.flat_groups)
     for state in trainer.optimizer.state:
         assert state["step"].is_cuda and all(t.is_cuda for t in state["exp_avg"] + state["exp_avg_sq"])
     assert all(torch.isfinite(t).all() for t in trainer.model.flat_groups)
-    checkpoint = GroupTrainer.load_checkpoint(trainer.cfg.run_dir)
+    checkpoint = OnPolicyGroupTrainer.load_checkpoint(trainer.cfg.run_dir)
     assert all(t.device.type == "cpu" for t in tensors(checkpoint))
-    on_cpu = GroupTrainer(group_config(tmp_path, device="cpu", total_steps=512), checkpoint)
+    on_cpu = OnPolicyGroupTrainer(group_config(tmp_path, device="cpu", total_steps=512), checkpoint)
     for cpu, cuda in zip(on_cpu.model.flat_groups, trainer.model.flat_groups):
         assert torch.equal(cpu, cuda.cpu())
     on_cpu.run()
@@ -233,7 +233,7 @@ def synchronising_calls(tmp_path, algo: str, minibatch_size: int) -> int:
     """Synchronising CUDA calls (``set_sync_debug_mode("warn")``) of one epoch on ``cuda`` (as :func:`epoch_host_reads`)."""
     cfg = group_config(tmp_path / f"{algo}-{minibatch_size}", algo=algo, minibatch_size=minibatch_size,
                        target_kl=1e9, device="cuda")
-    trainer = GroupTrainer(cfg)
+    trainer = OnPolicyGroupTrainer(cfg)
     torch.cuda.synchronize()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -7,8 +7,8 @@ them (its docstring names the commit and says how to record again); this file ru
 config again on the code as it is now and compares.
 
 **What runs.** One small run per algorithm, seed 0, on the engine ``sg-train --seed 0`` uses (the fused
-engine, ``SingleSeedGroupTrainer``, for the twelve single-agent algorithms on
-``SafetyHalfCheetahVelocity-v1``; the multi-agent engine with one seed, ``SingleSeedMultiAgentTrainer``,
+on-policy family, ``OnPolicyGroupTrainer``, for the twelve single-agent algorithms on
+``SafetyHalfCheetahVelocity-v1``; the multi-agent family with one seed, ``MultiAgentGroupTrainer``,
 for MAPPO, HAPPO, MAPPO-Lag and MACPO on ``Safety2x3HalfCheetahVelocity-v0``: recorded from the single-seed
 multi-agent trainer it replaced), and a seed group ``--seeds 0 1`` of PPO-Lag, CPO and MAPPO-Lag:
 2 simulators, 2 epochs of 1,000 steps, 100-step episodes and a 0.5 m/s speed limit (so episodes end and
@@ -80,7 +80,7 @@ from sg_torchrl.train.config import RETIRED_FIELDS  # noqa: E402
 GOLDEN_DIR = Path(__file__).parent / "data" / "golden"
 #: The recorded runs: the single-agent algorithms (fused engine, seed 0).
 SINGLE_AGENT = ("pg", "ppo", "ppo_lag", "cppo_pid", "focops", "cup", "npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
-#: The multi-agent algorithms (SingleSeedMultiAgentTrainer, seed 0).
+#: The multi-agent algorithms (MultiAgentGroupTrainer, seed 0).
 MULTI_AGENT = ("mappo", "happo", "mappo_lag", "macpo")
 #: Seed groups (``--seeds 0 1``) recorded.
 GROUPS = ("ppo_lag", "cpo", "mappo_lag")

@@ -10,7 +10,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import EpochTrainer, SingleSeedGroupTrainer, SingleSeedMultiAgentTrainer, TrainingInterrupted, main  # noqa: E402
+from sg_torchrl.train import MultiAgentGroupTrainer, OnPolicyGroupTrainer, SeedGroupTrainer, TrainingInterrupted, main  # noqa: E402
 from sg_torchrl.train.interrupt import StopRequests  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
 
@@ -24,7 +24,7 @@ def send_to_this_thread(signum: int) -> None:
     signal.pthread_kill(threading.get_ident(), signum)
 
 
-def signal_during_epoch(trainer: EpochTrainer, epoch: int, *signums: int) -> None:
+def signal_during_epoch(trainer: SeedGroupTrainer, epoch: int, *signums: int) -> None:
     """Make ``trainer`` send itself ``signums`` at the start of its epoch number ``epoch`` (1-based)."""
     train_epoch = trainer.train_epoch
 
@@ -39,19 +39,19 @@ def signal_during_epoch(trainer: EpochTrainer, epoch: int, *signums: int) -> Non
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_stops_after_the_epoch_and_resuming_is_exact(tmp_path, signum):
-    uninterrupted = SingleSeedGroupTrainer(tiny_config(tmp_path / "a"))
+    uninterrupted = OnPolicyGroupTrainer(tiny_config(tmp_path / "a"))
     uninterrupted.run()
 
-    interrupted = SingleSeedGroupTrainer(tiny_config(tmp_path / "b"))
+    interrupted = OnPolicyGroupTrainer(tiny_config(tmp_path / "b"))
     signal_during_epoch(interrupted, 2, signum)
     with pytest.raises(TrainingInterrupted) as stop:
         interrupted.run()
     assert (stop.value.epoch, stop.value.signum, stop.value.exit_code) == (2, signum, 128 + signum)
     assert stop.value.checkpoint == interrupted.checkpoint_path
-    checkpoint = SingleSeedGroupTrainer.load_checkpoint(interrupted.checkpoint_path)
+    checkpoint = OnPolicyGroupTrainer.load_checkpoint(interrupted.checkpoint_path)
     assert checkpoint["epoch"] == 2  # the epoch under way finished; checkpoint_every (100) did not apply
 
-    resumed = SingleSeedGroupTrainer(tiny_config(tmp_path / "b"), checkpoint)
+    resumed = OnPolicyGroupTrainer(tiny_config(tmp_path / "b"), checkpoint)
     resumed.run()
     assert torch.equal(flat_parameters(uninterrupted), flat_parameters(resumed))
     assert (tmp_path / "b" / "run" / "summary.json").exists()
@@ -60,12 +60,12 @@ def test_a_signal_stops_after_the_epoch_and_resuming_is_exact(tmp_path, signum):
 def test_multi_agent_runs_stop_the_same_way(tmp_path):
     cfg = tiny_config(tmp_path, algo="mappo_lag", env_id="Safety2x3HalfCheetahVelocity-v0", num_envs=1,
                       steps_per_epoch=1000, total_steps=2000, hidden_sizes=[32, 32])
-    trainer = SingleSeedMultiAgentTrainer(cfg)
+    trainer = MultiAgentGroupTrainer(cfg)
     signal_during_epoch(trainer, 1, signal.SIGTERM)
     with pytest.raises(TrainingInterrupted) as stop:
         trainer.run()
     assert stop.value.epoch == 1
-    assert SingleSeedMultiAgentTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
+    assert MultiAgentGroupTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
 
 
 @pytest.fixture
@@ -82,19 +82,19 @@ def python_sigint_handler():
 
 
 def test_a_second_signal_stops_at_once_without_a_checkpoint(tmp_path, python_sigint_handler):
-    trainer = SingleSeedGroupTrainer(tiny_config(tmp_path))
+    trainer = OnPolicyGroupTrainer(tiny_config(tmp_path))
     signal_during_epoch(trainer, 2, signal.SIGINT, signal.SIGINT)
     with pytest.raises(KeyboardInterrupt) as stop:
         trainer.run()
     assert not isinstance(stop.value, TrainingInterrupted)
     assert trainer.epoch == 1
     # No checkpoint of the interrupted epoch: the one on disk is the first epoch's (always written).
-    assert SingleSeedGroupTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
+    assert OnPolicyGroupTrainer.load_checkpoint(trainer.checkpoint_path)["epoch"] == 1
 
 
 def test_the_previous_handlers_come_back(tmp_path):
     before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    SingleSeedGroupTrainer(tiny_config(tmp_path)).run(max_epochs=1)
+    OnPolicyGroupTrainer(tiny_config(tmp_path)).run(max_epochs=1)
     with StopRequests() as stop:
         assert signal.getsignal(signal.SIGINT) != before[signal.SIGINT]
         send_to_this_thread(signal.SIGTERM)
@@ -105,14 +105,14 @@ def test_the_previous_handlers_come_back(tmp_path):
 
 def test_sg_train_exits_with_the_signal_code_and_says_how_to_resume(tmp_path, monkeypatch, capsys):
     # The loop every trainer shares stops the same way, whichever trainer the command line picks.
-    train_epoch = EpochTrainer.train_epoch
+    train_epoch = SeedGroupTrainer.train_epoch
 
     def train_epoch_with_sigterm(self) -> dict[str, float]:
         if self.epoch == 0:
             send_to_this_thread(signal.SIGTERM)
         return train_epoch(self)
 
-    monkeypatch.setattr(EpochTrainer, "train_epoch", train_epoch_with_sigterm)
+    monkeypatch.setattr(SeedGroupTrainer, "train_epoch", train_epoch_with_sigterm)
     argv = ["--env-id", "SafetyHalfCheetahVelocity-v1", "--num-envs", "2", "--steps-per-epoch", "200",
             "--total-steps", "600", "--update-iters", "1", "--eval-episodes", "0", "--wandb", "disabled",
             "--progress", "false", "--output-dir", str(tmp_path), "--run-name", "run"]
@@ -120,4 +120,4 @@ def test_sg_train_exits_with_the_signal_code_and_says_how_to_resume(tmp_path, mo
     err = capsys.readouterr().err
     assert "SIGTERM received" in err and "stopped after epoch 1" in err
     assert f"sg-train --resume {tmp_path / 'run'}" in err
-    assert SingleSeedGroupTrainer.load_checkpoint(tmp_path / "run")["epoch"] == 1
+    assert OnPolicyGroupTrainer.load_checkpoint(tmp_path / "run")["epoch"] == 1

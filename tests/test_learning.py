@@ -24,7 +24,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sg_torchrl.train import EpochTrainer, SingleSeedGroupTrainer, SingleSeedMultiAgentTrainer, TrainConfig
+from sg_torchrl.train import MultiAgentGroupTrainer, OnPolicyGroupTrainer, SeedGroupTrainer, TrainConfig
 
 torch.set_num_threads(1)
 
@@ -48,10 +48,10 @@ def test_safe_algorithm_brings_episode_cost_under_the_limit(tmp_path, algo, opti
         total_steps=600_000, update_iters=10, eval_episodes=0, wandb="disabled", progress=False,
         output_dir=str(tmp_path), **options,
     )
-    assert_cost_comes_under_the_limit(SingleSeedGroupTrainer(cfg), initial_violation=2, label=algo)
+    assert_cost_comes_under_the_limit(OnPolicyGroupTrainer(cfg), initial_violation=2, label=algo)
 
 
-def assert_cost_comes_under_the_limit(trainer: EpochTrainer, initial_violation: float, label: str) -> None:
+def assert_cost_comes_under_the_limit(trainer: SeedGroupTrainer, initial_violation: float, label: str) -> None:
     """Train to the end: the first epoch's cost exceeds ``initial_violation`` times the limit, some
     epoch's mean episode cost is under the limit, and the last 20 episodes' mean within twice it."""
     limit = trainer.cfg.cost_limit
@@ -81,4 +81,4 @@ def test_mappo_lag_brings_team_cost_under_the_limit(tmp_path):
         algo="mappo_lag", env_id="Safety2x3HalfCheetahVelocity-v0", env_options={"velocity_threshold": 0.5},
         seed=0, total_steps=400_000, eval_episodes=0, wandb="disabled", progress=False, output_dir=str(tmp_path),
     )
-    assert_cost_comes_under_the_limit(SingleSeedMultiAgentTrainer(cfg), initial_violation=4, label="mappo_lag")
+    assert_cost_comes_under_the_limit(MultiAgentGroupTrainer(cfg), initial_violation=4, label="mappo_lag")

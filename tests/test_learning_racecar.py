@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from sg_torchrl.train import SingleSeedGroupTrainer, TrainConfig
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig
 
 torch.set_num_threads(1)
 
@@ -36,7 +36,7 @@ def epoch_returns(output_dir: Path, total_steps: int, seed: int = 0) -> list[flo
         steps_per_epoch=STEPS_PER_EPOCH, total_steps=total_steps, eval_episodes=0, wandb="disabled",
         progress=False, output_dir=str(output_dir),
     )
-    trainer = SingleSeedGroupTrainer(cfg)
+    trainer = OnPolicyGroupTrainer(cfg)
     returns = []
     while trainer.epoch < cfg.epochs:
         trainer.train_epoch()

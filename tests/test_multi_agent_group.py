@@ -4,8 +4,8 @@ What is compared, and how closely:
 
 * **per-agent normaliser rows** (``RunningObservationNorm((agents, features), groups=S)``) against
   ungrouped normalisers fed one block each: bit for bit;
-* **seed s of a group of two against the single-seed run with seed s** (``--seed s``: the same engine with
-  S = 1, ``SingleSeedMultiAgentTrainer``, whose runs ``tests/test_golden_equivalence.py`` holds to the
+* **seed s of a group of two against the single-seed run with seed s** (``--seed s``: the same class with
+  S = 1 in a single run's layout, whose runs ``tests/test_golden_equivalence.py`` holds to the
   recorded numbers; MAPPO-Lag, MACPO, HAPPO), two epochs: every entry of both epochs' batches (observations, actions, log-probs,
   rewards, costs, dones, state) bit for bit, every ``progress.csv`` column but the timings, the
   evaluation and the parameters after the run **exactly** (tolerance 0). The group stacks the seeds'
@@ -42,7 +42,7 @@ from sg_torchrl.envs.normalization import RunningObservationNorm  # noqa: E402
 from sg_torchrl.modules import make_multi_agent_networks  # noqa: E402
 from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, StackedMultiAgentPolicy  # noqa: E402
 from sg_torchrl.train import (  # noqa: E402
-    GroupTrainer, MultiAgentGroupTrainer, SingleSeedMultiAgentTrainer, TrainConfig, main, trainer_class,
+    MultiAgentGroupTrainer, OnPolicyGroupTrainer, TrainConfig, main, trainer_class,
 )
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.seed_runs import seed_entry  # noqa: E402
@@ -83,9 +83,8 @@ def test_the_config_takes_multi_agent_groups_and_picks_their_trainer(tmp_path):
     with pytest.raises(ValueError, match="multi-agent algorithms"):
         MultiAgentGroupTrainer(TrainConfig(algo="ppo_lag", seeds=[0], output_dir=str(tmp_path)))
     with pytest.raises(ValueError, match="MultiAgentGroupTrainer"):
-        GroupTrainer(config(tmp_path, seeds=[0]))
-    with pytest.raises(ValueError, match="seed group"):
-        MultiAgentGroupTrainer(config(tmp_path))
+        OnPolicyGroupTrainer(config(tmp_path, seeds=[0]))
+    assert trainer_class(config(tmp_path)) is MultiAgentGroupTrainer  # one seed: the same class, a single run's layout
 
 
 def test_grouped_per_agent_normaliser_rows_follow_their_blocks_bit_for_bit():
@@ -164,7 +163,7 @@ def test_each_seed_of_a_group_is_its_single_seed_run_bit_for_bit(tmp_path, algo)
     group_batches = recording(group)
     metrics = group.run()
     for index, seed in enumerate(seeds):
-        single = SingleSeedMultiAgentTrainer(config(tmp_path / f"single{seed}", algo=algo, seed=seed, eval_episodes=1))
+        single = MultiAgentGroupTrainer(config(tmp_path / f"single{seed}", algo=algo, seed=seed, eval_episodes=1))
         single_batches = recording(single)
         single_metrics = single.run()
         block = slice(2 * index, 2 * index + 2)

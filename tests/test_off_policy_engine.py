@@ -23,7 +23,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import OffPolicyGroupTrainer, SingleSeedOffPolicyTrainer, main, train, trainer_class  # noqa: E402
+from sg_torchrl.train import OffPolicyGroupTrainer, main, train, trainer_class  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 
@@ -66,7 +66,7 @@ def _tensors(tree) -> list[torch.Tensor]:
 
 def test_trainer_choice():
     assert trainer_class(parse_args(["--algo", "sac_lag", "--seeds", "0", "1"])) is OffPolicyGroupTrainer
-    assert trainer_class(parse_args(["--algo", "td3"])) is SingleSeedOffPolicyTrainer
+    assert trainer_class(parse_args(["--algo", "td3"])) is OffPolicyGroupTrainer
 
 
 @pytest.mark.parametrize("algo", ["sac_lag", "td3_pid"])

@@ -45,7 +45,7 @@ import sg_torchrl  # noqa: E402
 from sg_torchrl.envs.normalization import RunningObservationNorm  # noqa: E402
 from sg_torchrl.objectives import LagrangeMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl import seeding  # noqa: E402
-from sg_torchrl.train import GroupTrainer, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_NAMES  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler  # noqa: E402
@@ -130,7 +130,7 @@ def test_grouped_normaliser_rows_follow_their_blocks_bit_for_bit():
 
 # --------------------------------------------------------------------------- equivalence
 def test_each_seed_starts_from_its_single_seed_networks(tmp_path):
-    group = GroupTrainer(group_config(tmp_path / "g", [4, 9], env_options={}))
+    group = OnPolicyGroupTrainer(group_config(tmp_path / "g", [4, 9], env_options={}))
     env = group.base_env
     for index, seed in enumerate([4, 9]):
         seeding.seed_torch(seed)
@@ -143,11 +143,11 @@ def test_each_seed_starts_from_its_single_seed_networks(tmp_path):
 @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "focops", "cpo", "trpo_lag", "pcpo"])
 def test_a_seed_of_three_follows_its_group_of_one(tmp_path, algo):
     seeds, costs = [0, 1, 2], []
-    three = GroupTrainer(group_config(tmp_path / "three", seeds, algo=algo))
+    three = OnPolicyGroupTrainer(group_config(tmp_path / "three", seeds, algo=algo))
     batches_three = recording(three)
     three.run()
     for index, seed in enumerate(seeds):
-        one = GroupTrainer(group_config(tmp_path / f"one{seed}", [seed], algo=algo))
+        one = OnPolicyGroupTrainer(group_config(tmp_path / f"one{seed}", [seed], algo=algo))
         batches_one = recording(one)
         one.run()
         block = slice(2 * index, 2 * index + 2)
@@ -168,8 +168,8 @@ def test_a_seed_of_three_follows_its_group_of_one(tmp_path, algo):
 
 def test_per_seed_files_have_the_single_seed_runs_columns(tmp_path):
     for algo in ("ppo_lag", "cup", "cpo"):
-        SingleSeedGroupTrainer(tiny_config(tmp_path / algo, algo=algo, total_steps=200)).run()
-        group = GroupTrainer(group_config(tmp_path / f"g-{algo}", [5], algo=algo))
+        OnPolicyGroupTrainer(tiny_config(tmp_path / algo, algo=algo, total_steps=200)).run()
+        group = OnPolicyGroupTrainer(group_config(tmp_path / f"g-{algo}", [5], algo=algo))
         group.run()
         single_header = (tmp_path / algo / "run" / "progress.csv").read_text().splitlines()[0]
         assert (group.cfg.seed_dir(5) / "progress.csv").read_text().splitlines()[0] == single_header
@@ -245,7 +245,7 @@ def test_a_seed_whose_update_turns_non_finite_is_put_back_and_flagged():
 
 def test_a_diverged_seed_is_frozen_and_reported_while_the_others_train_on(tmp_path, capsys):
     cfg = group_config(tmp_path / "nan", [0, 1, 2], total_steps=1200)
-    broken = GroupTrainer(cfg)
+    broken = OnPolicyGroupTrainer(cfg)
     batches = recording(broken)
     broken.run(max_epochs=1)
     with torch.no_grad():
@@ -259,7 +259,7 @@ def test_a_diverged_seed_is_frozen_and_reported_while_the_others_train_on(tmp_pa
     assert json.loads((cfg.run_dir / "summary.json").read_text())["diverged"] == [1]
     assert metrics["seed-001/Diverged"] is True and metrics["Train/Epoch"] == 3
 
-    clean = GroupTrainer(group_config(tmp_path / "clean", [0, 1, 2], total_steps=1200))
+    clean = OnPolicyGroupTrainer(group_config(tmp_path / "clean", [0, 1, 2], total_steps=1200))
     clean.run()
     for seed in (0, 2):
         rows, expected = without_times(progress(cfg.seed_dir(seed))), without_times(progress(clean.cfg.seed_dir(seed)))
@@ -272,13 +272,13 @@ def test_a_diverged_seed_is_frozen_and_reported_while_the_others_train_on(tmp_pa
 # --------------------------------------------------------------------------- resume
 @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "cpo"])
 def test_resume_continues_the_group_bit_for_bit(tmp_path, algo):
-    uninterrupted = GroupTrainer(group_config(tmp_path / "a", [0, 1], algo=algo, total_steps=1200))
+    uninterrupted = OnPolicyGroupTrainer(group_config(tmp_path / "a", [0, 1], algo=algo, total_steps=1200))
     uninterrupted.run()
 
-    first = GroupTrainer(group_config(tmp_path / "b", [0, 1], algo=algo, total_steps=1200))
+    first = OnPolicyGroupTrainer(group_config(tmp_path / "b", [0, 1], algo=algo, total_steps=1200))
     first.run(max_epochs=1)
-    checkpoint = GroupTrainer.load_checkpoint(first.cfg.run_dir)
-    resumed = GroupTrainer(group_config(tmp_path / "b", [0, 1], algo=algo, total_steps=1200), checkpoint)
+    checkpoint = OnPolicyGroupTrainer.load_checkpoint(first.cfg.run_dir)
+    resumed = OnPolicyGroupTrainer(group_config(tmp_path / "b", [0, 1], algo=algo, total_steps=1200), checkpoint)
     assert resumed.epoch == 1
     resumed.run()
 
@@ -295,12 +295,13 @@ def test_resume_continues_the_group_bit_for_bit(tmp_path, algo):
 # --------------------------------------------------------------------------- table and command line
 @pytest.mark.parametrize("algo", sorted(ALGORITHM_NAMES))
 def test_every_group_algorithm_trains_an_epoch(tmp_path, algo):
-    group = GroupTrainer(group_config(tmp_path, [0, 1], algo=algo))
+    group = OnPolicyGroupTrainer(group_config(tmp_path, [0, 1], algo=algo))
     before = [t.clone() for t in group.model.flat_groups]
     metrics = group.train_epoch()
     assert all(not torch.equal(a, b) for a, b in zip(before, group.model.flat_groups))
     for run in group.runs:
         assert all(value == value for value in run.last_row.values()), run.last_row  # no NaN: episodes finished
+    assert metrics["Train/Epoch"] == 1  # the progress bar's figures: the seeds' mean row
 
 
 TINY = ["--env-id", POINT, "--env-options", "max_episode_steps=100", "--num-envs", "2", "--steps-per-epoch", "200",

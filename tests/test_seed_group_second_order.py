@@ -24,7 +24,7 @@ one below, so the multipliers and CPO / PCPO's violations differ per seed):
   and the masked Adam; the trust-region step stays eager) without error and reuses the graphs after
   the first epoch; the first epoch's step metrics equal the eager group's bit for bit (the step comes
   before any compiled pass) and its critic losses to rtol 1e-4;
-* ``keep_freed_memory`` (what ``GroupTrainer`` applies at start-up) acts on Linux with glibc only.
+* ``keep_freed_memory`` (what ``OnPolicyGroupTrainer`` applies at start-up) acts on Linux with glibc only.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from torchrl.data import Bounded  # noqa: E402
 
 from sg_torchrl.algorithms import manifest  # noqa: E402
 from sg_torchrl.objectives.passes import ClipGroup, GradientStep, run_passes, shuffled_slices  # noqa: E402
-from sg_torchrl.train import ALGORITHMS, GroupTrainer, TrainConfig  # noqa: E402
+from sg_torchrl.train import ALGORITHMS, OnPolicyGroupTrainer, TrainConfig  # noqa: E402
 from sg_torchrl.train.algorithms import _NO_LINE_SEARCH, TRUST_REGION_STEPS, _trust_region_options  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values  # noqa: E402
 from sg_torchrl.train.group_updates import GroupParts  # noqa: E402
@@ -120,7 +120,7 @@ def single_update(algo: str, index: int, nets, data: TensorDict):
 
 
 def group_update(algo: str, nets, costs=COSTS, seeds=SEEDS):
-    """The group's update, built as ``GroupTrainer`` builds it; returns (update, stacked data, lam, violation)."""
+    """The group's update, built as ``OnPolicyGroupTrainer`` builds it; returns (update, stacked data, lam, violation)."""
     cfg, row = config(algo), ALGORITHMS[algo]
     model = StackedActorCritic.from_single([copy.deepcopy(triple) for triple in nets])
     optimizer = FusedFirstOrderStep.make_optimizer(model, 0.0, cfg.critic_lr, max_grad_norm=cfg.max_grad_norm)
@@ -226,14 +226,14 @@ def test_keep_freed_memory_applies_on_linux_glibc_only(monkeypatch):
 
     on_glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
     assert memory.keep_freed_memory() is on_glibc
-    assert memory.keep_freed_memory() is on_glibc  # idempotent (every GroupTrainer calls it)
+    assert memory.keep_freed_memory() is on_glibc  # idempotent (every OnPolicyGroupTrainer calls it)
     monkeypatch.setattr(memory.sys, "platform", "darwin")
     assert memory.keep_freed_memory() is False
 
 
 def test_a_compiled_group_compiles_its_critic_passes_once(tmp_path):
-    def group(name: str, compile: bool) -> GroupTrainer:
-        return GroupTrainer(TrainConfig(
+    def group(name: str, compile: bool) -> OnPolicyGroupTrainer:
+        return OnPolicyGroupTrainer(TrainConfig(
             algo="cpo", env_id="SafetyHalfCheetahVelocity-v1", env_options={"max_episode_steps": 100}, num_envs=2,
             steps_per_epoch=400, total_steps=1200, update_iters=2, cost_limit=0.0, eval_episodes=0, wandb="disabled",
             progress=False, output_dir=str(tmp_path / name), seeds=[0, 1], compile=compile))

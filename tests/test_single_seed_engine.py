@@ -1,10 +1,11 @@
 """``sg-train --seed s``: the seed-group engine with its one seed (a lean hot path for one seed too).
 
 Every single-agent run trains on the seed-group engine; one seed is
-:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`, the engine with S = 1 in the single-seed
-layout. Checked here:
+:class:`~sg_torchrl.train.seed_group.OnPolicyGroupTrainer` with S = 1, in a single run's layout
+(:class:`~sg_torchrl.train.seed_runs.SingleRunLayout`, which the config picks). Checked here:
 
-* the choice (:func:`~sg_torchrl.train.trainer_class`), pixel ids included, and that ``--engine`` is gone;
+* the choice (:func:`~sg_torchrl.train.trainer_class`: the family only, pixel ids included), the layout the
+  config picks, the deprecated ``GroupTrainer`` name, and that ``--engine`` is gone;
 * a ``--seed`` run writes the single-seed layout: a single run's files in its run directory, no
   ``seed-XXX/`` level, no group summary, the single-seed printout;
 * ``--seed 0`` is seed 0 of ``--seeds 0`` exactly: progress rows but their ``Time/*`` columns, summary
@@ -31,9 +32,8 @@ torch.set_num_threads(1)
 
 from sg_torchrl import seeding  # noqa: E402
 from sg_torchrl.train import (  # noqa: E402
-    GroupTrainer,
-    SingleSeedGroupTrainer,
-    SingleSeedMultiAgentTrainer,
+    MultiAgentGroupTrainer,
+    OnPolicyGroupTrainer,
     TrainConfig,
     main,
     train,
@@ -41,6 +41,7 @@ from sg_torchrl.train import (  # noqa: E402
 )
 from sg_torchrl.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
+from sg_torchrl.train.seed_runs import GroupLayout, SingleRunLayout, run_layout  # noqa: E402
 from sg_torchrl.modules.mlp import make_actor_critics  # noqa: E402
 from trainer_checks import assert_same_state, tiny_config  # noqa: E402
 
@@ -81,13 +82,35 @@ def runs(tmp_path_factory) -> dict[str, tuple[Path, str]]:
 
 # --------------------------------------------------------------------------- the choice
 def test_every_single_agent_run_trains_on_the_seed_group_engine():
-    assert trainer_class(TrainConfig()) is SingleSeedGroupTrainer
-    assert trainer_class(TrainConfig(env_id=VISION)) is SingleSeedGroupTrainer  # stacked CNN encoders
+    assert trainer_class(TrainConfig()) is OnPolicyGroupTrainer
+    assert trainer_class(TrainConfig(env_id=VISION)) is OnPolicyGroupTrainer  # stacked CNN encoders
     pixels = TrainConfig(env_id="SafetyCarGoal1-v0", env_options={"obs_mode": "vector+rgb"})
-    assert trainer_class(pixels) is SingleSeedGroupTrainer
-    assert trainer_class(TrainConfig(seeds=[0, 1])) is GroupTrainer
-    assert trainer_class(TrainConfig(algo="mappo_lag")) is SingleSeedMultiAgentTrainer
+    assert trainer_class(pixels) is OnPolicyGroupTrainer
+    assert trainer_class(TrainConfig(seeds=[0, 1])) is OnPolicyGroupTrainer
+    assert trainer_class(TrainConfig(algo="mappo_lag")) is MultiAgentGroupTrainer
     assert "engine" not in TrainConfig().to_dict()
+
+
+def test_the_layout_is_the_configs_choice(tmp_path):
+    single, group = tiny_config(tmp_path / "s"), tiny_config(tmp_path / "g", seeds=[0, 1], run_name=None)
+    one, two = run_layout(single), run_layout(group)
+    assert isinstance(one, SingleRunLayout) and one.seeds == [0] and one.seed_config(0) is single
+    assert isinstance(two, GroupLayout) and two.seeds == [0, 1]
+    assert two.seed_config(1).run_dir == group.run_dir / "seed-001" and not two.seed_config(1).group
+    with pytest.raises(ValueError, match="group's"):
+        SingleRunLayout(group)
+    with pytest.raises(ValueError, match="cfg.seeds"):
+        GroupLayout(single)
+    trainer = OnPolicyGroupTrainer(group)  # the family class that trains one seed trains the group too
+    assert isinstance(trainer.layout, GroupLayout) and trainer.seeds == [0, 1]
+    with pytest.raises(AttributeError, match=r"runs\[i\]\.stats"):
+        trainer.stats  # a group has no one run's statistics
+
+
+def test_group_trainer_is_a_deprecated_name():
+    with pytest.warns(DeprecationWarning, match="OnPolicyGroupTrainer"):
+        from sg_torchrl.train import GroupTrainer
+    assert GroupTrainer is OnPolicyGroupTrainer
 
 
 def test_the_engine_option_is_gone(tmp_path, capsys):
@@ -137,22 +160,21 @@ def test_a_seed_is_seed_0_of_a_group_of_one(runs):
 
 
 def test_a_seed_starts_from_make_actor_critics_networks(tmp_path):
-    fused = SingleSeedGroupTrainer(tiny_config(tmp_path / "f", seed=3))
+    fused = OnPolicyGroupTrainer(tiny_config(tmp_path / "f", seed=3))
     env = fused.base_env
     seeding.seed_torch(3)  # as a user's single-seed code builds them
     reference = make_actor_critics(env.observation_spec, env.action_spec, fused.cfg.network_sizes)
     exported = fused.model.export_seed(0, env.action_spec)
     assert torch.equal(torch.cat([p.detach().reshape(-1) for m in exported for p in m.parameters()]),
                        torch.cat([p.detach().reshape(-1) for m in reference for p in m.parameters()]))
-    with pytest.raises(ValueError, match="GroupTrainer's"):
-        SingleSeedGroupTrainer(tiny_config(tmp_path / "g", seeds=[0, 1], run_name=None))
+    assert isinstance(fused.layout, SingleRunLayout) and fused.stats is fused.runs[0].stats
 
 
 # --------------------------------------------------------------------------- resume
 def test_resume_continues_a_run_bit_for_bit(runs, tmp_path):
     uninterrupted, _ = runs["single"]
     cfg = parse_args([*FLAGS, "--seed", "0", "--output-dir", str(tmp_path), "--run-name", "run"])
-    SingleSeedGroupTrainer(cfg).run(max_epochs=1)
+    OnPolicyGroupTrainer(cfg).run(max_epochs=1)
     run_dir = tmp_path / "run"
     assert load_checkpoint(run_dir)["epoch"] == 1 and len(progress_rows(run_dir)) == 1
     state = load_checkpoint(run_dir)

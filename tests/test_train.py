@@ -11,7 +11,7 @@ import torch
 torch.set_num_threads(1)
 
 import sg_torchrl  # noqa: E402
-from sg_torchrl.train import ALGORITHMS, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train import ALGORITHMS, OnPolicyGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.train.config import ALGORITHM_NAMES, SECOND_ORDER  # noqa: E402
 from trainer_checks import flat_parameters, tiny_config  # noqa: E402
@@ -114,7 +114,7 @@ class TestConfig:
     def test_env_options_reach_the_training_and_evaluation_envs(self, tmp_path):
         # A threshold of -1 m/s makes most steps cost 1 (84 of 100 here; the default, 3.2 m/s, almost none).
         options = {"velocity_threshold": -1.0, "max_episode_steps": 100}
-        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, env_options=options, eval_episodes=2))
+        trainer = OnPolicyGroupTrainer(tiny_config(tmp_path, env_options=options, eval_episodes=2))
         assert trainer.base_env.velocity_threshold == -1.0 and trainer.base_env.max_episode_steps == 100
         row = trainer.train_epoch()
         assert row["Metrics/EpLen"] == 100.0 and row["Metrics/EpCost"] > 70
@@ -123,7 +123,7 @@ class TestConfig:
 
     def test_unknown_env_id_is_a_clear_error(self, tmp_path):
         with pytest.raises(KeyError, match="Did you mean"):
-            SingleSeedGroupTrainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))
+            OnPolicyGroupTrainer(tiny_config(tmp_path, env_id="SafetyHalfCheetahVelocity-v3"))
 
 
 class TestTraining:
@@ -143,7 +143,7 @@ class TestTraining:
         assert "EpCost" in capsys.readouterr().out
 
     def test_update_changes_parameters_and_multiplier_follows_cost(self, tmp_path):
-        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, cost_limit=0.0))
+        trainer = OnPolicyGroupTrainer(tiny_config(tmp_path, cost_limit=0.0))
         before = flat_parameters(trainer).clone()
         metrics = trainer.train_epoch()
         assert not torch.equal(before, flat_parameters(trainer))
@@ -155,8 +155,8 @@ class TestTraining:
         # Cost limit 0: the constraint is violated, so Lagrangian multipliers grow and CPO / PCPO
         # take their constraint-handling branches.
         # 1000 steps per simulator: every HalfCheetah episode finishes within the epoch.
-        trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0, steps_per_epoch=2000,
-                                                     total_steps=2000))
+        trainer = OnPolicyGroupTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0, steps_per_epoch=2000,
+                                                   total_steps=2000))
         actor, critics = trainer.model.flat_actor.clone(), trainer.model.flat_critics.clone()
         metrics = trainer.train_epoch()
         assert not torch.equal(critics, trainer.model.flat_critics)
@@ -175,13 +175,13 @@ class TestTraining:
 
     @pytest.mark.parametrize("algo", ["ppo_lag", "cup", "cpo"])
     def test_resume_continues_exactly(self, tmp_path, algo):
-        uninterrupted = SingleSeedGroupTrainer(tiny_config(tmp_path / "a", algo=algo))
+        uninterrupted = OnPolicyGroupTrainer(tiny_config(tmp_path / "a", algo=algo))
         uninterrupted.run()
 
-        first_half = SingleSeedGroupTrainer(tiny_config(tmp_path / "b", algo=algo))
+        first_half = OnPolicyGroupTrainer(tiny_config(tmp_path / "b", algo=algo))
         first_half.run(max_epochs=2)
-        checkpoint = SingleSeedGroupTrainer.load_checkpoint(first_half.checkpoint_path.parent)
-        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path / "b", algo=algo), checkpoint)
+        checkpoint = OnPolicyGroupTrainer.load_checkpoint(first_half.checkpoint_path.parent)
+        resumed = OnPolicyGroupTrainer(tiny_config(tmp_path / "b", algo=algo), checkpoint)
         assert resumed.epoch == 2
         resumed.run()
 
@@ -196,33 +196,33 @@ class TestTraining:
     def test_resume_after_a_crash_past_the_checkpoint_logs_each_epoch_once(self, tmp_path):
         # Checkpoint after epoch 1, the run logs epochs 2 and 3 and dies: resuming from epoch 1 logs
         # epochs 2 and 3 again, and progress.csv must not hold them twice.
-        crashed = SingleSeedGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1))
+        crashed = OnPolicyGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1))
         crashed.run(max_epochs=1)
-        checkpoint = SingleSeedGroupTrainer.load_checkpoint(crashed.checkpoint_path.parent)
+        checkpoint = OnPolicyGroupTrainer.load_checkpoint(crashed.checkpoint_path.parent)
         crashed.cfg.checkpoint_every = 100
         crashed.run(max_epochs=2)
         progress = tmp_path / "run" / "progress.csv"
         assert len(progress.read_text().splitlines()) == 4  # header + epochs 1-3
-        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1), checkpoint)
+        resumed = OnPolicyGroupTrainer(tiny_config(tmp_path, total_steps=800, checkpoint_every=1), checkpoint)
         resumed.run()
         with progress.open() as handle:
             epochs = [int(float(row["Train/Epoch"])) for row in csv.DictReader(handle)]
         assert epochs == [1, 2, 3, 4]
 
     def test_resuming_a_finished_run_keeps_one_final_row(self, tmp_path):
-        finished = SingleSeedGroupTrainer(tiny_config(tmp_path, eval_episodes=1))
+        finished = OnPolicyGroupTrainer(tiny_config(tmp_path, eval_episodes=1))
         finished.run()
         progress = tmp_path / "run" / "progress.csv"
         rows = progress.read_text().splitlines()
-        checkpoint = SingleSeedGroupTrainer.load_checkpoint(finished.checkpoint_path.parent)
-        resumed = SingleSeedGroupTrainer(tiny_config(tmp_path, eval_episodes=1), checkpoint)
+        checkpoint = OnPolicyGroupTrainer.load_checkpoint(finished.checkpoint_path.parent)
+        resumed = OnPolicyGroupTrainer(tiny_config(tmp_path, eval_episodes=1), checkpoint)
         resumed.run()
         assert progress.read_text().splitlines()[:-1] == rows[:-1]  # the epochs, once
         assert len(progress.read_text().splitlines()) == len(rows)  # and one final row
 
     def test_missing_checkpoint_is_a_clear_error(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no checkpoint"):
-            SingleSeedGroupTrainer.load_checkpoint(tmp_path)
+            OnPolicyGroupTrainer.load_checkpoint(tmp_path)
 
 
 class TestLogging:

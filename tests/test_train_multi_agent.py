@@ -1,6 +1,6 @@
 """sg-train with the multi-agent algorithms: config rows, one epoch each, heterogeneous agents, exact resume, CLI, recipe.
 
-``--seed s`` runs the multi-agent engine with one seed (``SingleSeedMultiAgentTrainer``) in the single-seed
+``--seed s`` runs the multi-agent family (``MultiAgentGroupTrainer``) with one seed in a single run's
 layout; a checkpoint of the single-seed trainer it replaced still resumes, bit for bit
 (``tests/data/multi_agent_trainer_run/checkpoint.pt``: MAPPO-Lag after epoch 1 of 2, written by that trainer).
 
@@ -23,7 +23,7 @@ import torch
 
 torch.set_num_threads(1)
 
-from sg_torchrl.train import SingleSeedMultiAgentTrainer, TrainConfig, main, trainer_class  # noqa: E402
+from sg_torchrl.train import MultiAgentGroupTrainer, TrainConfig, main, trainer_class  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES  # noqa: E402
@@ -82,18 +82,17 @@ class TestConfig:
         assert "multi-agent algorithm" in err and "SafetyAntVelocity-v1" in err
 
     def test_dispatch(self, tmp_path):
-        assert trainer_class(tiny_config(tmp_path)) is SingleSeedMultiAgentTrainer
+        assert trainer_class(tiny_config(tmp_path)) is MultiAgentGroupTrainer
         with pytest.raises(ValueError, match="multi-agent algorithms"):
-            SingleSeedMultiAgentTrainer(TrainConfig(algo="ppo_lag"))
-        with pytest.raises(ValueError, match="MultiAgentGroupTrainer's"):
-            SingleSeedMultiAgentTrainer(tiny_config(tmp_path, seeds=[0, 1], run_name=None))
+            MultiAgentGroupTrainer(TrainConfig(algo="ppo_lag"))
+        assert trainer_class(tiny_config(tmp_path, seeds=[0, 1], run_name=None)) is MultiAgentGroupTrainer
 
 
 class TestTraining:
     @pytest.mark.parametrize("algo", MULTI_AGENT_ALGORITHM_NAMES)
     def test_every_algorithm_trains_one_epoch(self, tmp_path, algo):
         # Cost limit 0 with a cost-free random policy: J_c - d = 0, the constraint is active at the boundary.
-        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0))
+        trainer = MultiAgentGroupTrainer(tiny_config(tmp_path, algo=algo, cost_limit=0.0))
         nets = trainer.teams[0].networks
         actors, critics = flat([nets.policy]), flat([nets.reward_value, nets.cost_value])
         metrics = trainer.train_epoch()
@@ -111,32 +110,32 @@ class TestTraining:
 
     def test_heterogeneous_agents_train_one_epoch(self, tmp_path):
         # HalfCheetah 6x1: six one-joint agents whose observations differ in size (padded to the largest).
-        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo="happo", steps_per_epoch=500,
-                                                          env_id="Safety6x1HalfCheetahVelocity-v0", total_steps=500))
+        trainer = MultiAgentGroupTrainer(tiny_config(tmp_path, algo="happo", steps_per_epoch=500,
+                                                     env_id="Safety6x1HalfCheetahVelocity-v0", total_steps=500))
         assert trainer.teams[0].networks.n_agents == 6 and len(set(trainer.base_env.observation_sizes)) > 1
         metrics = trainer.train_epoch()
         assert all(math.isfinite(metrics[f"Loss/Loss_actor/agent{i}"]) for i in range(6))
         assert sorted(int(metrics[f"Train/AgentOrder/agent{i}"]) for i in range(6)) == list(range(6))
 
     def test_observation_normalisation(self, tmp_path):
-        trainer = SingleSeedMultiAgentTrainer(tiny_config(tmp_path, algo="mappo", steps_per_epoch=100,
-                                                          total_steps=100))
+        trainer = MultiAgentGroupTrainer(tiny_config(tmp_path, algo="mappo", steps_per_epoch=100,
+                                                     total_steps=100))
         trainer.train_epoch()
         observation, state = trainer.obs_norms  # one row of statistics: the one seed's
         assert observation.mean.shape == (1, 2, trainer.base_env.observation_dim) and state.mean.shape == (1, 17)
         assert observation.count.item() == state.count.item() == pytest.approx(100, abs=1e-3)
-        raw = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "raw", algo="mappo", normalize_obs=False))
+        raw = MultiAgentGroupTrainer(tiny_config(tmp_path / "raw", algo="mappo", normalize_obs=False))
         assert raw.obs_norms == [] and raw.env is raw.base_env
 
     def test_resume_continues_exactly(self, tmp_path):
         options = dict(algo="mappo_lag", num_envs=2, steps_per_epoch=200, total_steps=600, cost_limit=0.0)
-        uninterrupted = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "a", **options))
+        uninterrupted = MultiAgentGroupTrainer(tiny_config(tmp_path / "a", **options))
         uninterrupted.run()
 
-        first_half = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "b", **options))
+        first_half = MultiAgentGroupTrainer(tiny_config(tmp_path / "b", **options))
         first_half.run(max_epochs=2)
-        checkpoint = SingleSeedMultiAgentTrainer.load_checkpoint(first_half.checkpoint_path.parent)
-        resumed = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "b", **options), checkpoint)
+        checkpoint = MultiAgentGroupTrainer.load_checkpoint(first_half.checkpoint_path.parent)
+        resumed = MultiAgentGroupTrainer(tiny_config(tmp_path / "b", **options), checkpoint)
         assert resumed.epoch == 2
         resumed.run()
 
@@ -181,10 +180,10 @@ class TestTraining:
             "hidden_sizes", "cost_limit", "eval_episodes", "seed")}
         # its round state (per-agent torch.optim.Adam state dicts, multipliers, PopArt, generator) is read into the
         # seed-batched round's stacks and written back unchanged
-        loaded = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "loaded", **options), saved)
+        loaded = MultiAgentGroupTrainer(tiny_config(tmp_path / "loaded", **options), saved)
         assert_same(loaded.round.seed_state_dict(0), saved["update"])
         assert main(["--resume", str(old), "--progress", "false"]) == 0
-        fresh = SingleSeedMultiAgentTrainer(tiny_config(tmp_path / "new", **options))
+        fresh = MultiAgentGroupTrainer(tiny_config(tmp_path / "new", **options))
         fresh.run()
 
         def rows(run_dir):  # as numbers: epoch 1's row came from the checkpoint here ("1.0" for "1")

@@ -28,7 +28,7 @@ torch.set_num_threads(1)
 import sg_torchrl  # noqa: E402
 from sg_torchrl.envs import rendering  # noqa: E402
 from sg_torchrl.envs.rendering import RenderingUnavailable  # noqa: E402
-from sg_torchrl.train import GroupTrainer, SingleSeedGroupTrainer, TrainConfig, main  # noqa: E402
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig, main  # noqa: E402
 from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.train.fused import SeedBatch  # noqa: E402
@@ -247,8 +247,8 @@ def group_runs(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("vision_groups")
     cli([*CLI_FLAGS, "--seeds", "0", "1", "--output-dir", str(root), "--run-name", "whole"])
     cli([*CLI_FLAGS, "--seed", "1", "--output-dir", str(root), "--run-name", "single"])
-    interrupted = GroupTrainer(parse_args([*CLI_FLAGS, "--seeds", "0", "1", "--output-dir", str(root),
-                                           "--run-name", "resumed"]))
+    interrupted = OnPolicyGroupTrainer(parse_args([*CLI_FLAGS, "--seeds", "0", "1", "--output-dir", str(root),
+                                                   "--run-name", "resumed"]))
     interrupted.run(max_epochs=2)  # stopped after two of its three epochs, checkpointed
     interrupted.base_env.close()
     cli(["--resume", str(root / "resumed")])
@@ -285,7 +285,7 @@ def test_a_resumed_group_continues_bit_for_bit(group_runs):
 
 @pytest.mark.parametrize("mode", ["rgb", "vector+rgbd"])
 def test_a_single_seed_learns_from_pixels_and_evaluates(backend, tmp_path, mode):
-    trainer = SingleSeedGroupTrainer(tiny_config(tmp_path, mode))
+    trainer = OnPolicyGroupTrainer(tiny_config(tmp_path, mode))
     assert (trainer.obs_norm is None) == (mode == "rgb")  # the normaliser is for the flat vector only
     assert trainer.model.layout.images and trainer.model.chunk_size is not None
     actor_before = trainer.model.flat_actor.clone()
@@ -303,7 +303,8 @@ def test_a_single_seed_learns_from_pixels_and_evaluates(backend, tmp_path, mode)
 @pytest.mark.parametrize("algo", ["cup", "cpo"])
 def test_two_stage_and_trust_region_updates_train_the_cnns(backend, tmp_path, algo):
     # CUP's stage-one policy and CPO's whole-batch trust-region step read the images too, in a group.
-    trainer = GroupTrainer(tiny_config(tmp_path, "rgb", algo=algo, cost_limit=0.0, total_steps=40, seeds=[0, 1]))
+    trainer = OnPolicyGroupTrainer(tiny_config(tmp_path, "rgb", algo=algo, cost_limit=0.0, total_steps=40,
+                                               seeds=[0, 1]))
     model = trainer.model
     before = model.flat_actor.clone(), model.flat_critics.clone()
     metrics = trainer.train_epoch()

@@ -26,7 +26,7 @@ from sg_torchrl.sweep import cli as sweep_cli  # noqa: E402
 from sg_torchrl.sweep.cell import CellFailed, run_cell  # noqa: E402
 from sg_torchrl.sweep.grid import SweepGrid  # noqa: E402
 from sg_torchrl.sweep.runner import prepare_output  # noqa: E402
-from sg_torchrl.train import EpochTrainer, main  # noqa: E402
+from sg_torchrl.train import SeedGroupTrainer, main  # noqa: E402
 from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError, append_text  # noqa: E402
 
 ENV = "SafetyHalfCheetahVelocity-v1"
@@ -176,18 +176,18 @@ def test_an_unwritable_directory_is_one_line_and_exit_3(tmp_path, monkeypatch, c
     assert error_line(capsys.readouterr().err) == (
         f"sg-train: error: cannot write {run / 'checkpoint.pt'}: {words}; the last checkpoint (epoch 1) is intact, "
         f"continue with: sg-train --resume {run}")
-    assert leftovers(tmp_path) == [] and EpochTrainer.load_checkpoint(run)["epoch"] == 1
+    assert leftovers(tmp_path) == [] and SeedGroupTrainer.load_checkpoint(run)["epoch"] == 1
 
 
 def test_a_run_directory_vanishing_mid_run_is_not_recreated(tmp_path, monkeypatch, capsys):
-    train_epoch, run = EpochTrainer.train_epoch, tmp_path / "run"
+    train_epoch, run = SeedGroupTrainer.train_epoch, tmp_path / "run"
 
     def vanish_before_epoch_2(self):
         if self.epoch == 1:
             shutil.rmtree(run)  # an unmounted disk
         return train_epoch(self)
 
-    monkeypatch.setattr(EpochTrainer, "train_epoch", vanish_before_epoch_2)
+    monkeypatch.setattr(SeedGroupTrainer, "train_epoch", vanish_before_epoch_2)
     assert main(cli_args(tmp_path, "run", "--checkpoint-minutes", "0")) == EXIT_WRITE_FAILED
     assert error_line(capsys.readouterr().err).startswith(
         f"sg-train: error: cannot write {run / 'checkpoint.pt'}: no such file or directory; {run} holds no checkpoint")

@@ -6,10 +6,10 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from sg_torchrl.train import GroupTrainer, TrainConfig
+from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig
 
 
-def flat_parameters(trainer: GroupTrainer) -> torch.Tensor:
+def flat_parameters(trainer: OnPolicyGroupTrainer) -> torch.Tensor:
     """Every parameter of every seed's actor and critics, flattened into one vector (for exact-equality checks)."""
     model = trainer.model
     return torch.cat([model.flat_actor.detach().reshape(-1), model.flat_critics.detach().reshape(-1)]).clone()

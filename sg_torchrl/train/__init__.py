@@ -1,19 +1,22 @@
 """``sg-train``: typed config, the on-policy safe training loops, logging and checkpoints.
 
-Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. Which trainer runs
-(:func:`trainer_class`):
+Run ``sg-train --help`` (or ``python -m sg_torchrl.train --help``) for every option. Every run trains on
+one engine, :class:`~sg_torchrl.train.trainer.SeedGroupTrainer`: S >= 1 seeds of one algorithm side by
+side in one process, one seed (``--seed s``) written in a single run's layout, a seed group
+(``--seeds 0 1 2``) in the group's (the config picks the layout: :mod:`sg_torchrl.train.seed_runs`).
+:func:`trainer_class` picks the algorithm family's subclass:
 
-* one seed of the single-agent algorithms (``--seed s``), flat-vector or pixel observations:
-  the seed-group engine with that one seed, :class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`
-  (stacked networks, CNN encoders for pixels, one fused minibatch step), writing the single-seed layout;
-  the algorithm is the TorchRL ``LossModule`` users compose in their own code (``PPOLagLoss``, ...), in
-  the seed-batched form it defines;
-* one seed of the four multi-agent algorithms (``--algo mappo``, ``happo``, ``mappo_lag``, ``macpo`` on a
-  multi-agent env id) on the multi-agent seed-group engine with that one seed,
-  :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`, writing the single-seed layout;
-* a seed group (``--seeds 0 1 2``: several seeds of one algorithm side by side in one process) in
-  :class:`~sg_torchrl.train.seed_group.GroupTrainer` (single agent) or
-  :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` (multi agent).
+* the single-agent on-policy algorithms, flat-vector or pixel observations:
+  :class:`~sg_torchrl.train.seed_group.OnPolicyGroupTrainer` (stacked networks, CNN encoders for pixels,
+  one fused minibatch step); the algorithm is the TorchRL ``LossModule`` users compose in their own code
+  (``PPOLagLoss``, ...), in the seed-batched form it defines;
+* the four multi-agent algorithms (``--algo mappo``, ``happo``, ``mappo_lag``, ``macpo`` on a multi-agent
+  env id): :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer` (one team per seed);
+* the off-policy algorithms (SAC, TD3, DDPG and their -Lag / -PID rows):
+  :class:`~sg_torchrl.train.off_policy.OffPolicyGroupTrainer`.
+
+``GroupTrainer``, the on-policy family's earlier name, still imports from here, with a
+``DeprecationWarning`` (:data:`_DEPRECATED`).
 
 ``--resume`` continues a run; a checkpoint of the retired ``LossModule`` trainer (``--engine loss-module``
 in earlier versions) is refused (:func:`refuse_retired_checkpoint`), saying how to go on.
@@ -51,60 +54,61 @@ from sg_torchrl.train.interrupt import TrainingInterrupted
 from sg_torchrl.train.writes import EXIT_WRITE_FAILED, RunWriteError, make_dirs
 
 if TYPE_CHECKING:
-    from sg_torchrl.train.trainer import EpochTrainer
+    from sg_torchrl.train.trainer import SeedGroupTrainer
 
 #: Names exported from modules that load torch: name -> its module, imported on first access (PEP 562).
 _HEAVY = {
     "ALGORITHMS": "sg_torchrl.train.algorithms",
     "MULTI_AGENT_ALGORITHMS": "sg_torchrl.train.multi_agent",
-    "EpochTrainer": "sg_torchrl.train.trainer",
-    "GroupTrainer": "sg_torchrl.train.seed_group",
     "MultiAgentGroupTrainer": "sg_torchrl.train.multi_agent_group",
     "OffPolicyGroupTrainer": "sg_torchrl.train.off_policy",
-    "SingleSeedOffPolicyTrainer": "sg_torchrl.train.off_policy",
-    "SingleSeedGroupTrainer": "sg_torchrl.train.seed_group",
-    "SingleSeedMultiAgentTrainer": "sg_torchrl.train.multi_agent_group",
+    "OnPolicyGroupTrainer": "sg_torchrl.train.seed_group",
+    "SeedGroupTrainer": "sg_torchrl.train.trainer",
 }
 
+#: Earlier names still importable from here, each with a ``DeprecationWarning``: old name -> current name.
+_DEPRECATED = {"GroupTrainer": "OnPolicyGroupTrainer"}
 
-__getattr__, __dir__ = lazy_exports(__name__, _HEAVY)
+_heavy_getattr, __dir__ = lazy_exports(__name__, _HEAVY)
+
+
+def __getattr__(name: str) -> Any:
+    """The names of :data:`_HEAVY`, imported on first use; a :data:`_DEPRECATED` name warns and gives its successor."""
+    if name in _DEPRECATED:
+        import warnings
+
+        warnings.warn(f"sg_torchrl.train.{name} is now {_DEPRECATED[name]}; the old name will go in a later release",
+                      DeprecationWarning, stacklevel=2)
+        return _heavy_getattr(_DEPRECATED[name])
+    return _heavy_getattr(name)
 
 
 __all__ = [
-    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "EpochTrainer", "GroupTrainer", "MultiAgentGroupTrainer",
-    "OffPolicyGroupTrainer", "SingleSeedOffPolicyTrainer",
-    "SingleSeedGroupTrainer", "SingleSeedMultiAgentTrainer", "TrainConfig", "TrainingInterrupted", "algorithm_title",
-    "main", "refuse_retired_checkpoint", "train", "trainer_class",
+    "ALGORITHMS", "MULTI_AGENT_ALGORITHMS", "PRESETS", "MultiAgentGroupTrainer", "OffPolicyGroupTrainer",
+    "OnPolicyGroupTrainer", "SeedGroupTrainer", "TrainConfig", "TrainingInterrupted", "algorithm_title", "main",
+    "refuse_retired_checkpoint", "train", "trainer_class",
 ]
 
 
-def trainer_class(cfg: TrainConfig) -> type[EpochTrainer]:
-    """The trainer of ``cfg``: :class:`MultiAgentGroupTrainer` or :class:`GroupTrainer` for a seed group
-    (multi-agent algorithms or not), :class:`SingleSeedMultiAgentTrainer` or :class:`SingleSeedGroupTrainer` for
-    one seed; the off-policy algorithms' :class:`OffPolicyGroupTrainer` / :class:`SingleSeedOffPolicyTrainer`."""
+def trainer_class(cfg: TrainConfig) -> type[SeedGroupTrainer]:
+    """The engine's family subclass for ``cfg``'s algorithm: :class:`OffPolicyGroupTrainer`,
+    :class:`MultiAgentGroupTrainer` or :class:`OnPolicyGroupTrainer`. One seed or a seed group is the
+    config's layout (:func:`~sg_torchrl.train.seed_runs.run_layout`), which every family takes."""
     if cfg.off_policy:
-        from sg_torchrl.train.off_policy import OffPolicyGroupTrainer, SingleSeedOffPolicyTrainer
+        from sg_torchrl.train.off_policy import OffPolicyGroupTrainer
 
-        return OffPolicyGroupTrainer if cfg.group else SingleSeedOffPolicyTrainer
-    if cfg.group and cfg.multi_agent:
+        return OffPolicyGroupTrainer
+    if cfg.multi_agent:
         from sg_torchrl.train.multi_agent_group import MultiAgentGroupTrainer
 
         return MultiAgentGroupTrainer
-    if cfg.group:
-        from sg_torchrl.train.seed_group import GroupTrainer
+    from sg_torchrl.train.seed_group import OnPolicyGroupTrainer
 
-        return GroupTrainer
-    if cfg.multi_agent:
-        from sg_torchrl.train.multi_agent_group import SingleSeedMultiAgentTrainer
-
-        return SingleSeedMultiAgentTrainer
-    from sg_torchrl.train.seed_group import SingleSeedGroupTrainer
-
-    return SingleSeedGroupTrainer
+    return OnPolicyGroupTrainer
 
 
 def refuse_retired_checkpoint(checkpoint: dict[str, Any], where: str | Path) -> None:
-    """Refuse a checkpoint (:meth:`EpochTrainer.load_checkpoint`'s dict, read from ``where``) of the retired
+    """Refuse a checkpoint (:meth:`SeedGroupTrainer.load_checkpoint`'s dict, read from ``where``) of the retired
     ``LossModule`` trainer, which earlier versions ran for ``--engine loss-module`` and for pixel observations.
 
     Its checkpoints are a single-agent run's without a ``"seed_group"`` entry (those written before
@@ -146,10 +150,10 @@ def train(cfg: TrainConfig) -> dict[str, float]:
     """
     from sg_torchrl.train.checkpoint import check_new_run_dir
 
-    from sg_torchrl.train.trainer import EpochTrainer
+    from sg_torchrl.train.trainer import SeedGroupTrainer
 
     if cfg.resume:
-        checkpoint = EpochTrainer.load_checkpoint(cfg.resume)
+        checkpoint = SeedGroupTrainer.load_checkpoint(cfg.resume)
         refuse_retired_checkpoint(checkpoint, cfg.resume)
     else:
         check_new_run_dir(cfg.run_dir, cfg.overwrite)
@@ -184,9 +188,9 @@ def _resolve_resume(argv: list[str]) -> TrainConfig:
     if values.get("overwrite"):
         raise ValueError("--resume continues a run and --overwrite starts one over; give one of them")
     from sg_torchrl.train.checkpoint import CheckpointError, resume_run_dir  # reading a checkpoint needs torch
-    from sg_torchrl.train.trainer import EpochTrainer
+    from sg_torchrl.train.trainer import SeedGroupTrainer
 
-    checkpoint = EpochTrainer.load_checkpoint(resume)
+    checkpoint = SeedGroupTrainer.load_checkpoint(resume)
     refuse_retired_checkpoint(checkpoint, resume)
     saved = {name: value for name, value in checkpoint["config"].items() if name not in RETIRED_FIELDS}
     known = {f.name for f in dataclasses.fields(TrainConfig)}

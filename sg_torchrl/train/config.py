@@ -26,9 +26,8 @@ refused. Groups train every single-agent algorithm (first and second order; netw
 :mod:`sg_torchrl.train.seed_group`), on flat-vector or pixel
 observations, and the four multi-agent ones (one round per seed,
 :mod:`sg_torchrl.train.multi_agent_group`), on flat-vector observations. One seed (``seed``) trains on
-the same engine as a group of that one seed
-(:class:`~sg_torchrl.train.seed_group.SingleSeedGroupTrainer`,
-:class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`), writing the single-seed layout.
+the same engine and family class as a group of that one seed, writing a single run's layout (:attr:`group`
+picks the layout, :func:`~sg_torchrl.train.seed_runs.run_layout`).
 
 A multi-agent algorithm needs a multi-agent env id (``Safety2x3HalfCheetahVelocity-v0``, ...) and
 a single-agent algorithm a single-agent id; :meth:`TrainConfig.validate` says so when they do not
@@ -209,7 +208,7 @@ class TrainConfig:
 
     @property
     def group(self) -> bool:
-        """Whether this is a seed group (``seeds`` given; :mod:`sg_torchrl.train.seed_runs`)."""
+        """Whether this is a seed group (``seeds`` given), in a group's layout (:mod:`sg_torchrl.train.seed_runs`)."""
         return bool(self.seeds)
 
     @property

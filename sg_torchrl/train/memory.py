@@ -18,8 +18,8 @@ update and 6.8-7.4 CPU s with glibc's defaults, 0-100,000 and 6.1-6.7 CPU s kept
 300,000-330,000 and 26.8-27.6 CPU s against 0-15,000 and 24.5-24.8 CPU s; the peak resident memory
 the same within 6 % (1.01 against 0.95-0.97 GB, 0.59 against 0.61 GB).
 
-It is process-wide, so it is called once, where a process starts training a seed group
-(:class:`~sg_torchrl.train.seed_group.GroupTrainer`), and does nothing off Linux or without glibc
+It is process-wide, so it is called once, where a process starts training the on-policy family
+(:class:`~sg_torchrl.train.seed_group.OnPolicyGroupTrainer`), and does nothing off Linux or without glibc
 (musl, macOS, Windows).
 """
 

@@ -19,8 +19,8 @@ TorchRL's multi-agent layout (group ``("agents", ...)``, a global ``"state"``). 
 
 Step 2 is one run's :class:`MultiAgentTeam` (its networks and GAEs). The engine that runs the epochs is
 :mod:`sg_torchrl.train.multi_agent_group`: one team per seed and one round for all seeds, S >= 1
-(``--seeds``: :class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`; ``--seed s``: the
-same engine with S = 1, :class:`~sg_torchrl.train.multi_agent_group.SingleSeedMultiAgentTrainer`).
+(:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`: ``--seeds`` or, with S = 1,
+``--seed s``).
 
 Episode statistics are the team's: the return of the shared reward and the team cost (the root
 ``"cost"``; on the velocity tasks every agent pays the same indicator).

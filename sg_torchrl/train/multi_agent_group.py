@@ -2,8 +2,8 @@
 
 ``sg-train --algo mappo_lag --seeds 0 1 2`` trains S seeds side by side (:class:`MultiAgentGroupTrainer`),
 each exactly as the group of that seed alone, which is its single-seed run: ``sg-train --algo mappo_lag
---seed s`` is this engine with S = 1 (:class:`SingleSeedMultiAgentTrainer`) in the single-seed layout
-(:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`). Per seed:
+--seed s`` is the same class with S = 1, in a single run's layout (the config picks it:
+:func:`~sg_torchrl.train.seed_runs.run_layout`). Per seed:
 
 * **simulators**: one batched env of ``S * num_envs`` simulators, seed ``s``'s the ``s``-th block of
   ``num_envs``, seeded as a ``num_envs``-simulator env with seed ``s`` (``sg_torchrl.make(...,
@@ -29,19 +29,20 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
   (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`); MACPO runs the seeds' rounds one
   after another (:class:`~sg_torchrl.objectives.multi_agent.SeedRounds`).
 
-The S = 1 run is the same code as a group's, so seed ``s`` of a group is its single-seed run; the
-seed-batched rows multiply their matrices with one ``baddbmm`` per layer for all rows, whose rounding
-may depend on how many rows there are (about 1e-7), so a group's seed follows its single-seed run to
-float rounding in the first update, and its trajectories can part from there.
+The S = 1 run is the same code as a group's, and every operation of the seed-batched round rounds a row
+as it rounds it alone (``addmm`` per row, per-seed reductions), so seed ``s`` of a group is its
+single-seed run bit for bit (``tests/test_multi_agent_group.py``). One caveat: a reduction over more than
+32,768 elements of a row (a batch past that many samples per seed) may be split across threads
+differently for different S, and a seed then follows its single-seed run to float rounding.
 
 Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
 update turn non-finite is put back to its parameters before that update and frozen; its simulators
-idle with zero actions; the others go on) are those of every seed group
-(:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`). A seed's checkpoint entry under ``"seeds"``
+idle with zero actions; the others go on) are the engine's
+(:class:`~sg_torchrl.train.trainer.SeedGroupTrainer`). A seed's checkpoint entry under ``"seeds"``
 (:func:`~sg_torchrl.train.seed_runs.seed_entry`) holds its single-seed run's algorithm entries under the
 same names (``"networks"``, ``"update"``, ``"obs_norms"`` as ungrouped normalisers' state dicts,
-``"torch_rng"``) and its own record. A single-seed checkpoint of the trainer this engine replaced (those
-entries at its top level, no ``"seeds"``) is read as the one-seed group's (:func:`team_checkpoint_as_group`).
+``"torch_rng"``) and its own record. A single run's checkpoint of the trainer this engine replaced (those
+entries at its top level, no ``"seeds"``) is read as the engine's (:func:`team_checkpoint_as_group`).
 """
 
 from __future__ import annotations
@@ -62,13 +63,16 @@ from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, St
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTeam, observation_norms
-from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout
+from sg_torchrl.train.seed_runs import SeedRun
+from sg_torchrl.train.trainer import SeedGroupTrainer
 
-__all__ = ["MultiAgentGroupTrainer", "SingleSeedMultiAgentTrainer", "team_checkpoint_as_group"]
+__all__ = ["MultiAgentGroupTrainer", "team_checkpoint_as_group"]
 
 
 class MultiAgentGroupTrainer(SeedGroupTrainer):
-    """Build and run a seed group (``cfg.seeds``) of a multi-agent algorithm; see the module docstring.
+    """Build and run a multi-agent algorithm: a seed group (``cfg.seeds``) or one run (``cfg.seed``).
+
+    See the module docstring; a one-seed run's one team is ``teams[0]``.
 
     Attributes: ``teams`` (one :class:`~sg_torchrl.train.multi_agent.MultiAgentTeam` per seed),
     ``networks`` (their parameters stacked), ``round`` (every seed's round state), ``obs_norms`` (grouped normalisers, a row per seed),
@@ -76,12 +80,13 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
     ``env`` / ``base_env``, ``runs``.
 
     Args:
-        cfg: the group's config (a multi-agent ``algo``, ``seeds`` set; ``num_envs``,
+        cfg: the run's config (a multi-agent ``algo``; ``seeds`` for a group, else ``seed``; ``num_envs``,
             ``steps_per_epoch``, ``total_steps`` per seed).
-        checkpoint: a group checkpoint (:meth:`load_checkpoint`) to continue from.
+        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from; for one run
+            also one of the single-seed trainer this engine replaced (:func:`team_checkpoint_as_group`).
 
     Raises:
-        ValueError: not a multi-agent algorithm, or not a seed group.
+        ValueError: not a multi-agent algorithm.
     """
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
@@ -159,6 +164,10 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
                                env_options=cfg.env_options)
 
     # ------------------------------------------------------------------ checkpoints
+    def _single_run_checkpoint(self, checkpoint: dict[str, Any]) -> dict[str, Any]:
+        """A single run's checkpoint, this engine's or the replaced trainer's (:func:`team_checkpoint_as_group`)."""
+        return team_checkpoint_as_group(checkpoint)
+
     def _seed_state(self, index: int) -> dict[str, Any]:
         """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG."""
         return {
@@ -174,27 +183,6 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         for norm, state in zip(self.obs_norms, entry["obs_norms"], strict=True):
             norm.load_group_state_dict(index, state)
         self.policy.generators[index].set_state(entry["torch_rng"])
-
-
-class SingleSeedMultiAgentTrainer(SingleSeedLayout, MultiAgentGroupTrainer):
-    """One run (``cfg.seed``; no ``cfg.seeds``) of a multi-agent algorithm: ``sg-train --algo mappo --seed s``.
-
-    The multi-agent engine with S = 1 in the single-seed layout
-    (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`): seed ``s`` of ``--seeds s`` bit for bit, its
-    files in ``cfg.run_dir`` itself. Its one team is ``teams[0]``.
-
-    Args:
-        cfg: a multi-agent, single-seed config.
-        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`), or of the single-seed trainer this
-            engine replaced (read as this trainer's, :func:`team_checkpoint_as_group`), to continue from.
-
-    Raises:
-        ValueError: ``cfg`` is a seed group (:class:`MultiAgentGroupTrainer` trains those) or not a
-            multi-agent algorithm.
-    """
-
-    def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
-        super().__init__(cfg, None if checkpoint is None else team_checkpoint_as_group(checkpoint))
 
 
 #: Entries of a single team's checkpoint (the replaced single-seed trainer's) that belong to its seed.

@@ -1,6 +1,6 @@
 """The off-policy family (SAC, TD3, DDPG; -Lag and -PID) on the seed-group engine: ``sg-train --algo sac_lag``.
 
-:class:`OffPolicyGroupTrainer` is a :class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`: the layout,
+:class:`OffPolicyGroupTrainer` is a :class:`~sg_torchrl.train.trainer.SeedGroupTrainer`: the layouts,
 the seeds' records, ``progress.csv`` rows under the single-seed names, logs, summaries, divergence
 freezing and checkpoint entries are the on-policy engine's. What differs is the epoch's work, which runs
 inside collection (OmniSafe's loop): after each env step every seed's transitions go into its replay
@@ -21,8 +21,8 @@ done, ``utd_ratio`` gradient steps per env step update every seed at once:
 
 Random streams per seed (:mod:`sg_torchrl.seeding`): ``actions`` (warm-up actions, exploration noise),
 ``replay`` (the buffer's sampling), ``updates`` (SAC's sampled actions, TD3's smoothing noise), so seed
-``k`` of a group trains as its ``--seed k`` run (:class:`SingleSeedOffPolicyTrainer`, S = 1; the same
-numbers up to the batched matmuls' float rounding). A seed whose loss turns non-finite stops stepping at
+``k`` of a group trains as its ``--seed k`` run (the same class with S = 1 in a single run's layout; the
+same numbers up to the batched matmuls' float rounding). A seed whose loss turns non-finite stops stepping at
 once and is put back to its state at the start of the epoch, then frozen. ``--resume`` continues bit for
 bit: the checkpoint holds the rows, targets, optimisers, multipliers and generators, and the replay
 buffers' state (their memory maps and undo files in the run directory, :mod:`sg_torchrl.train.replay`).
@@ -51,10 +51,10 @@ from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.fused import multiplier_values
 from sg_torchrl.train.replay import SeedReplay
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
-from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout
+from sg_torchrl.train.seed_runs import SeedRun
+from sg_torchrl.train.trainer import SeedGroupTrainer
 
-__all__ = ["OffPolicyGroupTrainer", "SingleSeedOffPolicyTrainer", "make_loss", "off_policy_network_options",
-           "off_policy_objective_of"]
+__all__ = ["OffPolicyGroupTrainer", "make_loss", "off_policy_network_options", "off_policy_objective_of"]
 
 _METRICS = ("Loss/Loss_reward_critic", "Loss/Loss_cost_critic", "Loss/Loss_pi", "Value/reward_critic",
             "Value/cost_critic")
@@ -156,7 +156,7 @@ class InterleavedCollector(RolloutCollector):
 
 
 class OffPolicyGroupTrainer(SeedGroupTrainer):
-    """A seed group (``cfg.seeds``) of an off-policy algorithm; see the module docstring.
+    """An off-policy algorithm: a seed group (``cfg.seeds``) or one run (``cfg.seed``); see the module docstring.
 
     Raises:
         ValueError: ``cfg`` is not an off-policy algorithm.
@@ -408,7 +408,3 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         super()._load_run_state(state)
         self.gradient_steps = int(state["off_policy"]["gradient_steps"])
         self.replay.load(state["off_policy"]["replay"])
-
-
-class SingleSeedOffPolicyTrainer(SingleSeedLayout, OffPolicyGroupTrainer):
-    """One off-policy run (``cfg.seed``): the group engine with S = 1, in the single-seed layout (``sg-train --seed s``)."""

@@ -1,11 +1,12 @@
-"""A seed group: S independent runs of one algorithm trained side by side in one process (``sg-train --seeds``).
+"""The on-policy single-agent family on the training engine: :class:`OnPolicyGroupTrainer` (stacked networks).
 
-This module is the single-agent group (:class:`GroupTrainer`: stacked networks). Multi-agent groups
-(``--algo mappo|happo|mappo_lag|macpo --seeds ...``,
-:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`) keep one team and one round per
+``sg-train --seeds 0 1 2`` trains S independent runs of one algorithm side by side in one process, and
+``sg-train --seed s`` is the same engine with S = 1 in a single run's layout; the config picks the layout
+(:func:`~sg_torchrl.train.seed_runs.run_layout`), not the class. Multi-agent algorithms
+(:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`) keep one team and one round per
 seed: the per-seed updates run one after another, not stacked, while simulation and collection are
-batched as here. What both share (the seeds' records, epochs, logs, summaries, divergence freezing and
-checkpoint entries, the layout below) is :class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`.
+batched as here. What every family shares (the seeds' records, epochs, logs, summaries, divergence
+freezing, checkpoint entries, the layouts) is the engine, :class:`~sg_torchrl.train.trainer.SeedGroupTrainer`.
 
 DESIGN.md ("Many seeds in one process"): SafePO's networks are so small that a gradient step is
 per-operator overhead, so S seeds whose networks are stacked along a leading seed dimension and
@@ -65,10 +66,12 @@ collection, never in the update) and the multipliers' own state (each follows a 
 to the device and its outputs back once; the batch crosses once per epoch; the update reads back
 once per pass and per epoch (:mod:`sg_torchrl.train.group_updates`). Checkpoints hold CPU tensors.
 
-**One seed** (``sg-train --seed s``): :class:`SingleSeedGroupTrainer` is this engine with the one seed,
-in the single-seed layout. It trains exactly as seed ``s`` of ``--seeds s`` (the same code with S = 1:
-progress rows but their timings, parameters, the seed's checkpoint entry) and writes a single run's
-files in its run directory.
+**One seed** (``sg-train --seed s``): :class:`OnPolicyGroupTrainer` with the one seed, in a single run's
+layout (:class:`~sg_torchrl.train.seed_runs.SingleRunLayout`). It trains exactly as seed ``s`` of
+``--seeds s`` (the same code with S = 1: progress rows but their timings, parameters, the seed's
+checkpoint entry) and writes a single run's files in its run directory, no ``seed-XXX/`` level. Its
+checkpoint's ``"seed_group"`` entry is what tells it from a checkpoint of the retired ``LossModule``
+trainer, which ``--resume`` refuses.
 """
 
 from __future__ import annotations
@@ -95,11 +98,12 @@ from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier
 from sg_torchrl.train.group_updates import FIELDS, GroupParts, finite_seeds
 from sg_torchrl.train.memory import keep_freed_memory
 from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
-from sg_torchrl.train.seed_runs import SeedGroupTrainer, SeedRun, SingleSeedLayout, seed_entry
+from sg_torchrl.train.seed_runs import SeedRun, seed_entry
+from sg_torchrl.train.trainer import SeedGroupTrainer
 from sg_torchrl.seeding import action_seed  # re-exported (the actions rule)
 from sg_torchrl.modules.stacked import StackedActorCritic, in_chunks
 
-__all__ = ["GroupTrainer", "SeedRun", "SingleSeedGroupTrainer", "StackedPolicy", "action_seed", "seed_entry"]
+__all__ = ["OnPolicyGroupTrainer", "SeedRun", "StackedPolicy", "action_seed", "seed_entry"]
 
 #: Update metrics logged as integers, as the single-seed trainer logs them.
 _COUNTS = ("Train/StopIter", "Train/ProjectionStopIter")
@@ -173,13 +177,15 @@ def _device_of(value: Tensor | TensorDictBase) -> torch.device:
     return value.device if isinstance(value, Tensor) else next(iter(value.values(True, True))).device
 
 
-class GroupTrainer(SeedGroupTrainer):
-    """Build and run a seed group (``cfg.seeds``) of a single-agent algorithm; see the module docstring.
+class OnPolicyGroupTrainer(SeedGroupTrainer):
+    """Build and run a single-agent on-policy algorithm: a seed group (``cfg.seeds``) or one run (``cfg.seed``).
+
+    See the module docstring.
 
     Args:
-        cfg: the group's config (``seeds`` set; ``num_envs``, ``steps_per_epoch``, ``total_steps``
-            per seed).
-        checkpoint: a group checkpoint (:meth:`load_checkpoint`) to continue from.
+        cfg: the run's config (``seeds`` for a group, else ``seed``; ``num_envs``, ``steps_per_epoch``,
+            ``total_steps`` per seed).
+        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from.
 
     Raises:
         ValueError: a multi-agent algorithm (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`
@@ -188,7 +194,7 @@ class GroupTrainer(SeedGroupTrainer):
 
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
         if cfg.multi_agent:
-            raise ValueError(f"GroupTrainer trains the single-agent algorithms, not {cfg.algo!r} "
+            raise ValueError(f"OnPolicyGroupTrainer trains the single-agent algorithms, not {cfg.algo!r} "
                              f"(use MultiAgentGroupTrainer)")
         self.device = training_device(cfg)  # refuses a device this machine lacks before anything is built
         super().__init__(cfg)
@@ -349,24 +355,3 @@ class GroupTrainer(SeedGroupTrainer):
             self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
         self.shuffler.generators[index].set_state(entry["minibatch_rng"])
         self.action_generators[index].set_state(entry["action_rng"])
-
-
-class SingleSeedGroupTrainer(SingleSeedLayout, GroupTrainer):
-    """One run (``cfg.seed``; no ``cfg.seeds``) on the seed-group engine, in the single-seed layout: ``sg-train --seed s``.
-
-    The seed-group engine with S = 1 (stacked networks, the fused minibatch step, the seed's own action-noise
-    and minibatch generators), so the run is seed ``s`` of ``--seeds s`` exactly: the same progress rows
-    but their ``Time/*`` columns, the same parameters and checkpoint entry. Only where things are written
-    differs from a group of one (:class:`~sg_torchrl.train.seed_runs.SingleSeedLayout`): ``cfg.run_dir``
-    itself holds a single run's files, with no ``seed-XXX/`` level and no group summary or figure. The
-    checkpoint's ``"seed_group"`` entry is what tells it from a checkpoint of the retired ``LossModule``
-    trainer, which ``--resume`` refuses. A diverged run (its parameters or update turned non-finite) ends
-    early, reported on stderr and in ``summary.json`` (``Diverged``).
-
-    Args:
-        cfg: a single-agent, single-seed config.
-        checkpoint: a checkpoint of this trainer (:meth:`load_checkpoint`) to continue from.
-
-    Raises:
-        ValueError: ``cfg`` is a seed group (:class:`GroupTrainer` trains those) or a multi-agent algorithm.
-    """

@@ -1,26 +1,40 @@
-"""The on-policy safe training loop behind ``sg-train``: :class:`EpochTrainer`, what every trainer shares.
+"""The training engine behind ``sg-train``: :class:`SeedGroupTrainer`, S >= 1 seeds of one algorithm in one process.
 
-Single-agent runs, one seed or a group, train on the seed-group engine
-(:mod:`sg_torchrl.train.seed_group`), multi-agent runs in :mod:`sg_torchrl.train.multi_agent` and
-:mod:`sg_torchrl.train.multi_agent_group`; :func:`sg_torchrl.train.trainer_class` picks the trainer.
+Every ``sg-train`` run trains on it, one seed (``--seed s``) or a seed group (``--seeds 0 1 2``): S runs
+side by side, one batched env of ``S * num_envs`` simulators (seed ``s``'s the ``s``-th block), collected
+at once. How the seeds' networks are held and updated is the algorithm family's business, one small
+subclass each (:func:`sg_torchrl.train.trainer_class` picks it):
+
+* on-policy single agent (:class:`~sg_torchrl.train.seed_group.OnPolicyGroupTrainer`): networks stacked
+  along a leading seed dimension, one group update for all seeds;
+* multi agent (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`): one team of
+  networks and one round per seed, the rounds run one after another;
+* off-policy (:class:`~sg_torchrl.train.off_policy.OffPolicyGroupTrainer`): stacked networks, the gradient
+  steps inside collection.
+
+Where the runs write is not a subclass either: the config picks a layout
+(:func:`~sg_torchrl.train.seed_runs.run_layout`; a group's ``seed-XXX/`` directories or a single run's
+directory, :mod:`sg_torchrl.train.seed_runs`), which the engine asks for the seeds, each seed's config,
+the end of the run and how a checkpoint is read. One seed trains exactly as seed ``s`` of ``--seeds s``.
 
 One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
 
-1. collect ``steps_per_epoch`` transitions from ``num_envs`` batched simulators;
-2. update the multiplier from the mean cost of the episodes finished in the epoch (before the
-   policy update, as SafePO does; SafePO feeds a doubly smoothed 50-episode window mean instead,
-   a quirk we do not reproduce);
-3. reward and cost GAE, batch-level advantage normalisation;
-4. the algorithm's update (:mod:`sg_torchrl.train.group_updates`): first-order minibatch passes with KL
-   early stop, CUP's two stages, or a trust-region step of the actor followed by critic passes;
-5. log SafePO's metrics, checkpoint.
+1. collect ``steps_per_epoch`` transitions per seed from ``num_envs`` batched simulators each;
+2. each seed's finished-episode cost from its block, which its multiplier follows (before the policy
+   update, as SafePO does; SafePO feeds a doubly smoothed 50-episode window mean instead, a quirk we
+   do not reproduce);
+3. the family's update (:meth:`SeedGroupTrainer._learn`; on-policy: reward and cost GAE, batch-level
+   advantage normalisation, :mod:`sg_torchrl.train.group_updates`);
+4. each seed's ``progress.csv`` row under SafePO's names, checkpoint.
 
-Ctrl-C or ``SIGTERM`` stops a run at the end of the epoch under way, with a checkpoint
-(:mod:`sg_torchrl.train.interrupt`).
+A seed whose parameters or update turn non-finite is frozen (no more updates, multiplier or logs; its
+simulators idle with zero actions) and reported on stderr and in its ``summary.json``; the others go on,
+and when none is left the run ends early. Ctrl-C or ``SIGTERM`` stops a run at the end of the epoch
+under way, with a checkpoint (:mod:`sg_torchrl.train.interrupt`).
 
-Checkpoints hold everything that influences the future (networks, optimiser, scheduler, multiplier,
-observation normaliser, simulator states and generators, the collector's carry, episode
-statistics, torch RNG states), so ``--resume`` continues bit-identically. They are written in
+Checkpoints hold everything that influences the future (each seed's networks, optimiser, multiplier,
+observation normaliser, generators and episode statistics; the simulators' states, the collector's
+carry, torch RNG states), so ``--resume`` continues bit-identically. They are written in
 :mod:`sg_torchrl.train.checkpoint`'s format (a sha256-checked header, a payload of tensors and plain
 data that loads with ``weights_only=True``): loading one never runs code, and a damaged one is refused.
 
@@ -38,19 +52,13 @@ finished its first epoch there is always a checkpoint to resume. A checkpoint co
 A new run refuses a run directory that already holds a run (a checkpoint, ``progress.csv`` or
 ``summary.json``) unless ``cfg.overwrite`` asks to start over (which removes the old run's files):
 re-running a command never deletes results silently.
-
-:class:`EpochTrainer` is the loop every ``sg-train`` run goes through (the epoch counters, the
-progress bar, the checkpoint schedule and files). Its one subclass,
-:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer` (single agent, multi agent, and their one-seed
-runs), trains S runs in that loop and hands each seed's row, logger and summary to the helpers here
-(:func:`finished_episode_cost`, :func:`epoch_row`, :func:`open_run_logger`, :func:`write_run_summary`).
 """
 
 from __future__ import annotations
 
 import abc
 import contextlib
-import json
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -58,6 +66,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from sg_torchrl import seeding
@@ -66,14 +75,18 @@ from sg_torchrl.train import checkpoint as checkpoint_files
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, CheckpointError
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.interrupt import StopRequests, TrainingInterrupted
-from sg_torchrl.train.logging import RunLogger
-from sg_torchrl.train.plot import plot_curves
-from sg_torchrl.train.writes import make_dirs, write_atomic
+from sg_torchrl.train.seed_runs import (
+    SeedRun,
+    epoch_row,
+    finished_episode_cost,
+    mean_row,
+    open_run_logger,
+    run_layout,
+    write_run_summary,
+)
+from sg_torchrl.train.writes import make_dirs
 
-__all__ = [
-    "CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "EpochTrainer", "epoch_row",
-    "finished_episode_cost", "open_run_logger", "write_run_summary",
-]
+__all__ = ["CHECKPOINT_NAME", "CheckpointError", "CheckpointSchedule", "SeedGroupTrainer"]
 
 
 @contextlib.contextmanager
@@ -92,7 +105,7 @@ def _without_distribution_validation() -> Iterator[None]:
 
 
 class CheckpointSchedule:
-    """Which finished epochs of one :meth:`EpochTrainer.run` call are checkpointed.
+    """Which finished epochs of one :meth:`SeedGroupTrainer.run` call are checkpointed.
 
     The first epoch the call trains (so a killed run always has something to resume, whether new or
     resumed), every ``every``-th epoch, the call's ``last_epoch``, and any epoch that ends
@@ -114,103 +127,33 @@ class CheckpointSchedule:
         self._saved_at, self.saved_epoch = time.monotonic(), epoch
 
 
-def finished_episode_cost(stats: EpisodeStats, batch: TensorDictBase, previous: float) -> float:
-    """Feed ``batch`` to ``stats``; the mean cost of the episodes it finished, ``previous`` when none did.
+class SeedGroupTrainer(abc.ABC):
+    """The engine: S >= 1 seeds of one algorithm trained side by side, in the layout ``cfg`` picks.
 
-    SafePO's :math:`J_c`, which the multiplier follows (kept from the last epoch that finished an episode).
-    """
-    stats.update(batch)
-    finished = stats.pop_finished()
-    return finished["cost"].mean().item() if finished["cost"].numel() else previous
+    ``cfg.seeds`` trains that seed group (:class:`~sg_torchrl.train.seed_runs.GroupLayout`), ``cfg.seed``
+    alone one run (:class:`~sg_torchrl.train.seed_runs.SingleRunLayout`): :attr:`layout`. A family subclass
+    calls ``super().__init__(cfg)`` first (which sets the thread count and seeds torch, so networks are
+    initialised from ``cfg.seed``), builds its env, :attr:`policy` (with a ``frozen`` attribute: ``None``
+    or an ``(S,)`` bool of the seeds acting with zeros), :attr:`collector`, :attr:`title` and :attr:`runs`
+    (one :class:`~sg_torchrl.train.seed_runs.SeedRun` per seed of :attr:`seeds`, its config
+    :meth:`_seed_config`), then calls :meth:`_start` to restore a checkpoint and open the logs. It implements:
 
+    * :meth:`_learn`: update every live seed from the epoch's batch;
+    * :meth:`_finite_seeds`: which seeds' parameters are finite;
+    * :meth:`_evaluate_seed`: a seed's deterministic evaluation;
+    * :meth:`_seed_state` / :meth:`_load_seed_state`: a seed's algorithm entries of the checkpoint;
 
-def epoch_row(
-    stats: EpisodeStats, last_mean_cost: float, epoch: int, total_steps: int, learned: dict[str, float], *,
-    rollout_time: float, update_time: float, total_time: float, fps: float,
-) -> dict[str, float]:
-    """One epoch's ``progress.csv`` row under SafePO's names, in the order every run logs them.
-
-    Episode metrics are 50-episode moving averages of ``stats`` (NaN before the first finished episode);
-    ``learned`` holds the multiplier, learning rate and update metrics of the epoch.
-    """
-    window = stats.window(50)
-    return {
-        "Metrics/EpRet": window.get("return", float("nan")),
-        "Metrics/EpCost": window.get("cost", float("nan")),
-        "Metrics/EpLen": window.get("length", float("nan")),
-        "Metrics/EpochEpCost": last_mean_cost,
-        "Train/Epoch": epoch,
-        "Train/TotalSteps": total_steps,
-        **learned,
-        "Time/Rollout": rollout_time,
-        "Time/Update": update_time,
-        "Time/Total": total_time,
-        "Time/FPS": fps,
-    }
-
-
-def open_run_logger(cfg: TrainConfig, checkpoint: dict[str, Any] | None, progress_row: dict[str, float] | None
-                    ) -> RunLogger:
-    """The :class:`RunLogger` of the run ``cfg`` describes (its ``run_dir`` and ``seed``).
-
-    With a ``checkpoint`` (a resumed run) ``progress.csv`` is cut back to the checkpoint's epoch and
-    ``progress_row``, the checkpointed epoch's row, is appended when the file lacks it.
-    """
-    return RunLogger(
-        cfg.run_dir, exp_name=f"{cfg.algo}-{cfg.env_id}-s{cfg.seed}", wandb_mode=cfg.wandb, config=cfg.to_dict(),
-        resume_epoch=None if checkpoint is None else checkpoint["epoch"],
-        resume_row=None if checkpoint is None else progress_row,
-    )
-
-
-def write_run_summary(
-    cfg: TrainConfig, logger: RunLogger, stats: EpisodeStats, evaluation: dict[str, float] | None, *, title: str,
-    total_steps: int, train_seconds: float, extra: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """End one run: log ``evaluation``, write ``summary.json`` and ``curves.png`` in ``cfg.run_dir``, close the logger.
-
-    The summary holds the mean return and cost of the last 10 training episodes, the evaluation and
-    ``extra`` (a seed group's note that a seed diverged); returns it (without the totals the file adds).
-    """
-    last10 = stats.window(10)
-    summary: dict[str, Any] = {
-        "Final/EpRetLast10": last10.get("return", float("nan")),
-        "Final/EpCostLast10": last10.get("cost", float("nan")),
-    }
-    if evaluation:
-        logger.log({**evaluation, "Train/TotalSteps": total_steps}, step=total_steps)
-        summary.update(evaluation)
-    summary.update(extra or {})
-    write_atomic(cfg.run_dir / "summary.json", json.dumps({**summary, "Train/TotalSteps": total_steps,
-                                                            "Time/Total": train_seconds}, indent=2))
-    history = [row for row in logger.history() if row.get("Metrics/EpRet") == row.get("Metrics/EpRet")]
-    plot_curves(history, cfg.run_dir / "curves.png", cost_limit=cfg.cost_limit,
-                title=f"{title} on {cfg.env_id} (seed {cfg.seed})")
-    logger.close()
-    return summary
-
-
-class EpochTrainer(abc.ABC):
-    """The epoch loop of ``sg-train``; the subclass (:class:`~sg_torchrl.train.seed_runs.SeedGroupTrainer`)
-    supplies the runs and the algorithm.
-
-    A subclass builds its env, networks and :attr:`collector` after calling ``super().__init__(cfg)``
-    (which sets the thread count and seeds torch first, so networks are initialised from ``cfg.seed``),
-    then calls :meth:`_start` to restore a checkpoint and open the logs. It implements the hooks:
-
-    * :meth:`_train_epoch`: collect, update, build the epoch's metrics (``Metrics/EpRet``,
-      ``Metrics/EpCost``, ``Train/LagrangeMultiplier`` for the progress bar);
-    * :meth:`_open_logs` / :meth:`_log_epoch`: the run's loggers and what an epoch writes to them;
-    * :meth:`finish`: the end of the run (evaluation, summaries, plots);
-    * :meth:`_run_state` / :meth:`_load_run_state`: the checkpoint entries beyond the shared ones
-      (epoch counters, collector, torch RNG);
-    * :meth:`_exhausted`: whether nothing is left to train.
+    and, where the family had a single-seed trainer of its own before, :meth:`_single_run_checkpoint`.
     """
 
     title: str
     collector: RolloutCollector
+    runs: list[SeedRun]
+    policy: Any  # a TensorDict policy with a ``frozen`` attribute (``None`` or ``(S,)`` bool)
 
     def __init__(self, cfg: TrainConfig) -> None:
+        self.layout = run_layout(cfg)
+        self.seeds = self.layout.seeds
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         seeding.seed_torch(cfg.seed)  # the init stream: the networks are built from it
@@ -219,8 +162,21 @@ class EpochTrainer(abc.ABC):
         self.train_seconds = 0.0
         self._schedule: CheckpointSchedule | None = None  # set while :meth:`run` runs
 
+    def _seed_config(self, seed: int) -> TrainConfig:
+        """Seed ``seed``'s own run (its :attr:`SeedRun.cfg`, whose ``run_dir`` receives its logs): the layout's."""
+        return self.layout.seed_config(seed)
+
+    @property
+    def stats(self) -> EpisodeStats:
+        """A one-seed run's episode statistics (its one :class:`~sg_torchrl.train.seed_runs.SeedRun`'s).
+
+        Raises:
+            AttributeError: a seed group (each seed's are ``runs[i].stats``).
+        """
+        return self.layout.stats(self.runs)
+
     def _start(self, checkpoint: dict[str, Any] | None) -> None:
-        """Restore ``checkpoint`` (when given) and open the run's logs; the last step of ``__init__``.
+        """Restore ``checkpoint`` (when given) and open the runs' logs; the last step of a subclass's ``__init__``.
 
         Without a checkpoint this is a new run: a run directory that already holds a run is refused
         (:class:`~sg_torchrl.train.checkpoint.RunDirectoryError`) unless ``cfg.overwrite``, which
@@ -231,6 +187,7 @@ class EpochTrainer(abc.ABC):
         """
         cfg = self.cfg
         if checkpoint is not None:
+            checkpoint = self.layout.read_checkpoint(checkpoint, self._single_run_checkpoint)
             self._restore(checkpoint)
         else:
             checkpoint_files.check_new_run_dir(cfg.run_dir, cfg.overwrite)
@@ -240,32 +197,66 @@ class EpochTrainer(abc.ABC):
 
     # ------------------------------------------------------------------ hooks
     @abc.abstractmethod
-    def _train_epoch(self) -> dict[str, float]:
-        """Collect, update and count one epoch; returns its metrics."""
+    def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float] | None], list[bool]]:
+        """Update every live seed from the ``(S * N, T)`` batch.
+
+        Returns each seed's learned metrics (multiplier, learning rate, update metrics; anything for a
+        frozen seed, whose row is not built) and whether its update turned non-finite (it is frozen).
+        """
 
     @abc.abstractmethod
-    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
-        """Open the run's loggers, after the checkpoint (if any) is restored."""
+    def _finite_seeds(self) -> Tensor:
+        """``(S,)`` bool: which seeds' parameters are all finite."""
 
     @abc.abstractmethod
-    def _log_epoch(self, metrics: dict[str, float]) -> None:
-        """Log the epoch (after its checkpoint, when one was due)."""
+    def _evaluate_seed(self, index: int) -> dict[str, float]:
+        """Seed ``index``'s deterministic evaluation, as its single-seed run evaluates (env seed + 10_000)."""
 
     @abc.abstractmethod
-    def finish(self) -> dict[str, float]:
-        """Final evaluation, summaries and learning-curve plots."""
+    def _seed_state(self, index: int) -> dict[str, Any]:
+        """Seed ``index``'s algorithm entries of the checkpoint (networks, optimisers, normalisers, streams)."""
 
     @abc.abstractmethod
-    def _run_state(self) -> dict[str, Any]:
-        """The checkpoint entries of the runs: networks, optimisers, multipliers, episode statistics, ..."""
+    def _load_seed_state(self, index: int, entry: dict[str, Any]) -> None:
+        """Restore what :meth:`_seed_state` saved for seed ``index``."""
 
-    @abc.abstractmethod
-    def _load_run_state(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`_run_state` saved."""
+    def _single_run_checkpoint(self, checkpoint: dict[str, Any]) -> dict[str, Any]:
+        """A single run's checkpoint in the engine's form (the family's reading of an earlier trainer's, if any)."""
+        return checkpoint
+
+    # ------------------------------------------------------------------ seeds
+    @property
+    def alive(self) -> Tensor:
+        """``(S,)`` bool: the seeds still training."""
+        return torch.tensor([run.alive for run in self.runs])
+
+    def _sync_frozen(self) -> None:
+        """Tell the policy which seeds act with zeros (``None`` while every seed trains)."""
+        alive = self.alive
+        self.policy.frozen = None if bool(alive.all()) else ~alive
+
+    def _freeze(self, flags: list[bool], epoch: int, reason: str) -> None:
+        """Freeze the seeds flagged, diverged in ``epoch``: no more updates, multiplier or logs; say so on stderr."""
+        for run, flag in zip(self.runs, flags):
+            if flag and run.alive:
+                run.diverged = {"epoch": epoch, "reason": reason}
+                others = [str(r.seed) for r in self.runs if r.alive]
+                tqdm.write(f"sg-train: seed {run.seed} diverged in epoch {epoch} ({reason}); it is frozen, "
+                           f"{'seeds ' + ', '.join(others) + ' go on' if others else 'no seed is left'}",
+                           file=sys.stderr)
+        self._sync_frozen()
+
+    def _freeze_nonfinite(self) -> None:
+        """Freeze the live seeds whose parameters are not finite (set from outside, or loaded so)."""
+        bad = (self.alive & ~self._finite_seeds()).tolist()
+        if any(bad):
+            self._freeze(bad, self.epoch + 1, "non-finite parameters at the start of the epoch")
 
     def _exhausted(self) -> bool:
-        """Whether nothing is left to train before the budget is spent (every seed of a group diverged)."""
-        return False
+        """Whether nothing is left to train: freeze seeds with non-finite parameters first; then whether every
+        seed is frozen."""
+        self._freeze_nonfinite()
+        return not any(run.alive for run in self.runs)
 
     # ------------------------------------------------------------------ epochs
     def run(self, max_epochs: int | None = None) -> dict[str, float]:
@@ -309,10 +300,10 @@ class EpochTrainer(abc.ABC):
         return metrics
 
     def train_epoch(self) -> dict[str, float]:
-        """One epoch: collect, update (multiplier and networks), checkpoint when due (in :meth:`run`), log.
+        """One epoch: collect, update (multipliers and networks), checkpoint when due (in :meth:`run`), log.
 
         The checkpoint comes before the log, so ``progress.csv`` never shows a checkpoint epoch that
-        is not on disk yet; the checkpoint carries the epoch's row, which a resumed run writes to
+        is not on disk yet; the checkpoint carries the epoch's rows, which a resumed run writes to
         ``progress.csv`` if the process died between the two.
         """
         with _without_distribution_validation():
@@ -323,6 +314,71 @@ class EpochTrainer(abc.ABC):
             schedule.saved(self.epoch)
         self._log_epoch(metrics)
         return metrics
+
+    def _train_epoch(self) -> dict[str, float]:
+        """Collect every seed's simulators at once, update every live seed, build each seed's row.
+
+        Returns the mean of the live seeds' rows (the progress bar's figures); each seed's own row,
+        under the single-seed names, is in its :attr:`SeedRun.last_row`, logged by :meth:`_log_epoch`.
+        """
+        cfg = self.cfg
+        if self._exhausted():
+            raise RuntimeError("every seed of the group has diverged: nothing left to train")
+        start = time.perf_counter()
+        batch = self.collector.collect()
+        rollout_time = time.perf_counter() - start
+        training = [run for run in self.runs if run.alive]
+        for run, block in zip(self.runs, batch.split(cfg.num_envs, dim=0)):
+            if run.alive:
+                run.last_mean_cost = finished_episode_cost(run.stats, block, run.last_mean_cost)
+        update_start = time.perf_counter()
+        learned, diverged = self._learn(batch)
+        update_time = time.perf_counter() - update_start
+        self.epoch += 1
+        steps = batch.numel() // len(self.seeds)
+        self.total_steps += steps
+        epoch_time = time.perf_counter() - start
+        self.train_seconds += epoch_time
+        for run, row in zip(self.runs, learned):
+            if run.alive:
+                run.last_row = epoch_row(run.stats, run.last_mean_cost, self.epoch, self.total_steps, row,
+                                         rollout_time=rollout_time, update_time=update_time,
+                                         total_time=self.train_seconds, fps=steps / epoch_time)
+        self._freeze(diverged, self.epoch, "its update turned non-finite; kept at its parameters before that update")
+        return mean_row([run.last_row for run in training])
+
+    # ------------------------------------------------------------------ logs
+    def _open_logs(self, checkpoint: dict[str, Any] | None) -> None:
+        """Each seed's directory: its single-seed ``config.json`` and its logger (cut back to the checkpoint)."""
+        for run in self.runs:
+            make_dirs(run.cfg.run_dir)
+            run.cfg.save(run.cfg.run_dir / "config.json")
+            run.logger = open_run_logger(run.cfg, checkpoint, run.last_row)
+
+    def _log_epoch(self, metrics: dict[str, float]) -> None:
+        """Each seed that trained this epoch logs its own row (a frozen seed's log ends with its last epoch)."""
+        for run in self.runs:
+            if run.last_row is not None and run.last_row["Train/Epoch"] == self.epoch:
+                run.logger.log(run.last_row, step=self.total_steps)
+
+    def finish(self) -> dict[str, float]:
+        """Each seed's evaluation, ``summary.json`` and ``curves.png`` in its directory, then the layout's end of
+        the run (a group's summary and figure); returns what ``sg-train`` prints
+        (:meth:`~sg_torchrl.train.seed_runs.RunLayout.finish`)."""
+        summaries = [self._finish_seed(index) for index in range(len(self.runs))]
+        return self.layout.finish(self.runs, summaries, title=self.title, total_steps=self.total_steps,
+                                  train_seconds=self.train_seconds)
+
+    def _finish_seed(self, index: int) -> dict[str, Any]:
+        """Seed ``index``'s end of run in its directory: evaluation (a live seed), ``summary.json`` (a frozen seed's
+        with ``Diverged``, ``DivergedEpoch``, ``DivergedReason``), ``curves.png``; returns its summary."""
+        run = self.runs[index]
+        evaluation = self._evaluate_seed(index) if self.cfg.eval_episodes > 0 and run.alive else None
+        extra = {} if run.alive else {"Diverged": True, "DivergedEpoch": run.diverged["epoch"],
+                                      "DivergedReason": run.diverged["reason"]}
+        steps = self.total_steps if run.alive else int((run.last_row or {}).get("Train/TotalSteps", 0))
+        return write_run_summary(run.cfg, run.logger, run.stats, evaluation, title=self.title, total_steps=steps,
+                                 train_seconds=self.train_seconds, extra=extra)
 
     # ------------------------------------------------------------------ checkpoints
     @property
@@ -372,3 +428,34 @@ class EpochTrainer(abc.ABC):
         self._load_run_state(state)
         self.collector.load_state_dict(state["collector"])
         torch.set_rng_state(state["torch_rng"])
+
+    def _run_state(self) -> dict[str, Any]:
+        """Every seed's entry under ``"seeds"``: its algorithm state (:meth:`_seed_state`) and its own record;
+        ``"seed_group"`` names the seeds (a group's checkpoint and a single run's alike)."""
+        entries = []
+        for index, run in enumerate(self.runs):
+            entries.append({
+                "seed": run.seed,
+                **self._seed_state(index),
+                "stats": run.stats.state_dict(),
+                "last_mean_cost": run.last_mean_cost,
+                "progress_row": None if run.last_row is None else {k: float(v) for k, v in run.last_row.items()},
+                "diverged": run.diverged,
+            })
+        return {"seeds": entries, "seed_group": {"seeds": list(self.seeds)}}
+
+    @torch.no_grad()
+    def _load_run_state(self, state: dict[str, Any]) -> None:
+        """Restore every seed's entry (the checkpoint must hold these seeds, in this order)."""
+        if "seed_group" not in state:
+            raise ValueError("not a seed group's checkpoint (no 'seed_group' entry)")
+        entries = state["seeds"]
+        if [entry["seed"] for entry in entries] != self.seeds:
+            raise ValueError(f"the checkpoint holds seeds {[e['seed'] for e in entries]}, this group {self.seeds}")
+        for index, (run, entry) in enumerate(zip(self.runs, entries)):
+            self._load_seed_state(index, entry)
+            run.stats.load_state_dict(entry["stats"])
+            run.last_mean_cost = entry["last_mean_cost"]
+            run.last_row = entry["progress_row"]
+            run.diverged = entry["diverged"]
+        self._sync_frozen()

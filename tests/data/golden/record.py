@@ -1,11 +1,11 @@
 """Record the golden data of ``tests/test_golden_equivalence.py``: each algorithm's small run, as numbers.
 
 **What.** For each of the 16 algorithms one run with seed 0 on the engine ``sg-train --seed 0`` uses
-(the fused ``SingleSeedGroupTrainer`` for the twelve single-agent algorithms on
+(the fused on-policy family ``OnPolicyGroupTrainer`` for the twelve single-agent algorithms on
 ``SafetyHalfCheetahVelocity-v1``; for MAPPO, HAPPO, MAPPO-Lag and MACPO on
 ``Safety2x3HalfCheetahVelocity-v0`` the single-seed ``MultiAgentTrainer`` at the recording commit, now the
-multi-agent engine with one seed, ``SingleSeedMultiAgentTrainer``), and a seed group ``--seeds 0 1`` of PPO-Lag, CPO and MAPPO-Lag
-(``GroupTrainer`` / ``MultiAgentGroupTrainer``). Settings (:func:`run_config`): 2 simulators, 2 epochs of
+multi-agent family with one seed, ``MultiAgentGroupTrainer``), and a seed group ``--seeds 0 1`` of PPO-Lag, CPO and MAPPO-Lag
+(``OnPolicyGroupTrainer`` / ``MultiAgentGroupTrainer``). Settings (:func:`run_config`): 2 simulators, 2 epochs of
 1,000 steps, 100-step episodes with a 0.5 m/s speed limit (episodes end and cost accrues in epoch 1, so
 epoch 2's multiplier update and the learning-rate annealing act), cost limit 20, 2 evaluation episodes.
 First order: up to 4 passes of 250-sample minibatches (up to 16 Adam steps an epoch) with a KL early stop at
