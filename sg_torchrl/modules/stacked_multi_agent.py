@@ -256,7 +256,7 @@ class AgentRows:
                 weight, bias = tensors[2 * layer][row], tensors[2 * layer + 1][row]
                 value = torch.addmm(bias, value, weight.t())
                 if layer < self.depth[name] - 1:
-                    value = value.relu()
+                    value = value.relu_()  # in place on the product (its backward needs the result only)
             outputs.append(value)
         return torch.stack(outputs)
 

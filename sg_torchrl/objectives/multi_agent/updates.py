@@ -325,15 +325,16 @@ class MultiAgentPPOUpdate:
             return out, ()
 
         done = 0
+        policy_now: tuple[Tensor, Tensor] | None = None  # the rows' policy as it is after their last pass
 
         def go_on() -> bool:
-            nonlocal done, kl
+            nonlocal done, kl, policy_now
             done += 1
             passes.add_(active.to(torch.float64))
-            if self.target_kl is not None or done == self.epochs:
+            if self.target_kl is not None or done == self.epochs:  # always so after the last pass
                 with torch.no_grad():
-                    loc, scale = rows.dist_params(observation)
-                    now = gaussian_kl(old_loc, old_scale, loc, scale).mean(1)
+                    policy_now = rows.dist_params(observation)
+                    now = gaussian_kl(old_loc, old_scale, *policy_now).mean(1)
                 kl = torch.where(active, now, kl)
                 if self.target_kl is not None:
                     active.logical_and_(now.to(torch.float64) <= self.target_kl)
@@ -344,7 +345,6 @@ class MultiAgentPPOUpdate:
                             go_on=go_on)
         self._write_back(rows, optimizer, value_norm, multipliers, lam)
         with torch.no_grad():
-            loc, scale = rows.dist_params(observation)
             metrics = {name: value.tolist() for name, value in report.means.items()}
             metrics.update({
                 "Misc/Entropy": rows.entropy().tolist(),
@@ -354,7 +354,7 @@ class MultiAgentPPOUpdate:
                 "Train/LagrangeMultiplier": lam.tolist(),
             })
             if factor is not None:
-                factor = factor * (gaussian_log_prob(action, loc, scale) - before).exp()
+                factor = factor * (gaussian_log_prob(action, *policy_now) - before).exp()
         return metrics, factor
 
     def _order(self, seeds: Tensor, active: Tensor):
