@@ -100,12 +100,13 @@ TOLERANT_EPOCHS = 1
 #: recorded single-agent step, and ten conjugate-gradient iterations on the Fisher matrix amplify that to
 #: 3e-4 relative in the step's statistics (``Misc/FinalStepNorm``) and 2.4e-5 in the policy's mean after
 #: epoch 1. The fused engine's runs (every single-agent algorithm, the groups) stay bit for bit.
-#: MAPPO, HAPPO and MAPPO-Lag (and the MAPPO-Lag group) now train through the seed-batched round: each stage's
-#: agents of all seeds are gathered into rows and multiplied with one ``baddbmm`` per layer (the recorded
-#: per-agent modules call ``addmm``), losses are reduced over ``(samples, 1)`` per row, Adam is the
-#: seed-masked Adam (its ``foreach`` arithmetic, per-seed bias corrections in float64) and the gradient clip
-#: the per-seed clip. Each rounds within float32 precision (the update's numbers 1e-7 relative apart in
-#: epoch 1, networks 2e-7); the collected trajectories of epoch 1 are bit for bit.
+#: MAPPO, HAPPO and MAPPO-Lag (and the MAPPO-Lag group) now train through the seed-batched round (MACPO too,
+#: its tolerance above already wider): each stage's agents of all seeds are gathered into rows whose
+#: losses are reduced over ``(samples, 1)`` per row, the reward critic's PopArt normalisation runs on the
+#: ``(samples, rows, 1)`` layout, Adam is the seed-masked Adam (its ``foreach`` arithmetic, per-seed bias
+#: corrections in float64) and the gradient clip the per-seed clip, where the recorded run used the per-agent
+#: TorchRL losses and ``torch.optim.Adam``. Each rounds within float32 precision (the update's numbers 1e-7
+#: relative apart in epoch 1, networks 2e-7); the collected trajectories of epoch 1 are bit for bit.
 _SEED_BATCHED_ROUND = (1e-5, 1e-6)
 ROUNDING_MOVED: dict[str, tuple[float, float]] = {
     "macpo": (1e-3, 1e-4), "mappo": _SEED_BATCHED_ROUND, "happo": _SEED_BATCHED_ROUND,

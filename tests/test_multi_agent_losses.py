@@ -32,7 +32,6 @@ from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     MAPPOLagMultiplier,
     MAPPOLagUpdate,
     MAPPOUpdate,
-    SequentialAgentUpdate,
 )
 
 OBS, STATE, HIDDEN = 6, 9, (32, 32)
@@ -208,14 +207,18 @@ class TestAdvantages:
 # =========================================================================== sequential update
 class TestSequentialUpdate:
     def test_every_agent_once_per_round_in_random_orders(self):
-        seq = SequentialAgentUpdate(4, generator=torch.Generator().manual_seed(3))
+        nets = make_nets([2, 2, 1, 2])
+        td = make_rollout(nets)
+        update = HAPPOUpdate(nets, epochs=1, generator=torch.Generator().manual_seed(3))
         orders = set()
-        for _ in range(12):
-            visited: list[int] = []
-            result = seq.run(lambda i, f: visited.append(i) or {}, lambda i: torch.zeros(5), 5)
-            assert sorted(visited) == [0, 1, 2, 3] and result.order == visited
-            orders.add(tuple(visited))
+        for _ in range(8):
+            metrics = update(td, 10.0)
+            stages = [int(metrics[f"Train/AgentOrder/agent{i}"]) for i in range(4)]
+            assert sorted(stages) == [0, 1, 2, 3]
+            orders.add(tuple(stages))
         assert len(orders) > 1
+        fixed = HAPPOUpdate(nets, epochs=1, shuffle=False)(td, 10.0)
+        assert [fixed[f"Train/AgentOrder/agent{i}"] for i in range(4)] == [0.0, 1.0, 2.0, 3.0]
 
     def test_each_stage_updates_only_that_agents_parameters(self):
         nets = make_nets([3, 2, 1])

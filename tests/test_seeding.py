@@ -89,14 +89,16 @@ def test_minibatches_rule(seed: int) -> None:
 
 def test_minibatch_consumers_use_the_rule() -> None:
     """``SeedShuffler`` and a multi-agent round built without a generator draw the ``minibatches`` streams."""
-    from sg_torchrl.objectives.multi_agent.sequential import SequentialAgentUpdate
+    from sg_torchrl.modules import make_multi_agent_networks
+    from sg_torchrl.objectives.multi_agent import HAPPOUpdate
     from sg_torchrl.train.fused import SeedShuffler
 
     order = SeedShuffler([5, 9]).permutation(30)
     for row, seed in zip(order, [5, 9], strict=True):
         torch.testing.assert_close(row, torch.randperm(30, generator=torch.Generator().manual_seed(seed)))
-    expected = torch.randperm(4, generator=torch.Generator().manual_seed(0)).tolist()
-    assert SequentialAgentUpdate(4).permutation() == expected
+    expected = torch.randperm(4, generator=torch.Generator().manual_seed(0))
+    update = HAPPOUpdate(make_multi_agent_networks(3, [1, 1, 1, 1], 2, hidden_sizes=(4,)))
+    assert torch.equal(torch.randperm(4, generator=update.shuffler.generators[0]), expected)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

@@ -195,7 +195,7 @@ class TestTraining:
         assert len(resumed) == len(expected) == 3  # two epochs and the evaluation
         # epoch 1 was trained by the replaced per-agent round: the seed-batched round's rounds within 1e-5 of it
         assert resumed[0].keys() == expected[0].keys()
-        assert all(a == pytest.approx(b, rel=1e-5, abs=1e-6) for a, b in zip(resumed[0].values(), expected[0].values()))
+        assert all(resumed[0][key] == pytest.approx(value, rel=1e-5, abs=1e-6) for key, value in expected[0].items())
         assert load_checkpoint(old)["epoch"] == 2
 
 

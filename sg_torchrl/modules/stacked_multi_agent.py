@@ -150,9 +150,15 @@ class StackedMultiAgentNetworks:
                 torch.addmm(bias, x, weight_t, out=result)
         return out.transpose(1, 2).masked_fill(~self.mask, 0.0)
 
-    def agent_rows(self, seeds: Tensor, agents: Tensor) -> AgentRows:
-        """Trainable copies of the networks of agent ``agents[i]`` of seed ``seeds[i]``, one row each."""
-        return AgentRows(self, seeds, agents)
+    def tensors_of(self, name: str) -> list[Tensor]:
+        """Network ``name``'s stacked tensors in its modules' ``parameters()`` order (the actor's ``log_std`` last)."""
+        tensors = [t for pair in zip(self.weights[name], self.biases[name]) for t in pair]
+        return [*tensors, self.log_std] if name == "policy" else tensors
+
+    def agent_rows(self, seeds: Tensor, agents: Tensor, *, flat_actor: bool = False) -> AgentRows:
+        """Trainable copies of the networks of agent ``agents[i]`` of seed ``seeds[i]``, one row each
+        (``flat_actor``: the actor's as one ``(R, P)`` buffer, see :class:`AgentRows`)."""
+        return AgentRows(self, seeds, agents, flat_actor=flat_actor)
 
     @torch.no_grad()
     def actor_scale(self) -> Tensor:
@@ -219,7 +225,7 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
 class AgentRows:
     """One agent per row: trainable ``(R, ...)`` copies of the ``(seeds[i], agents[i])`` rows of a stack.
 
-    The working set of a seed-batched multi-agent round (:mod:`sg_torchrl.objectives.multi_agent.updates`):
+    The working set of a seed-batched multi-agent round (:mod:`sg_torchrl.objectives.multi_agent.seed_round`):
     at stage ``k`` of a round, seed ``s`` updates agent ``order[s, k]``, so the round gathers those rows of
     every stacked tensor (:meth:`StackedMultiAgentNetworks.agent_rows`), trains them as leaf tensors with a
     leading row dimension (one optimiser step moves every row) and writes them back (:meth:`write_back`).
@@ -229,27 +235,59 @@ class AgentRows:
     batched ``baddbmm`` rounds a 1-output layer (the critics' heads) differently for 1 and for 2 rows, and
     a row must compute the same numbers whatever the number of rows.
 
-    Attributes:
-        groups: per network of :data:`NETWORKS`, its tensors in the order of the agent's module
-            ``parameters()`` (``weight``, ``bias`` per layer; the actor's ``log_std`` last, padded).
-        mask: ``(R, Da)``, True on each row's real action slots.
+    With ``flat_actor`` the actors' parameters are the rows of one ``(R, P)`` leaf, :attr:`flat_actor`, read
+    through views at every evaluation: the :class:`~sg_torchrl.objectives.stacked_trust_region.StackedActor`
+    a trust-region step moves (MACPO's), with :meth:`actor_parameters`, :meth:`dist_params` and
+    :meth:`actor_rows`.
     """
 
-    def __init__(self, networks: StackedMultiAgentNetworks, seeds: Tensor, agents: Tensor) -> None:
+    def __init__(self, networks: StackedMultiAgentNetworks | None, seeds: Tensor, agents: Tensor, *,
+                 flat_actor: bool = False, _like: AgentRows | None = None, _actor: Tensor | None = None) -> None:
         self.seeds, self.agents = seeds, agents
-        self.groups: dict[str, list[Tensor]] = {}
-        for name in NETWORKS:
-            self.groups[name] = [t[seeds, agents].requires_grad_() for pair in zip(networks.weights[name],
-                                                                                   networks.biases[name])
-                                 for t in pair]
+        if _like is not None:  # a copy of some rows' actor (actor_rows: ``seeds`` are positions in _like)
+            self.depth, self._shapes, self.mask = _like.depth, _like._shapes, _like.mask[seeds]
+            self.std_x_coef, self.std_y_coef = _like.std_x_coef, _like.std_y_coef
+            self._groups, self.flat_actor = {}, _actor
+            return
         self.depth = {name: len(networks.weights[name]) for name in NETWORKS}
-        self.groups["policy"].append(networks.log_std[seeds, agents].requires_grad_())
+        self._groups = {name: [t[seeds, agents].requires_grad_(not (flat_actor and name == "policy"))
+                               for t in networks.tensors_of(name)] for name in NETWORKS}
+        self._shapes = [tuple(t.shape[1:]) for t in self._groups["policy"]]
+        self.flat_actor = None
+        if flat_actor:
+            self.flat_actor = torch.cat([t.reshape(len(seeds), -1) for t in self._groups.pop("policy")], 1)
+            self.flat_actor.requires_grad_()
         self.std_x_coef, self.std_y_coef = networks.std_x_coef, networks.std_y_coef
         self.mask = networks.mask[agents]
 
+    @property
+    def num_seeds(self) -> int:
+        """R, the rows (a trust-region step calls them seeds)."""
+        return len(self.seeds)
+
+    def tensors(self, name: str) -> list[Tensor]:
+        """Network ``name``'s tensors of every row, in :meth:`StackedMultiAgentNetworks.tensors_of` order."""
+        if name == "policy" and self.flat_actor is not None:
+            sizes = [math.prod(shape) for shape in self._shapes]
+            return [part.view(-1, *shape) for part, shape in zip(self.flat_actor.split(sizes, 1), self._shapes)]
+        return self._groups[name]
+
+    def actor_parameters(self) -> list[Tensor]:
+        """The leaf the trust-region step differentiates: :attr:`flat_actor` (``flat_actor=True`` only)."""
+        return [self.flat_actor]
+
+    def actor_rows(self, rows: Tensor) -> AgentRows:
+        """The actors of the rows ``rows`` alone, on a copy of their :attr:`flat_actor` rows."""
+        return AgentRows(None, rows, self.agents[rows], _like=self, _actor=self.flat_actor.detach()[rows].clone())
+
+    def zero_grad(self) -> None:
+        for name in NETWORKS:
+            for tensor in ([self.flat_actor] if name == "policy" and self.flat_actor is not None else self._groups[name]):
+                tensor.grad = None
+
     def _mlp(self, name: str, x: Tensor) -> Tensor:
         """Network ``name`` of every row on its inputs ``x (R, N, in)``: ``addmm`` per row and layer (see the class)."""
-        tensors = [t.unbind(0) for t in self.groups[name][: 2 * self.depth[name]]]
+        tensors = [t.unbind(0) for t in self.tensors(name)[: 2 * self.depth[name]]]
         outputs = []
         for row, value in enumerate(x.unbind(0)):
             for layer in range(self.depth[name]):
@@ -262,7 +300,7 @@ class AgentRows:
 
     def std(self) -> Tensor:
         """``(R, 1, Da)``: each row's scale, 1 on its padding slots."""
-        log_std = self.groups["policy"][-1]
+        log_std = self.tensors("policy")[-1]
         return torch.where(self.mask, torch.sigmoid(log_std / self.std_x_coef) * self.std_y_coef, 1.0).unsqueeze(1)
 
     def dist_params(self, observation: Tensor) -> tuple[Tensor, Tensor]:
@@ -285,10 +323,7 @@ class AgentRows:
     @torch.no_grad()
     def write_back(self, networks: StackedMultiAgentNetworks) -> None:
         """Copy the rows into the stack they were gathered from (each seed's team sees them)."""
-        seeds, agents = self.seeds, self.agents
         for name in NETWORKS:
-            stacked = [t for pair in zip(networks.weights[name], networks.biases[name]) for t in pair]
-            if name == "policy":
-                stacked.append(networks.log_std)
-            for target, rows in zip(stacked, self.groups[name], strict=True):
-                target[seeds, agents] = rows
+            for target, rows in zip(networks.tensors_of(name), self.tensors(name), strict=True):
+                target[self.seeds, self.agents] = rows
+

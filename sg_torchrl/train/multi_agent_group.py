@@ -25,9 +25,9 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
 * **update**: per live seed its GAEs on its block of the batch, then one round for every live seed
   (:attr:`round`, built by the algorithm's round class for all seeds, ``for_seeds``; each seed's agent
   orders and minibatch shuffles from its own generator, seeded as its single-seed run seeds it).
-  MAPPO, HAPPO and MAPPO-Lag update the stage's agent of every seed in one call
-  (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`); MACPO runs the seeds' rounds one
-  after another (:class:`~sg_torchrl.objectives.multi_agent.SeedRounds`).
+  At each stage the agent of every seed is updated in one call
+  (:class:`~sg_torchrl.objectives.multi_agent.SeedBatchedRound`: MAPPO, HAPPO and MAPPO-Lag's clipped-PPO
+  epochs, MACPO's stacked CPO step and critic epochs).
 
 The S = 1 run is the same code as a group's, and every operation of the seed-batched round rounds a row
 as it rounds it alone (``addmm`` per row, per-seed reductions), so seed ``s`` of a group is its

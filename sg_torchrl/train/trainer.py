@@ -7,8 +7,8 @@ subclass each (:func:`sg_torchrl.train.trainer_class` picks it):
 
 * on-policy single agent (:class:`~sg_torchrl.train.seed_group.OnPolicyGroupTrainer`): networks stacked
   along a leading seed dimension, one group update for all seeds;
-* multi agent (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`): one team of
-  networks and one round per seed, the rounds run one after another;
+* multi agent (:class:`~sg_torchrl.train.multi_agent_group.MultiAgentGroupTrainer`): the seeds' teams
+  stacked along a leading seed dimension, one seed-batched round for all seeds;
 * off-policy (:class:`~sg_torchrl.train.off_policy.OffPolicyGroupTrainer`): stacked networks, the gradient
   steps inside collection.
 

@@ -17,11 +17,12 @@ global ``"state"`` for the centralised critics):
   :class:`MAPPOLagMultiplier`: MAPPO-Lagrangian's per-agent multiplier (Gu et al. 2023);
 * the rounds, ``update(batch, mean_episode_cost) -> dict[str, float]``: :class:`MAPPOUpdate`
   (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate`
-  (:class:`MultiAgentPPOUpdate`: S seeds' rounds in one update call, ``for_seeds``) and
-  :class:`MACPOUpdate` (Gu et al. 2023, one seed at a time: :class:`SequentialAgentUpdate`, the
-  random-order round with HAPPO's running ratio product; :class:`MACPOStep` is the single-agent
-  :class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy). Their minibatch epochs
-  are the package's one update loop, :func:`~sg_torchrl.objectives.run_passes`.
+  (:class:`MultiAgentPPOUpdate`) and
+  :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPORule` is CPO's proposal with MACPO's step-size
+  policy, :class:`MACPOStep` on one actor, :class:`StackedMACPOStep` on the round's rows), all
+  :class:`SeedBatchedRound` s: S seeds' rounds in one update call per stage (``for_seeds``), each seed with
+  its own random agent order. Their minibatch epochs are the package's one update loop,
+  :func:`~sg_torchrl.objectives.run_passes`.
 """
 
 from sg_torchrl.objectives.multi_agent.advantages import (
@@ -31,27 +32,26 @@ from sg_torchrl.objectives.multi_agent.advantages import (
     make_multi_agent_gae,
 )
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
-from sg_torchrl.objectives.multi_agent.macpo import MACPOStep, MACPOUpdate, SeedRounds
+from sg_torchrl.objectives.multi_agent.macpo import MACPORule, MACPOStep, MACPOUpdate, StackedMACPOStep
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
 from sg_torchrl.objectives.multi_agent.objective import AgentObjective
-from sg_torchrl.objectives.multi_agent.sequential import AgentStage, SequentialAgentUpdate, SequentialResult
+from sg_torchrl.objectives.multi_agent.seed_round import SeedBatchedRound
 from sg_torchrl.objectives.multi_agent.updates import HAPPOUpdate, MAPPOLagUpdate, MAPPOUpdate, MultiAgentPPOUpdate
 
 __all__ = [
     "AGENT_VIEW_KEYS",
     "AgentObjective",
     "AgentPPOLoss",
-    "AgentStage",
     "HAPPOUpdate",
+    "MACPORule",
     "MACPOStep",
     "MACPOUpdate",
     "MAPPOLagMultiplier",
     "MAPPOLagUpdate",
     "MAPPOUpdate",
     "MultiAgentPPOUpdate",
-    "SeedRounds",
-    "SequentialAgentUpdate",
-    "SequentialResult",
+    "SeedBatchedRound",
+    "StackedMACPOStep",
     "agent_view",
     "make_multi_agent_cost_gae",
     "make_multi_agent_gae",

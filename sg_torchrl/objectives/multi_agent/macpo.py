@@ -28,44 +28,36 @@ computes), fed :math:`M A_r` and :math:`M A^i_c` as advantages; only its step-si
 After its step each agent's critics take ``critic_epochs`` (15, the paper's "SGD iters") passes of
 Adam at 5e-4 (SafePO's script: one step at 5e-3 per round).
 
-MACPO's round is not seed-batched: a seed group runs its seeds' rounds one after another
-(:class:`SeedRounds`, what :meth:`MACPOUpdate.for_seeds` builds). Its trust-region step is already the
-seed-batched step on one row (:class:`~sg_torchrl.objectives.CPOStep`).
+The step-size policy is written once (:class:`MACPORule`) and serves one actor (:class:`MACPOStep`, the
+single-agent step on one row) and the rows of the seed-batched round (:class:`StackedMACPOStep`):
+:class:`MACPOUpdate` is a :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound`, so at each
+stage the agent of every seed takes its CPO step in one stacked trust-region step and its critic epochs
+in one set of Adam steps.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from typing import Any, Literal
 
 import torch
-from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
-from torch import nn, Tensor
-from torchrl.modules import PopArtValueNorm
+from torch import Tensor
 
-from sg_torchrl import seeding
+from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks
-from sg_torchrl.objectives.multi_agent.advantages import agent_view, AGENT_VIEW_KEYS
-from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
-from sg_torchrl.objectives.multi_agent.sequential import episode_costs, round_metrics, SequentialAgentUpdate
-from sg_torchrl.objectives.multi_agent.updates import CRITIC_METRICS
-from sg_torchrl.objectives.multipliers import NoMultiplier
-from sg_torchrl.objectives.passes import ClipGroup, GradientStep, run_passes, shuffled_chunks
+from sg_torchrl.objectives.multi_agent.seed_round import SeedBatchedRound
 from sg_torchrl.objectives.second_order import Linearisation
-from sg_torchrl.objectives.step_rules import Proposal
-from sg_torchrl.objectives.trust_region import CPOStep
+from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
+from sg_torchrl.objectives.step_rules import CPORule, Proposal
+from sg_torchrl.objectives.trust_region import TrustRegionStep
 
-__all__ = ["MACPOStep", "MACPOUpdate", "SeedRounds"]
+__all__ = ["MACPORule", "MACPOStep", "MACPOUpdate", "StackedMACPOStep"]
 
 
-class MACPOStep(CPOStep):
-    """:class:`~sg_torchrl.objectives.CPOStep` with MACPO's step-size policy (see the module docstring).
-
-    Args:
-        actor (ProbabilisticTensorDictSequential): one agent's policy (its parameters only).
+class MACPORule(CPORule):
+    """CPO's proposal with MACPO's step-size policy (see the module docstring), for one actor or stacked rows.
 
     Keyword Args:
         target_kl (float): :math:`\\delta`. Defaults to ``0.01`` (paper).
@@ -85,8 +77,7 @@ class MACPOStep(CPOStep):
 
     def __init__(
         self,
-        actor: ProbabilisticTensorDictSequential,
-        *,
+        *args: Any,
         target_kl: float = 0.01,
         cg_iters: int = 10,
         line_search_steps: int = 10,
@@ -101,7 +92,7 @@ class MACPOStep(CPOStep):
         if not 0.0 < initial_step_fraction <= 1.0:
             raise ValueError(f"initial_step_fraction must be in (0, 1], got {initial_step_fraction}.")
         super().__init__(
-            actor, target_kl=target_kl, cg_iters=cg_iters, line_search_steps=line_search_steps,
+            *args, target_kl=target_kl, cg_iters=cg_iters, line_search_steps=line_search_steps,
             step_fraction=step_fraction, kl_action_reduction=kl_action_reduction, **kwargs,
         )
         self.max_step_norm = None if max_step_norm is None else float(max_step_norm)
@@ -120,31 +111,41 @@ class MACPOStep(CPOStep):
         )
 
 
-class MACPOUpdate:
-    """MACPO's round: per agent in random order, a :class:`MACPOStep` on the factor-weighted surrogates, then critic epochs.
+class MACPOStep(MACPORule, TrustRegionStep):
+    """MACPO's step of one agent's policy (:class:`MACPORule` on :class:`~sg_torchrl.objectives.CPOStep`'s engine).
 
     Args:
-        networks (MultiAgentNetworks): the team's networks.
+        actor (ProbabilisticTensorDictSequential): one agent's policy (its parameters only).
+
+    Keyword Args:
+        **kwargs: see :class:`MACPORule`.
+    """
+
+    def __init__(self, actor: ProbabilisticTensorDictSequential, **kwargs: Any) -> None:
+        super().__init__(actor, **kwargs)
+
+
+class StackedMACPOStep(MACPORule, StackedTrustRegionStep):
+    """MACPO's step of stacked rows (the seed-batched round's agents of a stage), each row its own CPO case."""
+
+
+class MACPOUpdate(SeedBatchedRound):
+    """MACPO's round: per agent in each seed's random order, a MACPO step on the factor-weighted surrogates,
+    then critic epochs; the stage's agents of every seed at once.
+
+    Args:
+        networks: one team, or S seeds' stacked teams (:meth:`for_seeds`).
 
     Keyword Args:
         target_kl (float): per-agent trust region :math:`\\delta`. Defaults to ``0.01`` (paper).
         cg_iters (int): defaults to ``10`` (paper).
         line_search_steps (int): defaults to ``10`` (paper).
         step_fraction (float): defaults to ``0.5`` (paper).
-        max_step_norm (float, optional), initial_step_fraction (float): see :class:`MACPOStep`.
+        max_step_norm (float, optional), initial_step_fraction (float): see :class:`MACPORule`.
         cg_damping (float): defaults to ``0.1``.
         critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
-        num_minibatches (int): critic minibatches per pass. Defaults to ``1``.
-        cost_limit (float): :math:`d`. Defaults to ``25.0`` (paper).
-        gamma (float): discount of the :math:`(1 - \\gamma)` constraint scaling. Defaults to ``0.99``.
-        critic_lr (float): Adam learning rate of both critics. Defaults to ``5e-4`` (paper).
-        max_grad_norm (float): gradient-norm clip of each critic on its own (SafePO). Defaults to ``10.0``.
-        adam_eps (float): Adam's eps. Defaults to ``1e-5`` (SafePO).
-        value_norm (bool): PopArt normalisation of each reward critic's loss. Defaults to ``True`` (SafePO).
-        shuffle (bool): random agent order per round. Defaults to ``True``.
-        generator (torch.Generator, optional): agent orders and minibatch shuffles.
-        group (str): the group key. Defaults to ``"agents"``.
-        loss_kwargs (dict, optional): extra :class:`AgentPPOLoss` options for the critics' losses.
+        **kwargs: see :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound` (``cost_limit``,
+            ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ``num_minibatches``, ...).
 
     Per-agent metrics: the step's (``Misc/CPOCase``, ``Misc/AcceptanceStep``, ``Misc/FinalStepNorm``,
     ``Misc/StepNormRaw``, ``Misc/Lambda_star``, ``Misc/Nu_star``, ``Misc/xHx``, ``Misc/gradient_norm``,
@@ -155,9 +156,12 @@ class MACPOUpdate:
     ``Misc/ConstraintValue`` (:math:`c`).
     """
 
+    optimised = (("reward_value", "cost_value"),)
+    _loss_weighted = False  # the agents' loss trains the critics only; the factor enters through the step
+
     def __init__(
         self,
-        networks: MultiAgentNetworks,
+        networks: MultiAgentNetworks | StackedMultiAgentNetworks,
         *,
         target_kl: float = 0.01,
         cg_iters: int = 10,
@@ -167,146 +171,50 @@ class MACPOUpdate:
         initial_step_fraction: float = 0.1,
         cg_damping: float = 0.1,
         critic_epochs: int = 15,
-        num_minibatches: int = 1,
-        cost_limit: float = 25.0,
-        gamma: float = 0.99,
-        critic_lr: float = 5e-4,
-        max_grad_norm: float = 10.0,
-        adam_eps: float = 1e-5,
-        value_norm: bool = True,
-        clip_epsilon: float = 0.2,
-        shuffle: bool = True,
-        generator: torch.Generator | None = None,
-        group: str = "agents",
-        loss_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
     ) -> None:
-        if critic_epochs < 1 or num_minibatches < 1:
-            raise ValueError(f"need critic_epochs >= 1 and num_minibatches >= 1, got {critic_epochs}, {num_minibatches}.")
-        n = networks.n_agents
-        self.networks, self.n_agents, self.group = networks, n, group
-        self.gamma, self.max_grad_norm = float(gamma), float(max_grad_norm)
-        self.critic_epochs, self.num_minibatches = int(critic_epochs), int(num_minibatches)
-        self.generator = generator if generator is not None else seeding.generator(0, seeding.Purpose.MINIBATCHES)
-        self.multipliers = nn.ModuleList(NoMultiplier(cost_limit) for _ in range(n))  # they hold the cost limit
-        self.value_norms = nn.ModuleList(PopArtValueNorm(shape=1) for _ in range(n)) if value_norm else None
-        # the losses train the critics only (no entropy term: the CPO step moves the actor); the factor enters
-        # through the step
-        self.losses = [
-            AgentPPOLoss(networks.agent_actor(i), networks.agent_critic(i), networks.agent_cost_critic(i),
-                         self.multipliers[i], weighted=False, clip_epsilon=clip_epsilon, entropy_coeff=0.0,
-                         value_norm=None if self.value_norms is None else self.value_norms[i], functional=False,
-                         **(loss_kwargs or {}))
-            for i in range(n)
-        ]
-        self.sequential = SequentialAgentUpdate(n, weighted=True, shuffle=shuffle, generator=self.generator)
-        self._critic_params = [(list(networks.agent_critic(i).parameters()),
-                                list(networks.agent_cost_critic(i).parameters())) for i in range(n)]
-        self.optimizers = [torch.optim.Adam([{"params": [*reward, *cost], "lr": critic_lr}], eps=adam_eps)
-                           for reward, cost in self._critic_params]
-        self.steps = [
-            MACPOStep(
-                networks.agent_actor(i), target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
-                line_search_steps=line_search_steps, step_fraction=step_fraction, max_step_norm=max_step_norm,
-                initial_step_fraction=initial_step_fraction,
-            )
-            for i in range(n)
-        ]
+        if critic_epochs < 1:
+            raise ValueError(f"need critic_epochs >= 1, got {critic_epochs}.")
+        kwargs["entropy_coeff"] = 0.0  # the critic losses only; the CPO step has no entropy term
+        super().__init__(networks, **kwargs)
+        self.critic_epochs = int(critic_epochs)
+        self.step_options = dict(target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
+                                 line_search_steps=line_search_steps, step_fraction=step_fraction,
+                                 max_step_norm=max_step_norm, initial_step_fraction=initial_step_fraction)
 
-    @classmethod
-    def for_seeds(cls, networks: StackedMultiAgentNetworks, generators: Sequence[torch.Generator],
-                  **options: Any) -> SeedRounds:
-        """S seeds' rounds (one per team of the stack, each with its generator), run one after another."""
-        return SeedRounds([cls(team, generator=generator, **options)
-                           for team, generator in zip(networks.teams, generators, strict=True)])
+    def cost_violations(self, seeds: Tensor, agents: Tensor, costs: Tensor) -> list[float]:
+        """:math:`c = (J_c - d)(1 - \\gamma)` per row, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
+        return [self.team_multipliers[int(s)][int(a)].violation(float(costs[i, int(a)])) * (1.0 - self.gamma)
+                for i, (s, a) in enumerate(zip(seeds, agents))]
 
-    def __call__(self, data: TensorDictBase, mean_episode_cost: float | Tensor) -> dict[str, float]:
-        """One round on ``data`` (the keys of :class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`).
-
-        Returns the team metrics (mean over agents) under SafePO's names, the same per agent under
-        ``"<name>/agent<i>"``, and ``Train/AgentOrder/agent<i>``.
-        """
-        costs = episode_costs(mean_episode_cost, self.n_agents)
-        keys = AGENT_VIEW_KEYS
-        if self.losses[0].clip_value is not None:
-            keys = (*keys, "state_value", "cost_value")
-        views = [agent_view(data, i, group=self.group, keys=keys) for i in range(self.n_agents)]
-        result = self.sequential.run(
-            lambda i, factor: self._update_agent(i, views[i], factor, costs[i]),
-            lambda i: self._log_prob(i, views[i]),
-            views[0].batch_size[0],
-        )
-        return round_metrics([(stage.agent, stage.metrics) for stage in result.stages],
-                             [float(m.value) for m in self.multipliers])
-
-    def _log_prob(self, agent: int, view: TensorDictBase) -> Tensor:
-        actor = self.networks.agent_actor(agent)
-        return actor.get_dist(view.select(*actor.in_keys)).log_prob(view.get("action"))
-
-    def cost_violation(self, agent: int, episode_cost: float) -> float:
-        """:math:`c = (J_c - d)(1 - \\gamma)`, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
-        return self.multipliers[agent].violation(episode_cost) * (1.0 - self.gamma)
-
-    def _update_agent(self, agent: int, view: TensorDictBase, factor: Tensor, episode_cost: float) -> dict[str, float]:
-        weight = factor.unsqueeze(-1)
-        c = self.cost_violation(agent, episode_cost)
-        metrics = dict(self.steps[agent].step(view, weight * view.get("advantage"), weight * view.get("cost_advantage"), c))
+    def _stage(self, seeds: Tensor, agents: Tensor, fields: dict[str, Tensor], factor: Tensor | None,
+               costs: Tensor) -> tuple[dict[str, list[float]], Tensor | None]:
+        batch = self._stage_data(seeds, agents, fields, factor)
+        data = batch.fields()
+        rows = self.networks.agent_rows(seeds, agents, flat_actor=True)
+        observation, action = data["observation"], data["action"]
         with torch.no_grad():
-            ratio = (self._log_prob(agent, view) - view.get("action_log_prob")).exp().mean()
-        metrics.update(self._critic_epochs(agent, view))
-        metrics.update({
-            "Misc/Entropy": float(self.networks.agent_entropy(agent)),
-            "Misc/Ratio": float(ratio),
-            "Misc/Factor": float(factor.mean()),
-            "Misc/ConstraintValue": c,
-        })
-        return metrics
-
-    def _critic_epochs(self, agent: int, view: TensorDictBase) -> dict[str, float]:
-        """``critic_epochs`` passes of ``num_minibatches`` Adam steps on the agent's two critics, each clipped
-        on its own, no early stop."""
-        reward, cost = self._critic_params[agent]
-        groups = (ClipGroup(reward, "Misc/Reward_critic_norm"), ClipGroup(cost, "Misc/Cost_critic_norm"))
-        step = GradientStep(self.losses[agent].critic_losses, self.optimizers[agent],
-                            ("loss_critic", "loss_cost_critic"), groups, self.max_grad_norm)
-        return run_passes(view, step, passes=self.critic_epochs, order=shuffled_chunks(self.num_minibatches),
-                          generator=self.generator, metrics=CRITIC_METRICS).means
-
-    # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Any]:
-        """Optimiser states, multipliers, value normalisers and the generator (the networks are the caller's)."""
-        return {
-            "optimizers": [opt.state_dict() for opt in self.optimizers],
-            "multipliers": self.multipliers.state_dict(),
-            "value_norms": None if self.value_norms is None else self.value_norms.state_dict(),
-            "generator": self.generator.get_state(),
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        for opt, opt_state in zip(self.optimizers, state["optimizers"], strict=True):
-            opt.load_state_dict(opt_state)
-        self.multipliers.load_state_dict(state["multipliers"])
-        if self.value_norms is not None:
-            self.value_norms.load_state_dict(state["value_norms"])
-        self.generator.set_state(state["generator"])
-
-
-class SeedRounds:
-    """S single-team rounds side by side with the seed-batched round's interface, run one after another.
-
-    What a seed group trains MACPO with (:meth:`MACPOUpdate.for_seeds`); seed ``s`` is its round alone.
-    """
-
-    def __init__(self, rounds: Sequence[MACPOUpdate]) -> None:
-        self.rounds = list(rounds)
-
-    def step_seeds(self, batches: Sequence[TensorDictBase | None],
-                   mean_episode_costs: Sequence[float | Tensor | None]) -> list[dict[str, float] | None]:
-        """Each seed's round on its batch (``None``: a frozen seed, untouched)."""
-        return [None if batch is None else update(batch, cost)
-                for update, batch, cost in zip(self.rounds, batches, mean_episode_costs, strict=True)]
-
-    def seed_state_dict(self, seed: int) -> dict[str, Any]:
-        return self.rounds[seed].state_dict()
-
-    def load_seed_state_dict(self, seed: int, state: dict[str, Any]) -> None:
-        self.rounds[seed].load_state_dict(state)
+            before = gaussian_log_prob(action, *rows.dist_params(observation))
+        c = self.cost_violations(seeds, agents, costs)
+        weight = data["factor"]
+        step = StackedMACPOStep(rows, **self.step_options)
+        step_metrics = step.step(data, weight * data["advantage"], weight * data["cost_advantage"],
+                                 torch.tensor(c, dtype=torch.float64))
+        with torch.no_grad():
+            after = gaussian_log_prob(action, *rows.dist_params(observation))
+            ratio = (after - data["action_log_prob"].squeeze(-1)).exp().mean(1)
+        optimizer = self._optimizer(rows, seeds, agents)
+        value_norm = self._value_norm(seeds, agents)
+        critic_metrics = self._critic_passes(rows, batch, optimizer, value_norm, self.critic_epochs, seeds)
+        self._write_back(rows, optimizer, value_norm)
+        metrics = {name: [v if v == v else None for v in value.tolist()] for name, value in step_metrics.items()}
+        metrics.update({name: value.tolist() for name, value in critic_metrics.items()})
+        with torch.no_grad():
+            metrics.update({
+                "Misc/Entropy": rows.entropy().tolist(),
+                "Misc/Ratio": ratio.tolist(),
+                "Misc/Factor": factor.mean(1).tolist(),
+                "Misc/ConstraintValue": c,
+            })
+            factor = factor * (after - before).exp()
+        return metrics, factor

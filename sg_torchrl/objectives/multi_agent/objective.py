@@ -90,7 +90,7 @@ class AgentObjective:
         """Each row's losses and diagnostics on its minibatch, ``(S,)`` each.
 
         ``rows``: the rows' networks (:class:`~sg_torchrl.modules.stacked_multi_agent.AgentRows`:
-        ``dist_params``, ``entropy``, ``critic``, ``cost_critic``, ``groups``); ``batch``: ``(S, N, width)``
+        ``dist_params``, ``entropy``, ``critic``, ``cost_critic``, ``tensors``); ``batch``: ``(S, N, width)``
         fields ``observation``, ``state``, ``action``, ``action_log_prob``, ``advantage``, ``cost_advantage``,
         ``value_target``, ``cost_value_target`` (and ``factor`` when weighted); ``lam``: ``(S,)``;
         ``value_norm``: the rows' PopArt statistics (:func:`seed_popart`), updated here with the targets
@@ -105,15 +105,21 @@ class AgentObjective:
         advantage = self.advantage(batch["advantage"], cost_advantage, lam, batch.get("factor"))
         out = {"loss_objective": self.surrogate.loss(log_weight, advantage, seed_dims=1).mean((1, 2)),
                "loss_entropy": -self.entropy_coeff * rows.entropy()}
-        state = batch["state"]
-        out["loss_critic"] = self._critic_loss(rows.critic(state), batch["value_target"], value_norm, active)
-        out["loss_cost_critic"] = self._critic_loss(rows.cost_critic(state), batch["cost_value_target"], None, None)
-        if self.critic_l2:
-            out["loss_critic"] = out["loss_critic"] + self.critic_l2 * _squared_norm(rows.groups["reward_value"])
-            out["loss_cost_critic"] = out["loss_cost_critic"] + self.critic_l2 * _squared_norm(rows.groups["cost_value"])
+        out.update(self.critic_losses(rows, batch, value_norm, active))
         with torch.no_grad():
             out["mean_ratio"] = log_weight.exp().mean((1, 2))
         out["cost_surrogate"] = self.cost_surrogate(log_weight, cost_advantage, seed_dims=1)
+        return out
+
+    def critic_losses(self, rows, batch: Mapping[str, Tensor], value_norm: PopArtValueNorm | None,
+                      active: Tensor | None = None) -> dict[str, Tensor]:
+        """Each row's ``loss_critic`` (through ``value_norm``, see :meth:`losses`) and ``loss_cost_critic``, ``(S,)``."""
+        state = batch["state"]
+        out = {"loss_critic": self._critic_loss(rows.critic(state), batch["value_target"], value_norm, active),
+               "loss_cost_critic": self._critic_loss(rows.cost_critic(state), batch["cost_value_target"], None, None)}
+        if self.critic_l2:
+            out["loss_critic"] = out["loss_critic"] + self.critic_l2 * _squared_norm(rows.tensors("reward_value"))
+            out["loss_cost_critic"] = out["loss_cost_critic"] + self.critic_l2 * _squared_norm(rows.tensors("cost_value"))
         return out
 
     @staticmethod
