@@ -28,14 +28,8 @@ import torch
 import sg_torchrl
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.modules import make_multi_agent_networks
-from sg_torchrl.objectives.multi_agent import (
-    HAPPOUpdate,
-    MACPOUpdate,
-    make_multi_agent_cost_gae,
-    make_multi_agent_gae,
-    MAPPOLagUpdate,
-    MAPPOUpdate,
-)
+from sg_torchrl.objectives.multi_agent import make_multi_agent_cost_gae, make_multi_agent_gae
+from sg_torchrl.train.multi_agent_updates import HAPPOUpdate, MACPOUpdate, MAPPOLagUpdate, MAPPOUpdate
 
 ROUNDS = {"mappo": MAPPOUpdate, "happo": HAPPOUpdate, "mappo_lag": MAPPOLagUpdate, "macpo": MACPOUpdate}
 

@@ -16,23 +16,19 @@ torch.set_num_threads(1)
 
 from tensordict import TensorDict  # noqa: E402
 from torch import distributions as D  # noqa: E402
-
-from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
 from torchrl.modules import PopArtValueNorm  # noqa: E402
 
+from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
 from sg_torchrl.objectives import gaussian_kl, NoMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     agent_view,
     AgentPPOLoss,
-    HAPPOUpdate,
     MACPOStep,
-    MACPOUpdate,
     make_multi_agent_cost_gae,
     make_multi_agent_gae,
     MAPPOLagMultiplier,
-    MAPPOLagUpdate,
-    MAPPOUpdate,
 )
+from sg_torchrl.train.multi_agent_updates import HAPPOUpdate, MACPOUpdate, MAPPOLagUpdate, MAPPOUpdate  # noqa: E402
 
 OBS, STATE, HIDDEN = 6, 9, (32, 32)
 N, T = 4, 12

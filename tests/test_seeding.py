@@ -90,7 +90,7 @@ def test_minibatches_rule(seed: int) -> None:
 def test_minibatch_consumers_use_the_rule() -> None:
     """``SeedShuffler`` and a multi-agent round built without a generator draw the ``minibatches`` streams."""
     from sg_torchrl.modules import make_multi_agent_networks
-    from sg_torchrl.objectives.multi_agent import HAPPOUpdate
+    from sg_torchrl.train.multi_agent_updates import HAPPOUpdate
     from sg_torchrl.train.fused import SeedShuffler
 
     order = SeedShuffler([5, 9]).permutation(30)

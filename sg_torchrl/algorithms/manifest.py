@@ -220,7 +220,7 @@ _DDPG_DEFAULTS = dict(_OFF_POLICY_DEFAULTS, policy_delay=1)
 _PG_LOSS = "sg_torchrl.objectives:PGLoss"
 _PPO_LAG_LOSS = "sg_torchrl.objectives:PPOLagLoss"
 _AGENT_LOSS = "sg_torchrl.objectives.multi_agent:AgentPPOLoss"
-_ROUNDS = "sg_torchrl.objectives.multi_agent:"
+_ROUNDS = "sg_torchrl.train.multi_agent_updates:"
 
 
 #: The first-order losses' options from the config (clip and critic L2; the subclasses add their own).

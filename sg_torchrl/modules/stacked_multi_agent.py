@@ -225,7 +225,7 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
 class AgentRows:
     """One agent per row: trainable ``(R, ...)`` copies of the ``(seeds[i], agents[i])`` rows of a stack.
 
-    The working set of a seed-batched multi-agent round (:mod:`sg_torchrl.objectives.multi_agent.seed_round`):
+    The working set of a seed-batched multi-agent round (:mod:`sg_torchrl.train.multi_agent_round`):
     at stage ``k`` of a round, seed ``s`` updates agent ``order[s, k]``, so the round gathers those rows of
     every stacked tensor (:meth:`StackedMultiAgentNetworks.agent_rows`), trains them as leaf tensors with a
     leading row dimension (one optimiser step moves every row) and writes them back (:meth:`write_back`).

@@ -7,14 +7,13 @@ the KL between the policy before the update and now. What differs between the al
 
 * the **order** of the minibatches (:data:`Order`, any callable yielding minibatch indices):
   :func:`shuffled_slices` (a fresh permutation per pass cut into slices of a size: SafePO's
-  single-agent loop), :func:`shuffled_chunks` (a permutation cut into ``k`` chunks: the multi-agent rounds),
+  single-agent loop), :func:`shuffled_chunks` (a permutation cut into ``k`` chunks),
   :func:`whole_batch` (one step on the batch as it is, drawing nothing from the generator:
   ``shuffled_chunks(1)``) and a seed group's per-seed orders (``(S, mb)`` index blocks from
   :class:`~sg_torchrl.train.fused.SeedShuffler`, one generator per seed);
-* the **step** (:data:`Step`): :class:`GradientStep` (which loss terms are summed, which parameter
-  groups are clipped separately: the actor, the reward critic and the cost critic each on its own in
-  the multi-agent rounds; an after-step hook: MAPPO-Lag steps each agent's multiplier after every minibatch step),
-  or a seed group's fused step of S seeds at once, seeds that stopped masked;
+* the **step** (:data:`Step`): :class:`GradientStep` (a LossModule's step: which loss terms are summed,
+  which parameter groups are clipped separately, an after-step hook), or a seed group's fused step of S
+  seeds at once, seeds that stopped masked (the single-agent groups' and the multi-agent rounds');
 * the **metrics** averaged over the steps: :class:`StepMeans` (loss outputs and the pre-clip norms
   of named clip groups, read with one ``.item()`` each per step) or :class:`RowMeans` (a seed
   group's ``(S,)`` tensors, each seed averaged over the steps it took, no host sync: the group
@@ -23,8 +22,8 @@ the KL between the policy before the update and now. What differs between the al
   any decision whether to run another pass (a seed group's: each seed's KL stop and divergence
   shrink its active mask there, and the passes end when no seed is left).
 
-:func:`run_passes` is that loop; the multi-agent PPO agent update and the critic epochs of MACPO
-(:mod:`sg_torchrl.objectives.multi_agent.updates`) and the seed group's passes
+:func:`run_passes` is that loop; the multi-agent rounds' epochs
+(:mod:`sg_torchrl.train.multi_agent_round`) and the seed group's passes
 (:func:`sg_torchrl.train.group_updates.seed_passes`) are its callers, so a change to the loop (the
 order of the random draws, of the float operations, of the hooks) happens in one place for all.
 What stays with the seed group is what only a group has: the fused step's masking and per-seed
@@ -34,8 +33,8 @@ group nothing on its hot path: the same tensor ops per step as its former privat
 aten op count per step), no host read per step (:class:`RowMeans`), one per pass (its ``go_on``),
 and a few Python calls per step, below the noise of a ~1 ms step.
 
-It lives in :mod:`sg_torchrl.objectives` (not in :mod:`sg_torchrl.train`) because the
-multi-agent rounds are objectives and must not import the trainer.
+It lives in :mod:`sg_torchrl.objectives` (not in :mod:`sg_torchrl.train`): a user's own loop over the
+LossModules runs it too (:class:`GradientStep`).
 """
 
 from __future__ import annotations
@@ -91,9 +90,9 @@ def shuffled_slices(minibatch_size: int) -> Order:
 def shuffled_chunks(num_minibatches: int) -> Order:
     """``num_minibatches`` chunks of a fresh permutation per pass; one "chunk" is :func:`whole_batch`.
 
-    The multi-agent rounds' order: with one minibatch (the paper's setting) each step sees the
-    batch unshuffled and no permutation is drawn, so the generator (shared with the rounds' agent
-    orders) only moves when there is something to shuffle. ``k`` chunks of a permutation of ``n``
+    With one minibatch (the multi-agent paper's setting) each step sees the batch unshuffled and no
+    permutation is drawn, so a generator shared with other draws only moves when there is something
+    to shuffle (the multi-agent rounds cut each seed's permutation the same way). ``k`` chunks of a permutation of ``n``
     are its slices of ``ceil(n / k)`` samples (``torch.chunk``), fewer than ``k`` when ``n`` is small.
     """
     if num_minibatches < 1:

@@ -15,14 +15,13 @@ global ``"state"`` for the centralised critics):
   :class:`~torchrl.objectives.multiagent.MAPPOLoss` with sg_torchrl's :class:`~sg_torchrl.objectives.PPOLagLoss`),
   which hands the rounds the objective (:meth:`AgentPPOLoss.seed_batched_objective`);
   :class:`MAPPOLagMultiplier`: MAPPO-Lagrangian's per-agent multiplier (Gu et al. 2023);
-* the rounds, ``update(batch, mean_episode_cost) -> dict[str, float]``: :class:`MAPPOUpdate`
-  (Yu et al. 2022), :class:`HAPPOUpdate` (Kuba et al. 2022), :class:`MAPPOLagUpdate`
-  (:class:`MultiAgentPPOUpdate`) and
-  :class:`MACPOUpdate` (Gu et al. 2023; :class:`MACPORule` is CPO's proposal with MACPO's step-size
-  policy, :class:`MACPOStep` on one actor, :class:`StackedMACPOStep` on the round's rows), all
-  :class:`SeedBatchedRound` s: S seeds' rounds in one update call per stage (``for_seeds``), each seed with
-  its own random agent order. Their minibatch epochs are the package's one update loop,
-  :func:`~sg_torchrl.objectives.run_passes`.
+* :class:`MACPORule`: CPO's proposal with MACPO's step-size policy, on one actor (:class:`MACPOStep`) or on
+  stacked rows (:class:`StackedMACPOStep`).
+
+The rounds that train these (``update(batch, mean_episode_cost) -> dict[str, float]``: ``MAPPOUpdate``
+(Yu et al. 2022), ``HAPPOUpdate`` (Kuba et al. 2022), ``MAPPOLagUpdate`` and ``MACPOUpdate`` (Gu et al. 2023),
+S seeds' rounds in one update call per stage) are training machinery:
+:mod:`sg_torchrl.train.multi_agent_updates`.
 """
 
 from sg_torchrl.objectives.multi_agent.advantages import (
@@ -32,25 +31,17 @@ from sg_torchrl.objectives.multi_agent.advantages import (
     make_multi_agent_gae,
 )
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
-from sg_torchrl.objectives.multi_agent.macpo import MACPORule, MACPOStep, MACPOUpdate, StackedMACPOStep
+from sg_torchrl.objectives.multi_agent.macpo import MACPORule, MACPOStep, StackedMACPOStep
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
 from sg_torchrl.objectives.multi_agent.objective import AgentObjective
-from sg_torchrl.objectives.multi_agent.seed_round import SeedBatchedRound
-from sg_torchrl.objectives.multi_agent.updates import HAPPOUpdate, MAPPOLagUpdate, MAPPOUpdate, MultiAgentPPOUpdate
 
 __all__ = [
     "AGENT_VIEW_KEYS",
     "AgentObjective",
     "AgentPPOLoss",
-    "HAPPOUpdate",
     "MACPORule",
     "MACPOStep",
-    "MACPOUpdate",
     "MAPPOLagMultiplier",
-    "MAPPOLagUpdate",
-    "MAPPOUpdate",
-    "MultiAgentPPOUpdate",
-    "SeedBatchedRound",
     "StackedMACPOStep",
     "agent_view",
     "make_multi_agent_cost_gae",

@@ -29,10 +29,9 @@ After its step each agent's critics take ``critic_epochs`` (15, the paper's "SGD
 Adam at 5e-4 (SafePO's script: one step at 5e-3 per round).
 
 The step-size policy is written once (:class:`MACPORule`) and serves one actor (:class:`MACPOStep`, the
-single-agent step on one row) and the rows of the seed-batched round (:class:`StackedMACPOStep`):
-:class:`MACPOUpdate` is a :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound`, so at each
-stage the agent of every seed takes its CPO step in one stacked trust-region step and its critic epochs
-in one set of Adam steps.
+single-agent step on one row) and the rows of the seed-batched round (:class:`StackedMACPOStep`; the round
+is :class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`: at each stage the agent of every seed takes
+its CPO step in one stacked trust-region step and its critic epochs in one set of Adam steps).
 """
 
 from __future__ import annotations
@@ -40,20 +39,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal
 
-import torch
 from tensordict.nn import ProbabilisticTensorDictSequential
-from torch import Tensor
 
-from sg_torchrl.modules.gaussian import gaussian_log_prob
-from sg_torchrl.modules.multi_agent import MultiAgentNetworks
-from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks
-from sg_torchrl.objectives.multi_agent.seed_round import SeedBatchedRound
 from sg_torchrl.objectives.second_order import Linearisation
 from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
 from sg_torchrl.objectives.step_rules import CPORule, Proposal
 from sg_torchrl.objectives.trust_region import TrustRegionStep
 
-__all__ = ["MACPORule", "MACPOStep", "MACPOUpdate", "StackedMACPOStep"]
+__all__ = ["MACPORule", "MACPOStep", "StackedMACPOStep"]
 
 
 class MACPORule(CPORule):
@@ -127,94 +120,3 @@ class MACPOStep(MACPORule, TrustRegionStep):
 
 class StackedMACPOStep(MACPORule, StackedTrustRegionStep):
     """MACPO's step of stacked rows (the seed-batched round's agents of a stage), each row its own CPO case."""
-
-
-class MACPOUpdate(SeedBatchedRound):
-    """MACPO's round: per agent in each seed's random order, a MACPO step on the factor-weighted surrogates,
-    then critic epochs; the stage's agents of every seed at once.
-
-    Args:
-        networks: one team, or S seeds' stacked teams (:meth:`for_seeds`).
-
-    Keyword Args:
-        target_kl (float): per-agent trust region :math:`\\delta`. Defaults to ``0.01`` (paper).
-        cg_iters (int): defaults to ``10`` (paper).
-        line_search_steps (int): defaults to ``10`` (paper).
-        step_fraction (float): defaults to ``0.5`` (paper).
-        max_step_norm (float, optional), initial_step_fraction (float): see :class:`MACPORule`.
-        cg_damping (float): defaults to ``0.1``.
-        critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
-        **kwargs: see :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound` (``cost_limit``,
-            ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ``num_minibatches``, ...).
-
-    Per-agent metrics: the step's (``Misc/CPOCase``, ``Misc/AcceptanceStep``, ``Misc/FinalStepNorm``,
-    ``Misc/StepNormRaw``, ``Misc/Lambda_star``, ``Misc/Nu_star``, ``Misc/xHx``, ``Misc/gradient_norm``,
-    ``Misc/cost_gradient_norm``, ``Train/KL`` (KL after the step, 0 when rejected),
-    ``Loss/Loss_actor`` (minus the weighted reward surrogate before the step)), the critics'
-    (``Loss/Loss_reward_critic``, ``Loss/Loss_cost_critic``, ``Misc/Reward_critic_norm``,
-    ``Misc/Cost_critic_norm``), ``Misc/Entropy``, ``Misc/Ratio``, ``Misc/Factor`` and
-    ``Misc/ConstraintValue`` (:math:`c`).
-    """
-
-    optimised = (("reward_value", "cost_value"),)
-    _loss_weighted = False  # the agents' loss trains the critics only; the factor enters through the step
-
-    def __init__(
-        self,
-        networks: MultiAgentNetworks | StackedMultiAgentNetworks,
-        *,
-        target_kl: float = 0.01,
-        cg_iters: int = 10,
-        line_search_steps: int = 10,
-        step_fraction: float = 0.5,
-        max_step_norm: float | None = 0.5,
-        initial_step_fraction: float = 0.1,
-        cg_damping: float = 0.1,
-        critic_epochs: int = 15,
-        **kwargs: Any,
-    ) -> None:
-        if critic_epochs < 1:
-            raise ValueError(f"need critic_epochs >= 1, got {critic_epochs}.")
-        kwargs["entropy_coeff"] = 0.0  # the critic losses only; the CPO step has no entropy term
-        super().__init__(networks, **kwargs)
-        self.critic_epochs = int(critic_epochs)
-        self.step_options = dict(target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
-                                 line_search_steps=line_search_steps, step_fraction=step_fraction,
-                                 max_step_norm=max_step_norm, initial_step_fraction=initial_step_fraction)
-
-    def cost_violations(self, seeds: Tensor, agents: Tensor, costs: Tensor) -> list[float]:
-        """:math:`c = (J_c - d)(1 - \\gamma)` per row, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
-        return [self.team_multipliers[int(s)][int(a)].violation(float(costs[i, int(a)])) * (1.0 - self.gamma)
-                for i, (s, a) in enumerate(zip(seeds, agents))]
-
-    def _stage(self, seeds: Tensor, agents: Tensor, fields: dict[str, Tensor], factor: Tensor | None,
-               costs: Tensor) -> tuple[dict[str, list[float]], Tensor | None]:
-        batch = self._stage_data(seeds, agents, fields, factor)
-        data = batch.fields()
-        rows = self.networks.agent_rows(seeds, agents, flat_actor=True)
-        observation, action = data["observation"], data["action"]
-        with torch.no_grad():
-            before = gaussian_log_prob(action, *rows.dist_params(observation))
-        c = self.cost_violations(seeds, agents, costs)
-        weight = data["factor"]
-        step = StackedMACPOStep(rows, **self.step_options)
-        step_metrics = step.step(data, weight * data["advantage"], weight * data["cost_advantage"],
-                                 torch.tensor(c, dtype=torch.float64))
-        with torch.no_grad():
-            after = gaussian_log_prob(action, *rows.dist_params(observation))
-            ratio = (after - data["action_log_prob"].squeeze(-1)).exp().mean(1)
-        optimizer = self._optimizer(rows, seeds, agents)
-        value_norm = self._value_norm(seeds, agents)
-        critic_metrics = self._critic_passes(rows, batch, optimizer, value_norm, self.critic_epochs, seeds)
-        self._write_back(rows, optimizer, value_norm)
-        metrics = {name: [v if v == v else None for v in value.tolist()] for name, value in step_metrics.items()}
-        metrics.update({name: value.tolist() for name, value in critic_metrics.items()})
-        with torch.no_grad():
-            metrics.update({
-                "Misc/Entropy": rows.entropy().tolist(),
-                "Misc/Ratio": ratio.tolist(),
-                "Misc/Factor": factor.mean(1).tolist(),
-                "Misc/ConstraintValue": c,
-            })
-            factor = factor * (after - before).exp()
-        return metrics, factor

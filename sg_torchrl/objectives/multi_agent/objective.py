@@ -18,7 +18,7 @@ agent of the stage; S = 1 is one run). It is built from the single-agent pieces:
 :class:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss` (the TorchRL ``LossModule`` users compose) hands
 this object out (:meth:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss.seed_batched_objective`) and its
 ``forward`` computes the advantage and the cost surrogate through it; the seed-batched round
-(:mod:`sg_torchrl.objectives.multi_agent.updates`) evaluates :meth:`losses` on its rows.
+(:mod:`sg_torchrl.train.multi_agent_updates`) evaluates :meth:`losses` on its rows.
 """
 
 from __future__ import annotations

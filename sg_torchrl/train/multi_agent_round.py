@@ -8,9 +8,13 @@ S = 1): each seed draws its own agent order from its own generator; at stage ``k
 ``order[s, k]`` of every live seed are gathered into rows
 (:class:`~sg_torchrl.modules.stacked_multi_agent.AgentRows`: parameters, and here their Adam moments,
 PopArt statistics and multipliers), updated together by the subclass's :meth:`SeedBatchedRound._stage`
-and written back; the factor then takes each row's ratio. Subclasses: the clipped-PPO epochs of MAPPO,
-HAPPO and MAPPO-Lag (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`) and MACPO's CPO step
-and critic epochs (:class:`~sg_torchrl.objectives.multi_agent.MACPOUpdate`). The single-seed pieces are
+and written back; the factor then takes each row's ratio. Subclasses
+(:mod:`sg_torchrl.train.multi_agent_updates`): the clipped-PPO epochs of MAPPO, HAPPO and MAPPO-Lag
+(:class:`~sg_torchrl.train.multi_agent_updates.MultiAgentPPOUpdate`) and MACPO's CPO step and critic epochs
+(:class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`). The math is the objectives' (one agent's
+:class:`~sg_torchrl.objectives.multi_agent.AgentObjective`, handed out by its
+:class:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss`; MACPO's step rule); the rounds are training
+machinery (optimiser state, generators, the rows gathered and written back), so they live here. The single-seed pieces are
 reused as they are: :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam` and its per-seed clip,
 :class:`~sg_torchrl.train.fused.SeedShuffler` (each seed's generator), :class:`~sg_torchrl.train.fused.SeedBatch`
 and :func:`~sg_torchrl.objectives.passes.run_passes`.
@@ -23,7 +27,8 @@ the generator), so checkpoints of the rounds before they were seed-batched load 
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -35,13 +40,12 @@ from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.modules.stacked_multi_agent import AgentRows, StackedMultiAgentNetworks
 from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
 from sg_torchrl.objectives.multi_agent.objective import AgentObjective, seed_popart
-from sg_torchrl.objectives.multi_agent.sequential import episode_costs, round_metrics
 from sg_torchrl.objectives.multipliers import Multiplier, NoMultiplier
 from sg_torchrl.objectives.passes import RowMeans, run_passes, whole_batch
 from sg_torchrl.train.fused import SeedBatch, SeedShuffler
 from sg_torchrl.train.seed_adam import clip_grad_norm_per_seed_, SeedMaskedAdam
 
-__all__ = ["CRITIC_METRICS", "SeedBatchedRound"]
+__all__ = ["CRITIC_METRICS", "SeedBatchedRound", "episode_costs", "round_metrics"]
 
 #: The critics' losses averaged over an agent's steps, by SafePO's metric names.
 CRITIC_METRICS = {"Loss/Loss_reward_critic": "loss_critic", "Loss/Loss_cost_critic": "loss_cost_critic",
@@ -384,3 +388,34 @@ class SeedBatchedRound(abc.ABC):
                     row.zero_()
                     if i in saved:
                         (row if size is None else row[..., :size]).copy_(saved[i][key])
+
+
+def episode_costs(mean_episode_cost: float | Tensor, n_agents: int) -> list[float]:
+    """:math:`J_c` per agent: one finite value for the team (every agent's), or one per agent."""
+    value = torch.as_tensor(mean_episode_cost, dtype=torch.float64).detach().reshape(-1)
+    if value.numel() == 1:
+        value = value.expand(n_agents)
+    if value.numel() != n_agents or not torch.isfinite(value).all():
+        raise ValueError(f"mean_episode_cost must be one finite value or one per agent ({n_agents}), "
+                         f"got {mean_episode_cost!r}.")
+    return value.tolist()
+
+
+def round_metrics(stages: Sequence[tuple[int, Mapping[str, float]]], multipliers: Sequence[float]) -> dict[str, float]:
+    """A round's metrics from its stages ``(agent, metrics)`` in update order and the agents' multiplier values.
+
+    ``Train/AgentOrder/agent<i>`` (the stage at which agent ``i`` was updated), each metric per agent as
+    ``"<name>/agent<i>"`` and its mean over the agents under ``<name>``; ``Train/LagrangeMultiplier`` is the
+    mean multiplier.
+    """
+    per_name: dict[str, list[float]] = defaultdict(list)
+    metrics: dict[str, float] = {}
+    for position, (agent, values) in enumerate(stages):
+        metrics[f"Train/AgentOrder/agent{agent}"] = float(position)
+        for name, value in values.items():
+            per_name[name].append(float(value))
+            metrics[f"{name}/agent{agent}"] = float(value)
+    for name, values in per_name.items():
+        metrics[name] = sum(values) / len(values)
+    metrics["Train/LagrangeMultiplier"] = sum(multipliers) / len(multipliers)
+    return metrics

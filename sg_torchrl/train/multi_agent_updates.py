@@ -1,4 +1,4 @@
-"""One round of MAPPO, HAPPO and MAPPO-Lag, seed-batched: S seeds' rounds in one update call (S >= 1).
+"""The rounds of MAPPO, HAPPO, MAPPO-Lag and MACPO, seed-batched: S seeds' rounds in one update call per stage.
 
 Every algorithm of the Safety-Gymnasium paper's multi-agent benchmark (Ji et al. 2023) updates the
 agents one at a time in a random order (Kuba et al. 2022's sequential scheme). The algorithms differ only
@@ -14,11 +14,12 @@ MAPPOLagUpdate    factor-weighted clipped PPO on                  yes         pe
                   :math:`A_r - \\lambda^i A^i_c` (Gu et al. 2023)               after every minibatch
 MACPOUpdate       one CPO step on factor-weighted surrogates,     yes         none (the CPO step)
                   then critic epochs (Gu et al. 2023;
-                  :mod:`~sg_torchrl.objectives.multi_agent.macpo`)
+                  the step: :mod:`~sg_torchrl.objectives.multi_agent.macpo`)
 ================  =============================================  ==========  =======================
 
-The first three are :class:`MultiAgentPPOUpdate`: the round written once for S seeds, each seed with
-its own random agent order, the agent of every seed at a stage updated in one call (see the class).
+All are :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound` s (the first three through
+:class:`MultiAgentPPOUpdate`): the round written once for S seeds, each seed with its own random agent
+order, the agent of every seed at a stage updated in one call.
 
 Usage, once per collected batch (after both GAEs, see
 :func:`~sg_torchrl.objectives.multi_agent.make_multi_agent_gae`)::
@@ -60,13 +61,14 @@ from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.modules.stacked_multi_agent import NETWORKS, StackedMultiAgentNetworks
 from sg_torchrl.objectives.kl import gaussian_kl
+from sg_torchrl.objectives.multi_agent.macpo import StackedMACPOStep
 from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
-from sg_torchrl.objectives.multi_agent.seed_round import CRITIC_METRICS, SeedBatchedRound
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.train.fused import SeedBatch
+from sg_torchrl.train.multi_agent_round import CRITIC_METRICS, SeedBatchedRound
 
-__all__ = ["HAPPOUpdate", "MAPPOLagUpdate", "MAPPOUpdate", "MultiAgentPPOUpdate"]
+__all__ = ["HAPPOUpdate", "MACPOUpdate", "MAPPOLagUpdate", "MAPPOUpdate", "MultiAgentPPOUpdate"]
 
 #: Everything a stage averages over its optimiser steps (metric name: step output).
 STEP_METRICS = {"Loss/Loss_actor": "loss_objective", **CRITIC_METRICS, "Misc/Ratio": "mean_ratio"}
@@ -76,7 +78,7 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
     """The sequential clipped-PPO round of MAPPO, HAPPO and MAPPO-Lag, for S seeds at once (S >= 1).
 
     At stage ``k`` the rows (each live seed's agent ``order[s, k]``,
-    :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound`) take up to ``epochs`` passes of
+    :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound`) take up to ``epochs`` passes of
     ``num_minibatches`` steps together, each step :attr:`objective`'s losses
     (:class:`~sg_torchrl.objectives.multi_agent.AgentObjective`, obtained from the agents' loss,
     :meth:`AgentPPOLoss.seed_batched_objective`), their backward, the gradients clipped per seed and network
@@ -89,7 +91,7 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
         actor_lr (float): defaults to ``5e-4`` (paper).
         epochs (int): passes over the batch per agent. Defaults to ``5`` (paper).
         target_kl (float, optional): KL early stop per agent. Defaults to ``0.016`` (paper); ``None`` disables it.
-        **kwargs: see :class:`~sg_torchrl.objectives.multi_agent.seed_round.SeedBatchedRound` (``cost_limit``,
+        **kwargs: see :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound` (``cost_limit``,
             ``gamma``, ``critic_lr``, ``max_grad_norm``, ``num_minibatches``, ``entropy_coeff`` 0.01, ...).
 
     Per-agent metrics: ``Loss/Loss_actor``, ``Loss/Loss_reward_critic``, ``Loss/Loss_cost_critic``
@@ -230,3 +232,94 @@ class MAPPOLagUpdate(MultiAgentPPOUpdate):
 
     def _make_multiplier(self, cost_limit: float) -> Multiplier:
         return MAPPOLagMultiplier(cost_limit, init=self.multiplier_init, lr=self.multiplier_lr, gamma=self.gamma)
+
+
+class MACPOUpdate(SeedBatchedRound):
+    """MACPO's round: per agent in each seed's random order, a MACPO step on the factor-weighted surrogates,
+    then critic epochs; the stage's agents of every seed at once.
+
+    Args:
+        networks: one team, or S seeds' stacked teams (:meth:`for_seeds`).
+
+    Keyword Args:
+        target_kl (float): per-agent trust region :math:`\\delta`. Defaults to ``0.01`` (paper).
+        cg_iters (int): defaults to ``10`` (paper).
+        line_search_steps (int): defaults to ``10`` (paper).
+        step_fraction (float): defaults to ``0.5`` (paper).
+        max_step_norm (float, optional), initial_step_fraction (float): see :class:`~sg_torchrl.objectives.multi_agent.MACPORule`.
+        cg_damping (float): defaults to ``0.1``.
+        critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
+        **kwargs: see :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound` (``cost_limit``,
+            ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ``num_minibatches``, ...).
+
+    Per-agent metrics: the step's (``Misc/CPOCase``, ``Misc/AcceptanceStep``, ``Misc/FinalStepNorm``,
+    ``Misc/StepNormRaw``, ``Misc/Lambda_star``, ``Misc/Nu_star``, ``Misc/xHx``, ``Misc/gradient_norm``,
+    ``Misc/cost_gradient_norm``, ``Train/KL`` (KL after the step, 0 when rejected),
+    ``Loss/Loss_actor`` (minus the weighted reward surrogate before the step)), the critics'
+    (``Loss/Loss_reward_critic``, ``Loss/Loss_cost_critic``, ``Misc/Reward_critic_norm``,
+    ``Misc/Cost_critic_norm``), ``Misc/Entropy``, ``Misc/Ratio``, ``Misc/Factor`` and
+    ``Misc/ConstraintValue`` (:math:`c`).
+    """
+
+    optimised = (("reward_value", "cost_value"),)
+    _loss_weighted = False  # the agents' loss trains the critics only; the factor enters through the step
+
+    def __init__(
+        self,
+        networks: MultiAgentNetworks | StackedMultiAgentNetworks,
+        *,
+        target_kl: float = 0.01,
+        cg_iters: int = 10,
+        line_search_steps: int = 10,
+        step_fraction: float = 0.5,
+        max_step_norm: float | None = 0.5,
+        initial_step_fraction: float = 0.1,
+        cg_damping: float = 0.1,
+        critic_epochs: int = 15,
+        **kwargs: Any,
+    ) -> None:
+        if critic_epochs < 1:
+            raise ValueError(f"need critic_epochs >= 1, got {critic_epochs}.")
+        kwargs["entropy_coeff"] = 0.0  # the critic losses only; the CPO step has no entropy term
+        super().__init__(networks, **kwargs)
+        self.critic_epochs = int(critic_epochs)
+        self.step_options = dict(target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
+                                 line_search_steps=line_search_steps, step_fraction=step_fraction,
+                                 max_step_norm=max_step_norm, initial_step_fraction=initial_step_fraction)
+
+    def cost_violations(self, seeds: Tensor, agents: Tensor, costs: Tensor) -> list[float]:
+        """:math:`c = (J_c - d)(1 - \\gamma)` per row, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""
+        return [self.team_multipliers[int(s)][int(a)].violation(float(costs[i, int(a)])) * (1.0 - self.gamma)
+                for i, (s, a) in enumerate(zip(seeds, agents))]
+
+    def _stage(self, seeds: Tensor, agents: Tensor, fields: dict[str, Tensor], factor: Tensor | None,
+               costs: Tensor) -> tuple[dict[str, list[float]], Tensor | None]:
+        batch = self._stage_data(seeds, agents, fields, factor)
+        data = batch.fields()
+        rows = self.networks.agent_rows(seeds, agents, flat_actor=True)
+        observation, action = data["observation"], data["action"]
+        with torch.no_grad():
+            before = gaussian_log_prob(action, *rows.dist_params(observation))
+        c = self.cost_violations(seeds, agents, costs)
+        weight = data["factor"]
+        step = StackedMACPOStep(rows, **self.step_options)
+        step_metrics = step.step(data, weight * data["advantage"], weight * data["cost_advantage"],
+                                 torch.tensor(c, dtype=torch.float64))
+        with torch.no_grad():
+            after = gaussian_log_prob(action, *rows.dist_params(observation))
+            ratio = (after - data["action_log_prob"].squeeze(-1)).exp().mean(1)
+        optimizer = self._optimizer(rows, seeds, agents)
+        value_norm = self._value_norm(seeds, agents)
+        critic_metrics = self._critic_passes(rows, batch, optimizer, value_norm, self.critic_epochs, seeds)
+        self._write_back(rows, optimizer, value_norm)
+        metrics = {name: [v if v == v else None for v in value.tolist()] for name, value in step_metrics.items()}
+        metrics.update({name: value.tolist() for name, value in critic_metrics.items()})
+        with torch.no_grad():
+            metrics.update({
+                "Misc/Entropy": rows.entropy().tolist(),
+                "Misc/Ratio": ratio.tolist(),
+                "Misc/Factor": factor.mean(1).tolist(),
+                "Misc/ConstraintValue": c,
+            })
+            factor = factor * (after - before).exp()
+        return metrics, factor
