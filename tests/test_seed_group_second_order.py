@@ -42,7 +42,6 @@ from torch._dynamo.utils import counters  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
 from sg_torchrl.algorithms import manifest  # noqa: E402
-from sg_torchrl.objectives.passes import ClipGroup, GradientStep, run_passes, shuffled_slices  # noqa: E402
 from sg_torchrl.train import ALGORITHMS, OnPolicyGroupTrainer, TrainConfig  # noqa: E402
 from sg_torchrl.train.algorithms import _NO_LINE_SEARCH, TRUST_REGION_STEPS, _trust_region_options  # noqa: E402
 from sg_torchrl.train.fused import FusedFirstOrderStep, SeedShuffler, multiplier_values  # noqa: E402
@@ -108,12 +107,20 @@ def single_update(algo: str, index: int, nets, data: TensorDict):
     advantage = multiplier.combine(data["advantage"], data["cost_advantage"])
     metrics = dict(step.step(data, advantage, data["cost_advantage"], multiplier.violation(COSTS[index])))
     terms = ("loss_critic", "loss_cost_critic")
-    critic_step = GradientStep(loss.critic_losses, optimizer, terms,
-                               (ClipGroup([*critic.parameters(), *cost_critic.parameters()]),), cfg.max_grad_norm,
-                               foreach=True)
     inputs = data.select(*(key for key in loss.in_keys if key in data.keys()))
-    _, _, means = run_passes(inputs, critic_step, passes=cfg.update_iters, order=shuffled_slices(cfg.minibatch_size),
-                             generator=torch.Generator().manual_seed(SEEDS[index]), metrics=terms)
+    params, generator = [*critic.parameters(), *cost_critic.parameters()], torch.Generator().manual_seed(SEEDS[index])
+    sums, steps = dict.fromkeys(terms, 0.0), 0
+    for _ in range(cfg.update_iters):  # SafePO's critic loop: a permutation per pass cut into minibatches
+        permutation = torch.randperm(len(inputs), generator=generator)
+        for start in range(0, len(inputs), cfg.minibatch_size):
+            out = loss.critic_losses(inputs[permutation[start : start + cfg.minibatch_size]])
+            optimizer.zero_grad(set_to_none=True)
+            (out[terms[0]] + out[terms[1]]).backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm, foreach=True)
+            optimizer.step()
+            sums = {name: total + out[name].item() for name, total in sums.items()}
+            steps += 1
+    means = {name: total / steps for name, total in sums.items()}
     metrics.update({"Train/StopIter": cfg.update_iters, "Loss/Loss_reward_critic": means["loss_critic"],
                     "Loss/Loss_cost_critic": means["loss_cost_critic"]})
     return metrics, (actor, critic, cost_critic)

@@ -33,7 +33,6 @@ MLPs use PyTorch's default ``Linear`` initialisation, like the single-agent netw
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
@@ -53,8 +52,6 @@ __all__ = [
     "PerAgentMLP",
     "make_multi_agent_networks",
 ]
-
-_HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
 class PerAgentMLP(MultiAgentMLP):
@@ -184,10 +181,6 @@ class AgentGaussianHead(nn.Module):
         """The scale of every slot, shape ``[padded_size]`` (1 on padding slots)."""
         pad = self.padded_size - self.action_size
         return nn.functional.pad(self.std(), (0, pad), value=1.0)
-
-    def entropy(self) -> Tensor:
-        """Entropy of the agent's policy over its real dims (the same in every state)."""
-        return (_HALF_LOG_2PI_E + self.std().log()).sum()
 
     def forward(self, raw_loc: Tensor) -> tuple[Tensor, Tensor]:
         loc = raw_loc.masked_fill(~self.mask, 0.0)
@@ -365,11 +358,6 @@ class MultiAgentNetworks(nn.Module):
 
     def agent_cost_critic(self, index: int) -> TensorDictModule:
         return self._agent_modules[index][2]
-
-    def agent_entropy(self, index: int) -> Tensor:
-        """Agent ``index``'s policy entropy over its real action dims (state-independent std), detached."""
-        with torch.no_grad():
-            return self.policy.heads[index].entropy()
 
 
 def _probabilistic_actor(

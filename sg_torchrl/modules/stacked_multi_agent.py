@@ -41,13 +41,15 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
-from sg_torchrl.modules.multi_agent import _HALF_LOG_2PI_E, MultiAgentNetworks
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 
 __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 
 #: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
 NETWORKS = ("policy", "reward_value", "cost_value")
 _HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
+#: A Normal's entropy less its log-scale, per action dim.
+_HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
 def _linear_layers(net: nn.Module) -> list[nn.Linear]:

@@ -11,9 +11,8 @@
   :class:`PessimisticPPOLagLoss`, PPO-Lag with a pessimistic cost clip (beyond the paper). Their math is
   one :class:`~sg_torchrl.objectives.surrogates.Surrogate` each (:mod:`sg_torchrl.objectives.surrogates`).
 * :func:`gaussian_kl`: closed-form KL between diagonal Gaussian policies (KL early stop).
-* :func:`run_passes`, :class:`GradientStep`, :class:`ClipGroup` and the minibatch orders
-  (:func:`shuffled_slices`, :func:`shuffled_chunks`, :func:`whole_batch`): the one minibatch update
-  loop that the seed-group passes and the multi-agent rounds share (:mod:`sg_torchrl.objectives.passes`).
+* :func:`run_passes` (and :func:`whole_batch`): the one minibatch update loop that the seed-group
+  passes and the multi-agent rounds share (:mod:`sg_torchrl.objectives.passes`).
 * :class:`NaturalPolicyStep`, :class:`TRPOStep`, :class:`CPOStep`, :class:`PCPOStep`: trust-region
   policy steps (NPG / RCPO, TRPO / TRPO-Lag, CPO, PCPO) of one TorchRL actor, the one-seed case of
   the seed-batched step (:mod:`sg_torchrl.objectives.stacked_trust_region`) and of the second-order
@@ -32,15 +31,7 @@ from sg_torchrl.objectives.ppo_lag import PPOLagLoss
 from sg_torchrl.objectives.first_order import CUPLoss, FOCOPSLoss, PGLoss
 from sg_torchrl.objectives.pessimistic import PessimisticPPOLagLoss
 from sg_torchrl.objectives.value import AdvantageEstimation, make_cost_gae, make_gae, normalize_advantages
-from sg_torchrl.objectives.passes import (
-    ClipGroup,
-    GradientStep,
-    PassesReport,
-    run_passes,
-    shuffled_chunks,
-    shuffled_slices,
-    whole_batch,
-)
+from sg_torchrl.objectives.passes import PassesReport, run_passes, whole_batch
 from sg_torchrl.objectives.second_order import (
     backtracking_line_search,
     conjugate_gradient,
@@ -80,12 +71,8 @@ __all__ = [
     "make_cost_gae",
     "make_gae",
     "normalize_advantages",
-    "ClipGroup",
-    "GradientStep",
     "PassesReport",
     "run_passes",
-    "shuffled_chunks",
-    "shuffled_slices",
     "whole_batch",
     "backtracking_line_search",
     "conjugate_gradient",
