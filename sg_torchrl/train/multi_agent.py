@@ -75,8 +75,8 @@ def num_minibatches(cfg: TrainConfig) -> int:
 
 
 def _common(cfg: TrainConfig) -> dict[str, Any]:
-    """Options every round takes (:class:`~sg_torchrl.objectives.multi_agent.MultiAgentPPOUpdate`,
-    :class:`~sg_torchrl.objectives.multi_agent.MACPOUpdate`)."""
+    """Options every round takes (:class:`~sg_torchrl.train.multi_agent_updates.MultiAgentPPOUpdate`,
+    :class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`)."""
     options: dict[str, Any] = dict(
         cost_limit=cfg.cost_limit, gamma=cfg.gamma, critic_lr=cfg.critic_lr, max_grad_norm=cfg.max_grad_norm,
         clip_epsilon=cfg.clip_ratio,

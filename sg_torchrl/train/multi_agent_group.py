@@ -26,7 +26,7 @@ each exactly as the group of that seed alone, which is its single-seed run: ``sg
   (:attr:`round`, built by the algorithm's round class for all seeds, ``for_seeds``; each seed's agent
   orders and minibatch shuffles from its own generator, seeded as its single-seed run seeds it).
   At each stage the agent of every seed is updated in one call
-  (:class:`~sg_torchrl.objectives.multi_agent.SeedBatchedRound`: MAPPO, HAPPO and MAPPO-Lag's clipped-PPO
+  (:class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound`: MAPPO, HAPPO and MAPPO-Lag's clipped-PPO
   epochs, MACPO's stacked CPO step and critic epochs).
 
 The S = 1 run is the same code as a group's, and every operation of the seed-batched round rounds a row
