@@ -9,8 +9,9 @@ What is compared, and how closely:
   recorded numbers; MAPPO-Lag, MACPO, HAPPO), two epochs: every entry of both epochs' batches (observations, actions, log-probs,
   rewards, costs, dones, state) bit for bit, every ``progress.csv`` column but the timings, the
   evaluation and the parameters after the run **exactly** (tolerance 0). The group stacks the seeds'
-  networks and acts for every seed in one call, each seed's noise from its own generator, and runs each
-  seed's round on its own block of the batch, so nothing is rounded differently;
+  networks and acts for every seed in one call, each seed's noise from its own generator, and updates
+  the seeds' agents of a stage in one call whose every operation rounds a row as it rounds it alone
+  (``addmm`` per row, per-seed reductions), so nothing is rounded differently;
 * **the stacked networks**: the one-call policy against each seed's team actor (noise from the global
   RNG at the same state) bit for bit, frozen seeds idle; each team's parameters are views of the stack;
 * **resume**: a group checkpointed after epoch 1 and continued equals the uninterrupted group bit for
