@@ -3,14 +3,8 @@
 PPO-Lag (Ray et al. 2019, "Benchmarking Safe Exploration in Deep Reinforcement Learning"; the
 SafePO implementation benchmarked in Ji et al. 2023, "Safety-Gymnasium: A Unified Safe
 Reinforcement Learning Benchmark") optimises the PPO clipped surrogate on the Lagrangian
-advantage
-
-.. math::
-
-    A = \\frac{A_r - \\lambda A_c}{1 + \\lambda},
-
-trains a reward critic and a cost critic, and adapts :math:`\\lambda \\ge 0` once per epoch from the
-mean episode cost. In sg_torchrl the three concerns are separate objects:
+advantage :math:`A = (A_r - \\lambda A_c) / (1 + \\lambda)`, trains a reward critic and a cost
+critic, and adapts :math:`\\lambda \\ge 0` once per epoch from the mean episode cost. In sg_torchrl the three concerns are separate objects:
 
 * :class:`PPOLagLoss` (this module) computes the surrogate and both critic losses; it reads the
   multiplier's current :attr:`~sg_torchrl.objectives.Multiplier.value` and never updates it;
@@ -456,8 +450,15 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
                 f"seed-batched engine cannot train it as defined. Give the loss a Surrogate (the 'surrogate' "
                 f"property) instead of overriding the hooks, or define seed_batched_objective()."
             )
+        self.refuse_unbatched_options("the seed-batched engine", entropy_bonus=bool(self.entropy_bonus))
+        l2 = 0.0 if self.critic_l2_coeff is None else float(self.critic_l2_coeff)
+        surrogate = None if critics_only else self.surrogate
+        return SeedBatchedObjective(surrogate, combine=self.multiplier.combine_rule, critic_l2=l2)
+
+    def refuse_unbatched_options(self, engine: str, **more: bool) -> None:
+        """Raise ``ValueError`` naming the options used here that ``engine``'s form lacks (``more``: name -> used)."""
         unsupported = {
-            "entropy_bonus": bool(self.entropy_bonus),
+            **more,
             "clip_value": self.clip_value is not None,
             "loss_critic_type != 'l2'": self.loss_critic_type != "l2",
             "critic_coeff != 1": self.critic_coeff is not None and float(self.critic_coeff) != 1.0,
@@ -466,10 +467,7 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
         }
         used = [name for name, present in unsupported.items() if present]
         if used:
-            raise ValueError(f"the seed-batched engine does not implement: {', '.join(used)}")
-        l2 = 0.0 if self.critic_l2_coeff is None else float(self.critic_l2_coeff)
-        surrogate = None if critics_only else self.surrogate
-        return SeedBatchedObjective(surrogate, combine=self.multiplier.combine_rule, critic_l2=l2)
+            raise ValueError(f"{engine} does not implement: {', '.join(used)}")
 
     def _unbatched_overrides(self) -> list[str]:
         """The math hooks this object's class redefines below the class that defines ``seed_batched_objective``.

@@ -146,17 +146,7 @@ class AgentPPOLoss(PPOLagLoss, MAPPOLoss):
                 seed-batched form does not implement (value clipping, non-MSE critics, critic coefficients
                 other than 1, ``delay_actor`` / ``max_importance_ratio``).
         """
-        unsupported = {
-            "critics_only": critics_only,
-            "clip_value": self.clip_value is not None,
-            "loss_critic_type != 'l2'": self.loss_critic_type != "l2",
-            "critic_coeff != 1": self.critic_coeff is not None and float(self.critic_coeff) != 1.0,
-            "cost_critic_coeff != 1": float(self.cost_critic_coeff) != 1.0,
-            "delay_actor / max_importance_ratio": bool(self.delay_actor) or self.max_importance_ratio is not None,
-        }
-        used = [name for name, present in unsupported.items() if present]
-        if used:
-            raise ValueError(f"the seed-batched multi-agent round does not implement: {', '.join(used)}")
+        self.refuse_unbatched_options("the seed-batched multi-agent round", critics_only=critics_only)
         return AgentObjective(self.surrogate, combine=self.multiplier.combine_rule, weighted=self.weighted,
                               entropy_coeff=float(self.entropy_coeff) if self.entropy_bonus else 0.0,
                               critic_l2=0.0 if self.critic_l2_coeff is None else float(self.critic_l2_coeff))
