@@ -542,3 +542,14 @@ def test_rounds_on_a_multi_agent_env_rollout(env_id):
     for update_class in UPDATES:
         metrics = update_class(nets)(td, 30.0)
         assert TEAM_METRICS <= metrics.keys() and all(math.isfinite(v) for v in metrics.values())
+
+
+def test_seed_batched_objective_rejects_what_the_round_lacks():
+    # The multi-agent round's form of AgentPPOLoss names every option it would silently drop.
+    nets = make_nets([3, 2])
+    triple = (nets.agent_actor(0), nets.agent_critic(0), nets.agent_cost_critic(0))
+    with pytest.raises(ValueError, match="multi-agent round does not implement: clip_value"):
+        AgentPPOLoss(*triple, NoMultiplier(), clip_value=0.2, functional=False).seed_batched_objective()
+    with pytest.raises(ValueError, match="critics_only"):
+        AgentPPOLoss(*triple, NoMultiplier(), functional=False).seed_batched_objective(critics_only=True)
+    assert AgentPPOLoss(*triple, NoMultiplier(), functional=False).seed_batched_objective().entropy_coeff == pytest.approx(0.01)
