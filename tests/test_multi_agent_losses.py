@@ -19,6 +19,7 @@ from torch import distributions as D  # noqa: E402
 from torchrl.modules import PopArtValueNorm  # noqa: E402
 
 from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
+from sg_torchrl.modules.stacked_multi_agent import AgentRows  # noqa: E402
 from sg_torchrl.objectives import gaussian_kl, NoMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.objectives.multi_agent import (  # noqa: E402
     agent_view,
@@ -267,15 +268,18 @@ class TestSequentialUpdate:
         torch.testing.assert_close(received[1], hand)
         assert (hand - 1).abs().max() > 1e-2  # agent 0 really moved: the check is not trivial
 
-    @pytest.mark.parametrize(("target_kl", "max_grad_norm"), [(None, 10.0), (0.005, 10.0), (None, 0.05)],
-                             ids=["no KL stop", "KL stop", "every network clipped"])
-    def test_a_users_loop_over_agent_ppo_loss_is_the_rounds_update(self, target_kl, max_grad_norm):
+    @pytest.mark.parametrize(("target_kl", "max_grad_norm", "minibatches"),
+                             [(None, 10.0, 2), (0.005, 10.0, 2), (None, 0.05, 2), (0.005, 10.0, 1), (1e9, 10.0, 1)],
+                             ids=["no KL stop", "KL stop", "every network clipped", "KL stop, whole batch",
+                                  "whole batch, KL never stops"])
+    def test_a_users_loop_over_agent_ppo_loss_is_the_rounds_update(self, target_kl, max_grad_norm, minibatches):
         """S = 1: each agent's AgentPPOLoss, torch.optim.Adam, the per-network clip, the multiplier step after every
-        step, the KL stop and the factor by hand give what the seed-batched round gives, to float rounding."""
+        step, the KL stop and the factor by hand give what the seed-batched round gives, to float rounding (with one
+        minibatch per pass, the round's steps take the actor evaluation of the KL pass before them)."""
         nets = make_nets([3, 2], seed=3)
         td = make_rollout(nets, seed=3)
         mine = copy.deepcopy(nets)
-        update = MAPPOLagUpdate(nets, epochs=4, num_minibatches=2, target_kl=target_kl, multiplier_init=0.1,
+        update = MAPPOLagUpdate(nets, epochs=4, num_minibatches=minibatches, target_kl=target_kl, multiplier_init=0.1,
                                 multiplier_lr=0.5, actor_lr=1e-2, max_grad_norm=max_grad_norm,
                                 generator=torch.Generator().manual_seed(4))
         metrics = update(td, 40.0)
@@ -298,7 +302,7 @@ class TestSequentialUpdate:
                 old = actor.get_dist(view.select("observation"))
                 before = old.log_prob(view["action"])
             for epoch in range(1, 5):
-                for index in torch.randperm(N * T, generator=generator).chunk(2):
+                for index in torch.randperm(N * T, generator=generator).chunk(2) if minibatches == 2 else [...]:
                     out = loss(view[index])
                     opt.zero_grad()
                     sum(out[k] for k in ("loss_objective", "loss_critic", "loss_cost_critic", "loss_entropy")).backward()
@@ -318,9 +322,25 @@ class TestSequentialUpdate:
             torch.testing.assert_close(agent_params(nets, i), agent_params(mine, i), rtol=1e-5, atol=1e-6)
             assert float(update.multipliers[i].value) == pytest.approx(float(multipliers[i].value), rel=1e-5)
             assert metrics[f"Train/StopIter/agent{i}"] == stops[i]
-        if target_kl is not None:
+        if target_kl is not None and target_kl < 1:
             assert min(stops.values()) < 4  # the stop fired: the check is not trivial
         assert all(clipped) == (max_grad_norm < 1)  # each network clipped on its own at every step
+
+    @pytest.mark.parametrize(("minibatches", "evaluations"), [(1, 2 * (1 + 4)), (2, 2 * (1 + 4 + 4 * 2))])
+    def test_the_round_evaluates_the_actor_once_per_pass_with_one_minibatch(self, monkeypatch, minibatches,
+                                                                             evaluations):
+        """Per stage: the old policy and each pass's KL evaluation; with one minibatch per pass the step after each
+        of those takes it (4 epochs, 2 agents, no stop), with two every step evaluates its minibatch."""
+        nets = make_nets([3, 2], seed=3)
+        td = make_rollout(nets, seed=3)
+        calls = []
+        dist_params = AgentRows.dist_params
+        monkeypatch.setattr(AgentRows, "dist_params", lambda rows, obs: calls.append(1) or dist_params(rows, obs))
+        update = MAPPOLagUpdate(nets, epochs=4, num_minibatches=minibatches, target_kl=1e9,
+                                generator=torch.Generator().manual_seed(4))
+        metrics = update(td, 40.0)
+        assert [metrics[f"Train/StopIter/agent{i}"] for i in range(2)] == [4, 4]
+        assert len(calls) == evaluations
 
     def test_mappo_is_independent_per_agent_ppo(self):
         nets = make_nets([3, 2, 1], seed=2)

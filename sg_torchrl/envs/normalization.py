@@ -125,14 +125,21 @@ class RunningObservationNorm(Transform):
             raise ValueError(f"a batch of {batch.shape[0]} does not split into {self.groups} equal blocks")
         return batch.reshape(self.groups, -1, *self.shape).to(torch.float64)
 
+    def _samples(self, batch: torch.Tensor) -> torch.Tensor:
+        """``batch`` in float64 as ``(M, *shape)``, or with ``groups`` as ``(G, -1, *shape)`` (:meth:`_blocks`)."""
+        return batch.reshape(-1, *self.shape).to(torch.float64) if self.groups is None else self._blocks(batch)
+
     @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
         """Merge the moments of ``batch`` (any leading dims; per block with ``groups``) into the statistics."""
+        self._merge(self._samples(batch))
+
+    def _merge(self, flat: torch.Tensor) -> None:
+        """:meth:`update` on ``batch`` already in :meth:`_samples`' float64 layout."""
         if self.groups is None:
-            flat, dim, count = batch.reshape(-1, *self.shape).to(torch.float64), 0, self.count
+            dim, count = 0, self.count
         else:
-            flat, dim = self._blocks(batch), 1
-            count = self.count.view(-1, *([1] * len(self.shape)))
+            dim, count = 1, self.count.view(-1, *([1] * len(self.shape)))
         batch_count = flat.shape[dim]
         batch_mean = flat.mean(dim)
         batch_var = flat.var(dim, unbiased=False)
@@ -143,19 +150,26 @@ class RunningObservationNorm(Transform):
         self.var.copy_(m2 / total)
         self.count += batch_count
 
+    @torch.no_grad()
     def _step(self, tensordict, next_tensordict):
         # Statistics learn from stepped observations only: on a partial reset the reset
         # TensorDict also carries the other simulators' observations, already counted here.
-        if not self.frozen:
-            for key in self.in_keys:
-                self.update(next_tensordict.get(key))
-        return self._call(next_tensordict)
+        # Each entry goes to float64 once, for the update and the normalisation (the same values).
+        for key in self.in_keys:
+            obs = next_tensordict.get(key)
+            samples = self._samples(obs)
+            if not self.frozen:
+                self._merge(samples)
+            next_tensordict.set(key, self._normalized(samples, obs))
+        return next_tensordict
 
     def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
-        if self.groups is None:
-            return standardize(obs, self.mean, self.var, self.epsilon).to(obs.dtype)
-        mean, var = self.mean.unsqueeze(1), self.var.unsqueeze(1)
-        return standardize(self._blocks(obs), mean, var, self.epsilon).reshape(obs.shape).to(obs.dtype)
+        return self._normalized(self._samples(obs), obs)
+
+    def _normalized(self, samples: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """``obs`` normalised, from its float64 :meth:`_samples`, in ``obs``'s shape and dtype."""
+        mean, var = (self.mean, self.var) if self.groups is None else (self.mean.unsqueeze(1), self.var.unsqueeze(1))
+        return standardize(samples, mean, var, self.epsilon).reshape(obs.shape).to(obs.dtype)
 
     def _reset(self, tensordict, tensordict_reset):
         return self._call(tensordict_reset)

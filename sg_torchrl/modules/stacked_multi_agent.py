@@ -211,9 +211,9 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
             idle = torch.ones(seeds, dtype=torch.bool)
             idle[live] = False
             scale = torch.where(idle.view(-1, 1, 1, 1), 1.0, scale)
-        shape = loc.shape[1:]
-        noise = torch.stack([torch.empty(shape, dtype=loc.dtype).normal_(generator=self.generators[s])
-                             if s in live else loc.new_zeros(shape) for s in range(seeds)])
+        noise = torch.zeros_like(loc) if idle is not None else torch.empty_like(loc)
+        for s in live:  # each seed's block drawn as its own run draws it: one (N, A, Da) normal_
+            noise[s].normal_(generator=self.generators[s])
         action = loc + noise * scale  # Normal.rsample: loc + eps * scale
         # Normal.log_prob, summed over the action dims (Independent)
         log_prob = (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI).sum(-1)

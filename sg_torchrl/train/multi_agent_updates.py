@@ -122,8 +122,15 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
         batch = self._stage_data(seeds, agents, fields, factor)
         rows = self.networks.agent_rows(seeds, agents)
         observation, action = batch["observation"], batch["action"]
+        # The actor on the whole batch is evaluated before the first pass (the old policy) and after each
+        # pass (the KL); with one minibatch per pass the next step needs exactly that evaluation, so it is
+        # taken with its graph and handed to that step instead of evaluated again.
+        reuse = self.num_minibatches == 1
+        with torch.set_grad_enabled(reuse):
+            policy_now: tuple[Tensor, Tensor] | None = rows.dist_params(observation)  # at the rows' parameters now
+        old_loc, old_scale = (t.detach() for t in policy_now)
+        pending = policy_now if reuse else None  # the evaluation the next whole-batch step takes
         with torch.no_grad():
-            old_loc, old_scale = rows.dist_params(observation)
             before = gaussian_log_prob(action, old_loc, old_scale)
         optimizer = self._optimizer(rows, seeds, agents)
         multipliers = [self.team_multipliers[int(s)][int(a)] for s, a in zip(seeds, agents)]
@@ -136,8 +143,10 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
         means = RowMeans(STEP_METRICS, (live,))
 
         def step(minibatch: SeedBatch):
-            nonlocal lam
-            out = self.objective.losses(rows, minibatch.fields(), lam, value_norm, active)
+            nonlocal lam, pending
+            policy = pending if minibatch is batch else None
+            pending = None
+            out = self.objective.losses(rows, minibatch.fields(), lam, value_norm, active, policy)
             total = out["loss_objective"] + out["loss_critic"] + out["loss_cost_critic"] + out["loss_entropy"]
             rows.zero_grad()
             total.sum().backward()
@@ -151,15 +160,17 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
             return out, ()
 
         done = 0
-        policy_now: tuple[Tensor, Tensor] | None = None  # the rows' policy as it is after their last pass
 
         def go_on() -> bool:
-            nonlocal done, kl, policy_now
+            nonlocal done, kl, policy_now, pending
             done += 1
             passes.add_(active.to(torch.float64))
             if self.target_kl is not None or done == self.epochs:  # always so after the last pass
-                with torch.no_grad():
+                handed_on = reuse and done < self.epochs  # the next pass's step may take it
+                with torch.set_grad_enabled(handed_on):
                     policy_now = rows.dist_params(observation)
+                pending = policy_now if handed_on else None
+                with torch.no_grad():
                     now = gaussian_kl(old_loc, old_scale, *policy_now).mean(1)
                 kl = torch.where(active, now, kl)
                 if self.target_kl is not None:

@@ -86,7 +86,7 @@ class AgentObjective:
             return sample_mean(log_weight.exp() * cost_advantage, seed_dims)
 
     def losses(self, rows, batch: Mapping[str, Tensor], lam: Tensor, value_norm: PopArtValueNorm | None,
-               active: Tensor | None = None) -> dict[str, Tensor]:
+               active: Tensor | None = None, policy: tuple[Tensor, Tensor] | None = None) -> dict[str, Tensor]:
         """Each row's losses and diagnostics on its minibatch, ``(S,)`` each.
 
         ``rows``: the rows' networks (:class:`~sg_torchrl.modules.stacked_multi_agent.AgentRows`:
@@ -94,12 +94,14 @@ class AgentObjective:
         fields ``observation``, ``state``, ``action``, ``action_log_prob``, ``advantage``, ``cost_advantage``,
         ``value_target``, ``cost_value_target`` (and ``factor`` when weighted); ``lam``: ``(S,)``;
         ``value_norm``: the rows' PopArt statistics (:func:`seed_popart`), updated here with the targets
-        of the rows in ``active`` (all when ``None``); the others keep theirs.
+        of the rows in ``active`` (all when ``None``); the others keep theirs. ``policy``: the rows'
+        ``rows.dist_params(batch["observation"])`` when the caller already has it (with its graph, at the
+        rows' current parameters), so it is not evaluated twice.
 
         Returns ``loss_objective``, ``loss_entropy``, ``loss_critic``, ``loss_cost_critic`` (the terms a step
         sums) and ``mean_ratio``, ``cost_surrogate`` (detached).
         """
-        loc, scale = rows.dist_params(batch["observation"])
+        loc, scale = rows.dist_params(batch["observation"]) if policy is None else policy
         log_weight = gaussian_log_prob(batch["action"], loc, scale).unsqueeze(-1) - batch["action_log_prob"]
         cost_advantage = batch["cost_advantage"]
         advantage = self.advantage(batch["advantage"], cost_advantage, lam, batch.get("factor"))
