@@ -376,3 +376,26 @@ def test_a_stopped_sweep_checkpoints_its_cell_and_the_same_command_finishes_it(r
     assert (second["status"], second["resumed"]) == ("done", True) and second["epochs_before"] >= stopped_at
     assert final_results(directory) == final_results(finished_sweep.grid.cell_dir(cell_of(finished_sweep.grid,
                                                                                             "ppo_lag")))
+
+
+def test_a_cell_task_takes_rays_cancel_where_sigint_is_ignored():
+    """A sweep started in the background (``sg-sweep ... &``, ``nohup``) ignores SIGINT, and so do the local Ray
+    workers it starts. Ray cancels a running task with a simulated SIGINT (``_thread.interrupt_main``), which
+    does nothing where SIGINT is ignored, so the sweep's stop never reached its cells; the cell task takes SIGINT
+    back first (``accept_cancel``)."""
+    script = "\n".join([
+        "import _thread, signal, time",
+        "from sg_torchrl.sweep.cell import accept_cancel",
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)",
+        "_thread.interrupt_main()",  # ignored, as Ray's cancel was
+        "time.sleep(0.2)",
+        "accept_cancel()",
+        "try:",
+        "    _thread.interrupt_main()",
+        "    time.sleep(10)",
+        "    print('not cancelled')",
+        "except KeyboardInterrupt:",
+        "    print('cancelled')",
+    ])
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert (result.returncode, result.stdout.strip()) == (0, "cancelled"), result.stderr[-2000:]

@@ -12,7 +12,10 @@ the worker itself trains because:
   "finish this epoch, checkpoint, stop" (:mod:`sg_torchrl.train.interrupt`), so a killed worker loses at
   most the epoch under way and whatever ran since the last checkpoint;
 * Ray's cancel (the sweep's Ctrl-C) raises ``KeyboardInterrupt`` in the task, which passes it on to the
-  child as ``SIGINT``: the same checkpointed stop;
+  child as ``SIGINT``: the same checkpointed stop. Ray raises it as a simulated ``SIGINT``
+  (``_thread.interrupt_main``), which does nothing where ``SIGINT`` is ignored, as it is in a sweep started in
+  the background (``sg-sweep ... &``, ``nohup``) and in the local Ray workers it starts; so the task takes
+  ``SIGINT`` back (:func:`accept_cancel`) before it waits for its child;
 * the child runs in its own session, so a Ctrl-C at the sweep's terminal reaches it only through the sweep.
 
 How a child's exit maps to the task's outcome: 0, or 1 with a summary (every seed diverged), is a finished
@@ -33,6 +36,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -155,6 +159,15 @@ def check_storage(output_dir: Path, token: str) -> None:
             "checkpoints wherever Ray runs them")
 
 
+def accept_cancel() -> None:
+    """Let Ray's cancel reach this task: restore Python's ``SIGINT`` handler where ``SIGINT`` is ignored.
+
+    Only in the main thread (where Ray runs a task and where a handler can be set); elsewhere nothing changes.
+    """
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], arguments: list[str]) -> dict[str, Any]:
     """Train one cell to its end (or continue it), in ``<output_dir>/<run_name>``.
 
@@ -173,6 +186,7 @@ def run_cell(output_dir: str, token: str, run_name: str, seeds: list[int], argum
         RunWriteError: the cell's directory, lock, log or attempt record cannot be written (the cell fails).
         ValueError: ``run_name`` leaves ``output_dir`` (absolute, or a ``..`` part).
     """
+    accept_cancel()
     root = Path(output_dir)
     check_storage(root, token)
     check_run_name(run_name)  # a cell's files stay inside the sweep's output directory
