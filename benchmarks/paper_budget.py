@@ -13,7 +13,7 @@ and reports it once finished::
     nice python benchmarks/paper_budget.py                # start, or continue from the checkpoint
     python benchmarks/paper_budget.py --report-only       # the table so far (finished or not)
 
-Results go to ``benchmarks/paper_budget/<env>/<algo>/seeds-0-1-2/`` (config, progress and summaries
+Results go to ``benchmarks/sweeps/halfcheetah_10m/<env>/<algo>/seeds-0-1-2/`` (config, progress and summaries
 are committed; checkpoints, wandb and CSV logs stay local, see ``.gitignore``).
 """
 
@@ -31,7 +31,7 @@ from sg_torchrl.sweep.report import PAPER_NAMES, load_paper_results, paper_env_n
 
 HERE = Path(__file__).resolve().parent
 
-OUTPUT = HERE / "paper_budget"
+OUTPUT = HERE / "sweeps" / "halfcheetah_10m"  # its column's sweep: the report draws the cell with the others
 
 
 def group_dir(args: argparse.Namespace) -> Path:

@@ -1,6 +1,6 @@
 """Does this tree still train a committed run to the same numbers? Re-run its first epochs and compare.
 
-A committed benchmark run (``benchmarks/paper_budget/...``, ``benchmarks/sweeps/...``, ``benchmarks/runs/...``)
+A committed benchmark run (``benchmarks/sweeps/...``, ``benchmarks/runs/...``)
 holds its ``config.json`` and each seed's ``progress.csv``. Training is deterministic on one machine
 kind (seeded simulators, seeded networks and streams; ``tests/test_golden_equivalence.py``), so a
 tree that reproduces the first epochs of a run bit for bit trains the whole run to its committed
@@ -11,7 +11,7 @@ a temporary directory (the recorded budget, which sets the learning-rate schedul
 epochs; no evaluation, wandb off: they change no training number) and compares every progress column but the timings (``Time/*``), per seed and
 epoch, exactly.
 
-    python benchmarks/reproduce_run.py benchmarks/paper_budget/SafetyHalfCheetahVelocity-v1/ppo_lag/seeds-0-1-2 --epochs 2
+    python benchmarks/reproduce_run.py benchmarks/sweeps/halfcheetah_10m/SafetyHalfCheetahVelocity-v1/ppo_lag/seeds-0-1-2 --epochs 2
 """
 
 from __future__ import annotations

@@ -235,9 +235,10 @@ def test_write_report_works_on_a_copied_directory(sweep, tmp_path, monkeypatch):
 
 
 def test_real_paper_budget_group(tmp_path):
-    # The committed 10M-step PPO-Lag group on SafetyHalfCheetahVelocity-v1 (benchmarks/paper_budget).
+    # The committed 10M-step PPO-Lag group on SafetyHalfCheetahVelocity-v1, alone in a copy of its column.
+    cell = Path("SafetyHalfCheetahVelocity-v1") / "ppo_lag"
     copy = tmp_path / "paper_budget"
-    shutil.copytree(PROJECT / "benchmarks" / "paper_budget", copy,
+    shutil.copytree(PROJECT / "benchmarks" / "sweeps" / "halfcheetah_10m" / cell, copy / cell,
                     ignore=shutil.ignore_patterns("*.png", "checkpoint*", "wandb", "csv"))
     paths = write_report(copy)
     with paths["table.csv"].open() as handle:
