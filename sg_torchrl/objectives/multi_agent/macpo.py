@@ -39,8 +39,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal
 
-from tensordict.nn import ProbabilisticTensorDictSequential
-
 from sg_torchrl.algorithms.manifest import MACPO_STEP_DEFAULTS
 from sg_torchrl.objectives.second_order import Linearisation
 from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
@@ -99,11 +97,8 @@ class MACPOStep(MACPORule, TrustRegionStep):
         actor (ProbabilisticTensorDictSequential): one agent's policy (its parameters only).
 
     Keyword Args:
-        **kwargs: see :class:`MACPORule`.
+        **options: see :class:`MACPORule`.
     """
-
-    def __init__(self, actor: ProbabilisticTensorDictSequential, **kwargs: Any) -> None:
-        super().__init__(actor, **kwargs)
 
 
 class StackedMACPOStep(MACPORule, StackedTrustRegionStep):
