@@ -35,10 +35,9 @@ Usage, once per collected batch (after both GAEs, see
 the root ``"state"``. ``mean_episode_cost`` is :math:`J_c`, the mean undiscounted episode cost of
 the episodes finished in the rollout: a float for the team, or one value per agent.
 
-Defaults are the paper's multi-agent hyper-parameters (Safety-Gymnasium paper appendix: lr 5e-4
-for actor and critics, 5 epochs, 1 minibatch, clip 0.2, target KL 0.016, gamma 0.99) and SafePO's
-settings the paper does not list (Adam eps 1e-5, entropy coefficient 0.01, gradient-norm clip 10
-per network, PopArt value normalisation). Deviations from SafePO's scripts:
+Defaults are the paper's multi-agent hyper-parameters and, where it lists none, SafePO's (each option's
+in the classes' docstrings and :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound`'s).
+Deviations from SafePO's scripts:
 
 * the KL early stop at ``target_kl`` (the paper lists 0.016; SafePO's MaMuJoCo scripts never read
   it): after each epoch, stop the agent's epochs once :math:`\\mathrm{KL}(\\pi_{\\text{old}} \\|
@@ -47,7 +46,7 @@ per network, PopArt value normalisation). Deviations from SafePO's scripts:
   :class:`~sg_torchrl.objectives.multi_agent.AgentObjective`; no value clipping) instead of SafePO's Huber(10) with value
   clipping, where the cost values are normalised with the reward critic's PopArt statistics
   **[quirk]**;
-* GAE bootstraps truncated episodes (SafePO treats time-limit ends as terminal).
+* the GAEs bootstrap truncated episodes (:mod:`~sg_torchrl.objectives.multi_agent.advantages`).
 """
 
 from __future__ import annotations
@@ -259,7 +258,8 @@ class MACPOUpdate(SeedBatchedRound):
         target_kl, cg_iters, line_search_steps, step_fraction, max_step_norm, initial_step_fraction,
             cg_damping, ...: the step's options (:class:`~sg_torchrl.objectives.multi_agent.MACPORule`, which
             holds their defaults and refuses bad values here, at construction).
-        critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
+        critic_epochs (int): critic passes of Adam per agent and round. Defaults to ``15`` (the paper's
+            "SGD iters"; SafePO's script: one step at 5e-3).
         **kwargs: see :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound` (``cost_limit``,
             ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ``num_minibatches``, ...).
 

@@ -25,13 +25,9 @@ computes), fed :math:`M A_r` and :math:`M A^i_c` as advantages; only its step-si
 * the KL is summed over action dims (the agent's joint distribution; SafePO's MACPO does the same),
   conjugate gradient runs 10 iterations with damping 0.1.
 
-After its step each agent's critics take ``critic_epochs`` (15, the paper's "SGD iters") passes of
-Adam at 5e-4 (SafePO's script: one step at 5e-3 per round).
-
-The step-size policy is written once (:class:`MACPORule`) and serves one actor (:class:`MACPOStep`, the
-single-agent step on one row) and the rows of the seed-batched round (:class:`StackedMACPOStep`; the round
-is :class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`: at each stage the agent of every seed takes
-its CPO step in one stacked trust-region step and its critic epochs in one set of Adam steps).
+The step-size policy is written once (:class:`MACPORule`) for one actor (:class:`MACPOStep`) and for the
+rows of the seed-batched round (:class:`StackedMACPOStep`), whose stages and critic epochs are
+:class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`'s.
 """
 
 from __future__ import annotations
