@@ -18,6 +18,7 @@ from tensordict import TensorDict  # noqa: E402
 from torch import distributions as D  # noqa: E402
 from torchrl.modules import PopArtValueNorm  # noqa: E402
 
+from sg_torchrl.algorithms.manifest import MACPO_STEP_DEFAULTS  # noqa: E402
 from sg_torchrl.modules import MultiAgentNetworks, make_multi_agent_networks  # noqa: E402
 from sg_torchrl.modules.stacked_multi_agent import AgentRows  # noqa: E402
 from sg_torchrl.objectives import gaussian_kl, NoMultiplier, PPOLagLoss  # noqa: E402
@@ -481,6 +482,18 @@ class TestMACPO:
         assert metrics["Misc/StepNormRaw"] > 1e-3
         assert metrics["Misc/AcceptanceStep"] == 1.0
         assert metrics["Misc/FinalStepNorm"] == pytest.approx(0.1 * 1e-3, rel=1e-4)
+
+    def test_step_defaults_are_the_manifests(self):
+        step = MACPOStep(make_nets([2, 2]).agent_actor(0))
+        assert {name: getattr(step, name) for name in MACPO_STEP_DEFAULTS} == dict(MACPO_STEP_DEFAULTS)
+        assert MACPO_STEP_DEFAULTS["max_step_norm"] == 0.5 and MACPO_STEP_DEFAULTS["initial_step_fraction"] == 0.1
+
+    @pytest.mark.parametrize("name, value", [("max_step_norm", 0.0), ("initial_step_fraction", 1.5),
+                                             ("target_kl", 0.0), ("step_fraction", 1.0), ("cg_iters", 0),
+                                             ("cg_damping", -1.0)])
+    def test_round_refuses_bad_step_options_when_built(self, name, value):
+        with pytest.raises(ValueError, match=name):
+            MACPOUpdate(make_nets([2, 2]), **{name: value})
 
 
 # =========================================================================== all algorithms

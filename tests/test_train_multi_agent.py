@@ -28,6 +28,7 @@ from sg_torchrl.train.checkpoint import load_checkpoint  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from sg_torchrl.train.config import MULTI_AGENT_ALGORITHM_NAMES  # noqa: E402
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, num_minibatches  # noqa: E402
+from trainer_checks import assert_same_state  # noqa: E402
 
 ENV_ID = "Safety2x3HalfCheetahVelocity-v0"
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "multi_agent.py"
@@ -181,7 +182,7 @@ class TestTraining:
         # its round state (per-agent torch.optim.Adam state dicts, multipliers, PopArt, generator) is read into the
         # seed-batched round's stacks and written back unchanged
         loaded = MultiAgentGroupTrainer(tiny_config(tmp_path / "loaded", **options), saved)
-        assert_same(loaded.round.seed_state_dict(0), saved["update"])
+        assert_same_state(loaded.round.seed_state_dict(0), saved["update"], "update", timings=True, nan_equal=False)
         assert main(["--resume", str(old), "--progress", "false"]) == 0
         fresh = MultiAgentGroupTrainer(tiny_config(tmp_path / "new", **options))
         fresh.run()
@@ -197,22 +198,6 @@ class TestTraining:
         assert resumed[0].keys() == expected[0].keys()
         assert all(resumed[0][key] == pytest.approx(value, rel=1e-5, abs=1e-6) for key, value in expected[0].items())
         assert load_checkpoint(old)["epoch"] == 2
-
-
-def assert_same(mine, theirs, where="") -> None:
-    """Nested dicts / lists of tensors and plain values, equal exactly."""
-    if isinstance(theirs, dict):
-        assert mine.keys() == theirs.keys(), where
-        for key in theirs:
-            assert_same(mine[key], theirs[key], f"{where}/{key}")
-    elif isinstance(theirs, (list, tuple)):
-        assert len(mine) == len(theirs), where
-        for index, (a, b) in enumerate(zip(mine, theirs)):
-            assert_same(a, b, f"{where}/{index}")
-    elif isinstance(theirs, torch.Tensor):
-        assert mine.dtype == theirs.dtype and torch.equal(mine, theirs), where
-    else:
-        assert mine == theirs, where
 
 
 @pytest.mark.timeout(120)

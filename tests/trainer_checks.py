@@ -39,22 +39,28 @@ def recording(trainer) -> list:
     return batches
 
 
-def assert_same_state(mine, theirs, path="entry"):
-    """Two checkpoint entries equal bit for bit (tensors with ``torch.equal``, the rest with ``==``), timings
-    (``Time/*`` of the progress rows they carry) aside."""
+def assert_same_state(mine, theirs, path="entry", *, timings=False, nan_equal=True):
+    """Two nested states (checkpoint entries, progress rows) equal bit for bit: tensors and arrays of the same
+    dtype with ``torch.equal`` / ``np.array_equal``, the rest with ``==``.
+
+    ``timings``: compare the ``Time/*`` entries of dicts too (else skipped: progress rows' timings differ);
+    ``nan_equal``: NaN equals NaN (a metric undefined in both).
+    """
+    options = dict(timings=timings, nan_equal=nan_equal)
     if isinstance(mine, TensorDictBase):
-        assert_same_state(mine.to_dict(), theirs.to_dict(), path)
+        assert_same_state(mine.to_dict(), theirs.to_dict(), path, **options)
     elif isinstance(mine, np.ndarray):
-        assert np.array_equal(mine, theirs, equal_nan=mine.dtype.kind == "f"), path
+        assert mine.dtype == theirs.dtype, path
+        assert np.array_equal(mine, theirs, equal_nan=nan_equal and mine.dtype.kind == "f"), path
     elif isinstance(mine, dict):
         assert mine.keys() == theirs.keys(), path
-        for key in (k for k in mine if not str(k).startswith("Time/")):
-            assert_same_state(mine[key], theirs[key], f"{path}[{key!r}]")
+        for key in (k for k in mine if timings or not str(k).startswith("Time/")):
+            assert_same_state(mine[key], theirs[key], f"{path}[{key!r}]", **options)
     elif isinstance(mine, (list, tuple)):
         assert len(mine) == len(theirs), path
         for i, (a, b) in enumerate(zip(mine, theirs)):
-            assert_same_state(a, b, f"{path}[{i}]")
+            assert_same_state(a, b, f"{path}[{i}]", **options)
     elif isinstance(mine, torch.Tensor):
-        assert torch.equal(mine, theirs), path
+        assert mine.dtype == theirs.dtype and torch.equal(mine, theirs), path
     else:
-        assert mine == theirs or (mine != mine and theirs != theirs), path
+        assert mine == theirs or (nan_equal and mine != mine and theirs != theirs), path

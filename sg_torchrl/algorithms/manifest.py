@@ -86,7 +86,8 @@ from types import MappingProxyType
 from typing import Any, Mapping
 
 __all__ = [
-    "AGENTS", "BASELINES", "ENTRIES", "FAMILIES", "MULTIPLIERS", "OFF_POLICY", "SECOND_ORDER", "UPDATES", "AlgorithmEntry",
+    "AGENTS", "BASELINES", "ENTRIES", "FAMILIES", "MACPO_STEP_DEFAULTS", "MULTIPLIERS", "OFF_POLICY", "SECOND_ORDER",
+    "UPDATES", "AlgorithmEntry",
     "UnknownAlgorithmError", "baseline", "get", "names", "resolve", "rows",
 ]
 
@@ -201,9 +202,17 @@ _MULTI_AGENT_DEFAULTS = dict(
     minibatch_size=10_000, target_kl=0.016, max_grad_norm=10.0, critic_l2=0.0, lagrangian_init=1e-5,
     lagrangian_lr=0.78, cg_iters=15, step_fraction=0.8, normalize_obs=True,
 )
-# MACPO: trust region 0.01, CG 10, 10 search steps of 0.5, 15 critic epochs ("SGD iters").
-_MACPO_DEFAULTS = dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, target_kl=0.01, update_iters=15, cg_iters=10,
-                       line_search_steps=10, step_fraction=0.5)
+#: MACPO's trust-region step, the one home of its defaults (read by
+#: :class:`~sg_torchrl.objectives.multi_agent.MACPORule`; the first four are also the macpo row's config
+#: values): the paper's trust region 0.01, CG 10 and 10 search steps of 0.5; SafePO's cap of 0.5 on the
+#: direction's norm and 0.1 of it tried first (``fraction_coef``).
+MACPO_STEP_DEFAULTS: Mapping[str, Any] = MappingProxyType(dict(
+    target_kl=0.01, cg_iters=10, line_search_steps=10, step_fraction=0.5, max_step_norm=0.5, initial_step_fraction=0.1,
+))
+# MACPO: its step's config fields and 15 critic epochs ("SGD iters").
+_MACPO_DEFAULTS = dict(_MULTI_AGENT_DEFAULTS, actor_lr=0.0, update_iters=15,
+                       **{name: MACPO_STEP_DEFAULTS[name] for name in ("target_kl", "cg_iters", "line_search_steps",
+                                                                       "step_fraction")})
 
 # OmniSafe's off-policy settings (module docstring); the on-policy fields they leave unused keep the
 # single-agent values so that every config validates alike.

@@ -13,7 +13,7 @@ change is made, in :class:`PerAgentMLP`: each agent's parameters are **separate 
 vmapped group forward. :class:`~torchrl.modules.MultiAgentMLP` stores one stacked tensor per
 layer instead, so an optimiser or a trust-region step could not touch one agent alone (Adam's
 moments would keep moving the other agents' slices). The sequential update
-(:mod:`sg_torchrl.objectives.multi_agent.sequential`) needs exactly that: at each stage only one
+(:mod:`sg_torchrl.train.multi_agent_updates`) needs exactly that: at each stage only one
 agent's parameters change.
 
 Heterogeneous partitions (e.g. Humanoid 9|8) are padded to the largest agent, as the env does:

@@ -74,53 +74,36 @@ def num_minibatches(cfg: TrainConfig) -> int:
     return max(1, -(-cfg.steps_per_epoch // cfg.minibatch_size))
 
 
-def _common(cfg: TrainConfig) -> dict[str, Any]:
-    """Options every round takes (:class:`~sg_torchrl.train.multi_agent_updates.MultiAgentPPOUpdate`,
-    :class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`)."""
-    options: dict[str, Any] = dict(
-        cost_limit=cfg.cost_limit, gamma=cfg.gamma, critic_lr=cfg.critic_lr, max_grad_norm=cfg.max_grad_norm,
-        clip_epsilon=cfg.clip_ratio,
-    )
-    if cfg.critic_l2:
-        options["loss_kwargs"] = {"critic_l2_coeff": cfg.critic_l2}
-    return options
-
-
-def _ppo_round(entry: AlgorithmEntry) -> MakeRound:
-    """A first-order row's round (MAPPO, HAPPO, MAPPO-Lag): its round class, with the multiplier's options
-    when the row has a Lagrange multiplier (MAPPO-Lag's, one per agent)."""
+def _round_builder(entry: AlgorithmEntry) -> MakeRound:
+    """A multi-agent row's round builder: its round class with the config's options, those of every round and
+    the update kind's: MACPO's CPO step and critic epochs (``cpo``), or the clipped-PPO epochs (``first_order``)
+    with the multiplier's options when the row has a Lagrange multiplier (MAPPO-Lag's, one per agent)."""
+    if entry.update not in ("first_order", "cpo"):
+        raise ValueError(f"algorithm {entry.name!r}: no multi-agent round for update kind {entry.update!r}")
     update_class = entry.round_class()
 
     def make(networks: StackedMultiAgentNetworks, cfg: TrainConfig, generators: Sequence[torch.Generator]) -> Any:
-        options = dict(actor_lr=cfg.actor_lr, epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg),
-                       target_kl=cfg.target_kl, **_common(cfg))
-        if entry.multiplier == "lagrange":
-            options.update(multiplier_init=cfg.lagrangian_init, multiplier_lr=cfg.lagrangian_lr)
+        options: dict[str, Any] = dict(
+            cost_limit=cfg.cost_limit, gamma=cfg.gamma, critic_lr=cfg.critic_lr, max_grad_norm=cfg.max_grad_norm,
+            clip_epsilon=cfg.clip_ratio, num_minibatches=num_minibatches(cfg), target_kl=cfg.target_kl,
+        )
+        if cfg.critic_l2:
+            options["loss_kwargs"] = {"critic_l2_coeff": cfg.critic_l2}
+        if entry.update == "cpo":
+            options.update(cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping, line_search_steps=cfg.line_search_steps,
+                           step_fraction=cfg.step_fraction, critic_epochs=cfg.update_iters)
+        else:
+            options.update(actor_lr=cfg.actor_lr, epochs=cfg.update_iters)
+            if entry.multiplier == "lagrange":
+                options.update(multiplier_init=cfg.lagrangian_init, multiplier_lr=cfg.lagrangian_lr)
         return update_class.for_seeds(networks, generators, **options)
 
     return make
 
 
-def _cpo_round(entry: AlgorithmEntry) -> MakeRound:
-    """A CPO-step row's round (MACPO): one trust-region step per agent, then critic epochs."""
-    update_class = entry.round_class()
-
-    def make(networks: StackedMultiAgentNetworks, cfg: TrainConfig, generators: Sequence[torch.Generator]) -> Any:
-        return update_class.for_seeds(
-            networks, generators, target_kl=cfg.target_kl, cg_iters=cfg.cg_iters, cg_damping=cfg.cg_damping,
-            line_search_steps=cfg.line_search_steps, step_fraction=cfg.step_fraction,
-            critic_epochs=cfg.update_iters, num_minibatches=num_minibatches(cfg), **_common(cfg),
-        )
-
-    return make
-
-
-#: Round builders by a multi-agent row's update kind.
-_ROUNDS: dict[str, Callable[[AlgorithmEntry], MakeRound]] = {"first_order": _ppo_round, "cpo": _cpo_round}
-
 #: The multi-agent algorithms of the Safety-Gymnasium paper, by ``--algo`` name (the manifest's multi-agent rows).
 MULTI_AGENT_ALGORITHMS: dict[str, MultiAgentAlgorithm] = {
-    entry.name: MultiAgentAlgorithm(entry.title, _ROUNDS[entry.update](entry))
+    entry.name: MultiAgentAlgorithm(entry.title, _round_builder(entry))
     for entry in manifest.rows(agents="multi")
 }
 

@@ -35,10 +35,9 @@ Usage, once per collected batch (after both GAEs, see
 the root ``"state"``. ``mean_episode_cost`` is :math:`J_c`, the mean undiscounted episode cost of
 the episodes finished in the rollout: a float for the team, or one value per agent.
 
-Defaults are the paper's multi-agent hyper-parameters (Safety-Gymnasium paper appendix: lr 5e-4
-for actor and critics, 5 epochs, 1 minibatch, clip 0.2, target KL 0.016, gamma 0.99) and SafePO's
-settings the paper does not list (Adam eps 1e-5, entropy coefficient 0.01, gradient-norm clip 10
-per network, PopArt value normalisation). Deviations from SafePO's scripts:
+Defaults are the paper's multi-agent hyper-parameters and, where it lists none, SafePO's (each option's
+in the classes' docstrings and :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound`'s).
+Deviations from SafePO's scripts:
 
 * the KL early stop at ``target_kl`` (the paper lists 0.016; SafePO's MaMuJoCo scripts never read
   it): after each epoch, stop the agent's epochs once :math:`\\mathrm{KL}(\\pi_{\\text{old}} \\|
@@ -47,7 +46,7 @@ per network, PopArt value normalisation). Deviations from SafePO's scripts:
   :class:`~sg_torchrl.objectives.multi_agent.AgentObjective`; no value clipping) instead of SafePO's Huber(10) with value
   clipping, where the cost values are normalised with the reward critic's PopArt statistics
   **[quirk]**;
-* GAE bootstraps truncated episodes (SafePO treats time-limit ends as terminal).
+* the GAEs bootstrap truncated episodes (:mod:`~sg_torchrl.objectives.multi_agent.advantages`).
 """
 
 from __future__ import annotations
@@ -57,6 +56,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from sg_torchrl.algorithms.manifest import MACPO_STEP_DEFAULTS
 from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks
 from sg_torchrl.modules.stacked_multi_agent import NETWORKS, StackedMultiAgentNetworks
@@ -72,6 +72,8 @@ __all__ = ["HAPPOUpdate", "MACPOUpdate", "MAPPOLagUpdate", "MAPPOUpdate", "Multi
 
 #: Everything a stage averages over its optimiser steps (metric name: step output).
 STEP_METRICS = {"Loss/Loss_actor": "loss_objective", **CRITIC_METRICS, "Misc/Ratio": "mean_ratio"}
+#: The options of MACPOUpdate that go to its step (:class:`~sg_torchrl.objectives.multi_agent.MACPORule`).
+_STEP_OPTIONS = frozenset((*MACPO_STEP_DEFAULTS, "cg_damping"))
 
 
 class MultiAgentPPOUpdate(SeedBatchedRound):
@@ -253,13 +255,11 @@ class MACPOUpdate(SeedBatchedRound):
         networks: one team, or S seeds' stacked teams (:meth:`for_seeds`).
 
     Keyword Args:
-        target_kl (float): per-agent trust region :math:`\\delta`. Defaults to ``0.01`` (paper).
-        cg_iters (int): defaults to ``10`` (paper).
-        line_search_steps (int): defaults to ``10`` (paper).
-        step_fraction (float): defaults to ``0.5`` (paper).
-        max_step_norm (float, optional), initial_step_fraction (float): see :class:`~sg_torchrl.objectives.multi_agent.MACPORule`.
-        cg_damping (float): defaults to ``0.1``.
-        critic_epochs (int): critic passes per agent and round. Defaults to ``15`` (paper).
+        target_kl, cg_iters, line_search_steps, step_fraction, max_step_norm, initial_step_fraction,
+            cg_damping, ...: the step's options (:class:`~sg_torchrl.objectives.multi_agent.MACPORule`, which
+            holds their defaults and refuses bad values here, at construction).
+        critic_epochs (int): critic passes of Adam per agent and round. Defaults to ``15`` (the paper's
+            "SGD iters"; SafePO's script: one step at 5e-3).
         **kwargs: see :class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound` (``cost_limit``,
             ``gamma``, ``critic_lr`` 5e-4, ``max_grad_norm``, ``value_norm``, ``num_minibatches``, ...).
 
@@ -275,28 +275,15 @@ class MACPOUpdate(SeedBatchedRound):
     optimised = (("reward_value", "cost_value"),)
     _loss_weighted = False  # the agents' loss trains the critics only; the factor enters through the step
 
-    def __init__(
-        self,
-        networks: MultiAgentNetworks | StackedMultiAgentNetworks,
-        *,
-        target_kl: float = 0.01,
-        cg_iters: int = 10,
-        line_search_steps: int = 10,
-        step_fraction: float = 0.5,
-        max_step_norm: float | None = 0.5,
-        initial_step_fraction: float = 0.1,
-        cg_damping: float = 0.1,
-        critic_epochs: int = 15,
-        **kwargs: Any,
-    ) -> None:
+    def __init__(self, networks: MultiAgentNetworks | StackedMultiAgentNetworks, *, critic_epochs: int = 15,
+                 **kwargs: Any) -> None:
         if critic_epochs < 1:
             raise ValueError(f"need critic_epochs >= 1, got {critic_epochs}.")
+        self.step_options = {name: kwargs.pop(name) for name in [*kwargs] if name in _STEP_OPTIONS}
+        StackedMACPOStep(None, **self.step_options)  # refuses bad options now, not at the first stage
         kwargs["entropy_coeff"] = 0.0  # the critic losses only; the CPO step has no entropy term
         super().__init__(networks, **kwargs)
         self.critic_epochs = int(critic_epochs)
-        self.step_options = dict(target_kl=target_kl, cg_iters=cg_iters, cg_damping=cg_damping,
-                                 line_search_steps=line_search_steps, step_fraction=step_fraction,
-                                 max_step_norm=max_step_norm, initial_step_fraction=initial_step_fraction)
 
     def cost_violations(self, seeds: Tensor, agents: Tensor, costs: Tensor) -> list[float]:
         """:math:`c = (J_c - d)(1 - \\gamma)` per row, with :math:`J_c - d` from the agent's multiplier (which holds the limit)."""

@@ -25,13 +25,9 @@ computes), fed :math:`M A_r` and :math:`M A^i_c` as advantages; only its step-si
 * the KL is summed over action dims (the agent's joint distribution; SafePO's MACPO does the same),
   conjugate gradient runs 10 iterations with damping 0.1.
 
-After its step each agent's critics take ``critic_epochs`` (15, the paper's "SGD iters") passes of
-Adam at 5e-4 (SafePO's script: one step at 5e-3 per round).
-
-The step-size policy is written once (:class:`MACPORule`) and serves one actor (:class:`MACPOStep`, the
-single-agent step on one row) and the rows of the seed-batched round (:class:`StackedMACPOStep`; the round
-is :class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`: at each stage the agent of every seed takes
-its CPO step in one stacked trust-region step and its critic epochs in one set of Adam steps).
+The step-size policy is written once (:class:`MACPORule`) for one actor (:class:`MACPOStep`) and for the
+rows of the seed-batched round (:class:`StackedMACPOStep`), whose stages and critic epochs are
+:class:`~sg_torchrl.train.multi_agent_updates.MACPOUpdate`'s.
 """
 
 from __future__ import annotations
@@ -39,8 +35,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal
 
-from tensordict.nn import ProbabilisticTensorDictSequential
-
+from sg_torchrl.algorithms.manifest import MACPO_STEP_DEFAULTS
 from sg_torchrl.objectives.second_order import Linearisation
 from sg_torchrl.objectives.stacked_trust_region import StackedTrustRegionStep
 from sg_torchrl.objectives.step_rules import CPORule, Proposal
@@ -53,41 +48,28 @@ class MACPORule(CPORule):
     """CPO's proposal with MACPO's step-size policy (see the module docstring), for one actor or stacked rows.
 
     Keyword Args:
-        target_kl (float): :math:`\\delta`. Defaults to ``0.01`` (paper).
-        cg_iters (int): defaults to ``10`` (paper).
-        line_search_steps (int): defaults to ``10`` (paper).
-        step_fraction (float): defaults to ``0.5`` (paper).
-        max_step_norm (float, optional): cap on the direction's norm. Defaults to ``0.5`` (SafePO);
-            ``None`` for no cap.
-        initial_step_fraction (float): fraction of the (capped) direction tried first. Defaults to
-            ``0.1`` (SafePO's ``fraction_coef``); ``1.0`` gives the plain CPO line search.
+        target_kl, cg_iters, line_search_steps, step_fraction, max_step_norm (``None``: no cap on the
+            direction's norm), initial_step_fraction (``1.0``: the plain CPO line search): default to
+            :data:`~sg_torchrl.algorithms.manifest.MACPO_STEP_DEFAULTS` (the paper's and SafePO's, see the
+            module docstring).
         kl_action_reduction (str): defaults to ``"sum"`` (joint KL of the agent's action).
-        **kwargs: see :class:`~sg_torchrl.objectives.CPOStep` (``cg_damping`` 0.1, ...).
+        **options: see :class:`~sg_torchrl.objectives.CPOStep` (``cg_damping`` 0.1, ...).
+
+    Raises:
+        ValueError: a bad option (here, before any step).
 
     Extra metric: ``Misc/StepNormRaw`` (norm of the CPO direction before the cap and the initial
     fraction; ``Misc/FinalStepNorm`` is the norm of the step actually tried first).
     """
 
-    def __init__(
-        self,
-        *args: Any,
-        target_kl: float = 0.01,
-        cg_iters: int = 10,
-        line_search_steps: int = 10,
-        step_fraction: float = 0.5,
-        max_step_norm: float | None = 0.5,
-        initial_step_fraction: float = 0.1,
-        kl_action_reduction: Literal["mean", "sum"] = "sum",
-        **kwargs: Any,
-    ) -> None:
+    def __init__(self, *args: Any, kl_action_reduction: Literal["mean", "sum"] = "sum", **options: Any) -> None:
+        options = {**MACPO_STEP_DEFAULTS, **options}
+        max_step_norm, initial_step_fraction = options.pop("max_step_norm"), options.pop("initial_step_fraction")
         if max_step_norm is not None and not max_step_norm > 0:
             raise ValueError(f"max_step_norm must be > 0 or None, got {max_step_norm}.")
         if not 0.0 < initial_step_fraction <= 1.0:
             raise ValueError(f"initial_step_fraction must be in (0, 1], got {initial_step_fraction}.")
-        super().__init__(
-            *args, target_kl=target_kl, cg_iters=cg_iters, line_search_steps=line_search_steps,
-            step_fraction=step_fraction, kl_action_reduction=kl_action_reduction, **kwargs,
-        )
+        super().__init__(*args, kl_action_reduction=kl_action_reduction, **options)
         self.max_step_norm = None if max_step_norm is None else float(max_step_norm)
         self.initial_step_fraction = float(initial_step_fraction)
 
@@ -111,11 +93,8 @@ class MACPOStep(MACPORule, TrustRegionStep):
         actor (ProbabilisticTensorDictSequential): one agent's policy (its parameters only).
 
     Keyword Args:
-        **kwargs: see :class:`MACPORule`.
+        **options: see :class:`MACPORule`.
     """
-
-    def __init__(self, actor: ProbabilisticTensorDictSequential, **kwargs: Any) -> None:
-        super().__init__(actor, **kwargs)
 
 
 class StackedMACPOStep(MACPORule, StackedTrustRegionStep):

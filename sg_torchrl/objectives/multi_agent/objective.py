@@ -15,9 +15,8 @@ agent of the stage; S = 1 is one run). It is built from the single-agent pieces:
   targets, then compare normalised target and prediction: :class:`~torchrl.objectives.multiagent.MAPPOLoss`'s
   semantics), the cost critic's plain MSE, each plus ``critic_l2 * sum(p ** 2)``.
 
-:class:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss` (the TorchRL ``LossModule`` users compose) hands
-this object out (:meth:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss.seed_batched_objective`) and its
-``forward`` computes the advantage and the cost surrogate through it; the seed-batched round
+:class:`~sg_torchrl.objectives.multi_agent.AgentPPOLoss` is its TorchRL ``LossModule`` view (see
+:mod:`~sg_torchrl.objectives.multi_agent.loss`); the seed-batched round
 (:mod:`sg_torchrl.train.multi_agent_updates`) evaluates :meth:`losses` on its rows.
 """
 
