@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import abc
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -143,8 +142,7 @@ class RunLayout(abc.ABC):
 
     What the engine asks of it: the seeds to train (:attr:`seeds`), each seed's own config
     (:meth:`seed_config`, whose ``run_dir`` receives its logs), the end of the run once every seed has
-    written its summary (:meth:`finish`), the episode statistics of a one-seed run (:meth:`stats`) and how
-    a checkpoint given to the trainer is read (:meth:`read_checkpoint`).
+    written its summary (:meth:`finish`) and the episode statistics of a one-seed run (:meth:`stats`).
     """
 
     def __init__(self, cfg: TrainConfig) -> None:
@@ -165,12 +163,6 @@ class RunLayout(abc.ABC):
     @abc.abstractmethod
     def stats(self, runs: list[SeedRun]) -> EpisodeStats:
         """The run's episode statistics, where there is one run."""
-
-    @abc.abstractmethod
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """``checkpoint`` in the engine's form; ``single_run_form`` is the family's reading of a single run's
-        checkpoint written by an earlier trainer (identity where there was none)."""
 
 
 class GroupLayout(RunLayout):
@@ -212,11 +204,6 @@ class GroupLayout(RunLayout):
     def stats(self, runs: list[SeedRun]) -> EpisodeStats:
         raise AttributeError("a seed group has no one run's episode statistics: each seed's is runs[i].stats")
 
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """As it is (a group's checkpoint; anything else is refused when it is restored)."""
-        return checkpoint
-
 
 class SingleRunLayout(RunLayout):
     """One run (``cfg.seed``; no ``cfg.seeds``): ``cfg.run_dir`` itself is its directory, with a single run's files.
@@ -245,11 +232,6 @@ class SingleRunLayout(RunLayout):
 
     def stats(self, runs: list[SeedRun]) -> EpisodeStats:
         return runs[0].stats
-
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """``single_run_form(checkpoint)``: a single run's checkpoint of an earlier trainer reads as the engine's."""
-        return single_run_form(checkpoint)
 
 
 def run_layout(cfg: TrainConfig) -> RunLayout:
