@@ -63,7 +63,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
@@ -78,7 +77,6 @@ from sg_torchrl.objectives.stacked_trust_region import (
     StackedPCPOStep,
     StackedTRPOStep,
     StackedTrustRegionStep,
-    TrustRegionEngine,
     _per_sample,  # value reshaped to the per-sample shape, refusing silent broadcasting
 )
 from sg_torchrl.objectives.step_rules import (  # the directions are re-exported (sg_torchrl.objectives)
@@ -288,38 +286,30 @@ class OneSeedActor:
         return self
 
 
-class TrustRegionStep(TrustRegionEngine):
-    """The trust-region step of one TorchRL actor: the seed-batched engine with S = 1.
+class TrustRegionStep(StackedTrustRegionStep):
+    """The trust-region step of one TorchRL actor: the seed-group step with S = 1.
 
-    :meth:`step` (called by the trainer once per epoch on the whole flattened batch) anchors
-    :math:`\\pi_{\\text{old}}` at the actor as it is (for on-policy data the behaviour policy the
-    collector stored; it keeps :math:`H` exactly the Fisher matrix at :math:`\\theta_k`), puts the
-    actor into a one-seed view (:class:`OneSeedActor`) and runs
-    :meth:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine.step_seeds`: surrogates and
-    Fisher-vector product, conjugate gradient, the subclass's proposal (:meth:`_propose`), then the
-    direction applied directly (``line_search_steps=0``) or backtracked, a candidate accepted when its
-    surrogates and KL are finite, :math:`\\mathrm{KL} \\le \\delta` and the proposal's improvement /
-    cost tests pass (:meth:`acceptable`); if none passes the actor is left unchanged.
+    :meth:`step` (called by the trainer once per epoch on the whole flattened batch) puts the actor
+    into a one-seed view (:class:`OneSeedActor`) and runs
+    :meth:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep.step` on the batch as one
+    seed's ``(1, N)`` rows: :math:`\\pi_{\\text{old}}` anchored at the actor as it is (for on-policy data the
+    behaviour policy the collector stored; it keeps :math:`H` exactly the Fisher matrix at
+    :math:`\\theta_k`), then the subclass's proposal (:meth:`_propose`) applied directly
+    (``line_search_steps=0``) or backtracked; if no candidate passes the actor is left unchanged.
 
     Args:
         actor (ProbabilisticTensorDictSequential): the diagonal-Gaussian policy (e.g. with
             :class:`~torchrl.modules.IndependentNormal`); its parameters are changed in place.
 
     Keyword Args:
-        **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (``target_kl`` 0.01,
-            ``cg_iters`` 15, ``cg_damping`` 0.1, ``line_search_steps`` (``None``: the method's default),
-            ``step_fraction`` 0.8, ``cg_residual_tol``, ``cg_eps``, ``kl_action_reduction`` ``"mean"``, see
-            the module docstring).
+        **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (see the module docstring).
 
     Returned metrics: those of :class:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine`
-    as Python floats (``Misc/Alpha``, ``Misc/FinalStepNorm``, ``Misc/xHx``, ``Misc/gradient_norm``,
-    ``Misc/H_inv_g``, ``Misc/AcceptanceStep``, ``Train/KL``, ``Loss/Loss_actor``, plus
-    ``Misc/cost_gradient_norm`` for the constrained steps and subclass extras).
+    as Python floats.
     """
 
     def __init__(self, actor: ProbabilisticTensorDictSequential, **options) -> None:
-        super().__init__(**options)
-        self.model = OneSeedActor(actor)
+        super().__init__(OneSeedActor(actor), **options)
         self.action_key: NestedKey = "action"
         self.log_prob_key: NestedKey = _log_prob_key(actor)
 
@@ -342,23 +332,18 @@ class TrustRegionStep(TrustRegionEngine):
         model, shape = self.model, data.batch_size
         model.load()
         rows = (1, data.numel())
-        observation = data.select(*model.actor.in_keys).reshape(rows)
         action = data.get(self.action_key)
-        action = action.reshape(*rows, *action.shape[len(shape):])
 
         def per_sample(value: Tensor, name: str) -> Tensor:
             return _per_sample(value.detach(), shape, name).reshape(rows)
 
-        with torch.no_grad():
-            old_loc, old_scale = model.dist_params(observation)
-        surrogates = SeedSurrogates(
-            observation, action, per_sample(data.get(self.log_prob_key), "action_log_prob"),
-            per_sample(advantage, "advantage"),
-            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
-            old_loc, old_scale, self.kl_action_reduction,
-        )
+        batch = {"observation": data.select(*model.actor.in_keys).reshape(rows),
+                 "action": action.reshape(*rows, *action.shape[len(shape):]),
+                 "action_log_prob": per_sample(data.get(self.log_prob_key), "action_log_prob")}
         try:
-            metrics = self.step_seeds(surrogates, [float(cost_violation)])
+            metrics = super().step(batch, per_sample(advantage, "advantage"),
+                                   None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+                                   [float(cost_violation)])
         finally:
             model.store()
         return {name: float(value[0]) for name, value in metrics.items()}
