@@ -193,11 +193,6 @@ class StackedActorCritic(nn.Module):
         """``(flat_actor, flat_critics)``: the optimiser's two tensors."""
         return self.flat_actor, self.flat_critics
 
-    @property
-    def reward_critic_width(self) -> int:
-        """Columns of :attr:`flat_critics` that hold the reward critic (the cost critic's follow)."""
-        return sum(p[0].numel() for p in _net_params(self.critic))
-
     def _flatten(self) -> None:
         """Move every parameter into its group's flat buffer (as a view) and alias the gradients."""
         self.flat_actor = self._flatten_group(
@@ -232,23 +227,19 @@ class StackedActorCritic(nn.Module):
         self._flatten()
         return self
 
-    def zero_grad_(self) -> None:
-        """Zero both flat gradient buffers (two ops; the parameters' ``.grad`` views follow)."""
-        self.flat_actor.grad.zero_()
-        self.flat_critics.grad.zero_()
-
     def zero_grad(self, set_to_none: bool = True) -> None:
-        """Zero the gradients in place, whatever ``set_to_none`` says.
+        """Zero both flat gradient buffers in place (the ``.grad`` views follow), whatever ``set_to_none`` says.
 
         Setting a parameter's ``.grad`` to ``None`` would cut it from the flat gradient buffer (the
         next backward would store a fresh tensor that the optimiser never reads).
         """
-        self.zero_grad_()
+        self.flat_actor.grad.zero_()
+        self.flat_critics.grad.zero_()
 
     @torch.no_grad()
     def critic_squared_norms(self) -> tuple[Tensor, Tensor]:
         """Per seed, the sum of squares of the reward critic's and of the cost critic's parameters, ``(S,)`` each."""
-        width = self.reward_critic_width
+        width = sum(p[0].numel() for p in _net_params(self.critic))  # the reward critic's columns come first
         flat = self.flat_critics
         return flat[:, :width].pow(2).sum(1), flat[:, width:].pow(2).sum(1)
 
