@@ -38,25 +38,10 @@ generators and simulator blocks draw the same numbers, and the stacked actor com
 actions as for S = 1); across epochs the seeds' updates agree to float rounding (batched matmuls
 of the critics' one-wide output sum in another order for S = 1 and S > 1, about 1e-7).
 
-**Layout** (every seed group, single- or multi-agent). ``<output_dir>/<env_id>/<algo>/seeds-0-1-2/``
-(or ``--run-name``) holds the group's ``config.json`` and ``checkpoint.pt`` and one directory per seed::
-
-    seeds-0-1-2/
-      config.json  checkpoint.pt  summary.json   the group: its config, checkpoint, per-seed and mean summary
-      curves.png   every seed's return and cost curves (thin) and their mean (thick), with the cost limit
-      seed-000/    config.json (that seed's single-seed config), progress.csv, csv/, wandb/, summary.json, curves.png
-      seed-001/ ...
-
-``--resume <group dir>`` continues the group, and a new group refuses a directory holding one
-unless ``--overwrite`` (the single-seed rules, :mod:`sg_torchrl.train.checkpoint`). The checkpoint
-keeps every seed's networks (as single-seed modules' state dicts), Adam rows, multiplier,
-normaliser row, generators and statistics under ``"seeds"``
-(:func:`~sg_torchrl.train.seed_runs.seed_entry` reads one out).
-
-**Divergence.** A seed whose parameters are not finite before an epoch, or whose update turns
-non-finite, is frozen (no more updates, multiplier or logs; its simulators idle with zero actions)
-and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
-when none is left the run ends early.
+**Layout, checkpoint, divergence.** The engine's (:mod:`sg_torchrl.train.seed_runs`,
+:mod:`sg_torchrl.train.trainer`; the directory tree is in the README). This family's checkpoint entry
+per seed (networks as single-seed modules' state dicts, Adam rows, multiplier, normaliser row,
+generators) is :meth:`OnPolicyGroupTrainer._seed_state`'s.
 
 **Device** (``--device``, :mod:`sg_torchrl.train.devices`). The networks, the masked Adam's state,
 the multiplier values the losses read, GAE, the epoch's batch and the whole update live on
@@ -65,13 +50,6 @@ collection, never in the update) and the multipliers' own state (each follows a 
 :math:`J_c` once per epoch) stay on the host. :class:`StackedPolicy` copies each step's observation
 to the device and its outputs back once; the batch crosses once per epoch; the update reads back
 once per pass and per epoch (:mod:`sg_torchrl.train.group_updates`). Checkpoints hold CPU tensors.
-
-**One seed** (``sg-train --seed s``): :class:`OnPolicyGroupTrainer` with the one seed, in a single run's
-layout (:class:`~sg_torchrl.train.seed_runs.SingleRunLayout`). It trains exactly as seed ``s`` of
-``--seeds s`` (the same code with S = 1: progress rows but their timings, parameters, the seed's
-checkpoint entry) and writes a single run's files in its run directory, no ``seed-XXX/`` level. Its
-checkpoint's ``"seed_group"`` entry is what tells it from a checkpoint of the retired ``LossModule``
-trainer, which ``--resume`` refuses.
 """
 
 from __future__ import annotations
