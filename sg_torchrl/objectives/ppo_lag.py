@@ -482,11 +482,15 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
-        tensordict = self._with_advantages(tensordict)
+        """Computes the losses on a batch (see the class docstring for keys); the critics' only when the surrogate
+        trains them (not CUP's projection, which needs no reward advantage either)."""
+        trains_critics = self.surrogate.trains_critics
+        reward = trains_critics or self.surrogate.advantage != "cost"
+        tensordict = self._with_advantages(tensordict, reward=reward)  # computed if missing
         td_out = self._actor_loss(tensordict, self._policy_advantage(tensordict))
         td_out = self._reduce_losses(td_out, tensordict)
-        td_out.update(self.critic_losses(tensordict))
+        if trains_critics:
+            td_out.update(self.critic_losses(tensordict))
         ref = td_out.get("loss_objective")
         td_out.set(
             "lagrange_multiplier",
