@@ -142,7 +142,7 @@ class RunLayout(abc.ABC):
 
     What the engine asks of it: the seeds to train (:attr:`seeds`), each seed's own config
     (:meth:`seed_config`, whose ``run_dir`` receives its logs), the end of the run once every seed has
-    written its summary (:meth:`finish`) and the episode statistics of a one-seed run (:meth:`stats`).
+    written its summary (:meth:`finish`).
     """
 
     def __init__(self, cfg: TrainConfig) -> None:
@@ -159,10 +159,6 @@ class RunLayout(abc.ABC):
                train_seconds: float) -> dict[str, Any]:
         """The end of the run, after each seed's ``summary.json`` (``summaries``, in the order of ``runs``);
         returns what ``sg-train`` prints."""
-
-    @abc.abstractmethod
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        """The run's episode statistics, where there is one run."""
 
 
 class GroupLayout(RunLayout):
@@ -201,9 +197,6 @@ class GroupLayout(RunLayout):
             out.update({prefix + name: value for name, value in {**(run.last_row or {}), **summary}.items()})
         return out
 
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        raise AttributeError("a seed group has no one run's episode statistics: each seed's is runs[i].stats")
-
 
 class SingleRunLayout(RunLayout):
     """One run (``cfg.seed``; no ``cfg.seeds``): ``cfg.run_dir`` itself is its directory, with a single run's files.
@@ -229,9 +222,6 @@ class SingleRunLayout(RunLayout):
         """The run's summary (with ``Diverged``, ``DivergedEpoch``, ``DivergedReason`` when it diverged); its
         ``summary.json`` and ``curves.png`` are all the run writes at its end."""
         return summaries[0]
-
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        return runs[0].stats
 
 
 def run_layout(cfg: TrainConfig) -> RunLayout:

@@ -195,7 +195,9 @@ class SeedGroupTrainer(abc.ABC):
         Raises:
             AttributeError: a seed group (each seed's are ``runs[i].stats``).
         """
-        return self.layout.stats(self.runs)
+        if self.cfg.group:
+            raise AttributeError("a seed group has no one run's episode statistics: each seed's is runs[i].stats")
+        return self.runs[0].stats
 
     def _start(self, checkpoint: dict[str, Any] | None) -> None:
         """Restore ``checkpoint`` (when given) and open the runs' logs; the last step of a subclass's ``__init__``.
@@ -269,16 +271,12 @@ class SeedGroupTrainer(abc.ABC):
                            file=sys.stderr)
         self._sync_frozen()
 
-    def _freeze_nonfinite(self) -> None:
-        """Freeze the live seeds whose parameters are not finite (set from outside, or loaded so)."""
+    def _exhausted(self) -> bool:
+        """Whether every seed is frozen, after freezing the live seeds whose parameters are not finite (set from
+        outside, or loaded so)."""
         bad = (self.alive & ~self._finite_seeds()).tolist()
         if any(bad):
             self._freeze(bad, self.epoch + 1, "non-finite parameters at the start of the epoch")
-
-    def _exhausted(self) -> bool:
-        """Whether nothing is left to train: freeze seeds with non-finite parameters first; then whether every
-        seed is frozen."""
-        self._freeze_nonfinite()
         return not any(run.alive for run in self.runs)
 
     # ------------------------------------------------------------------ epochs
