@@ -313,13 +313,8 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
 
     # ------------------------------------------------------------------ hook
     def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
-        """The advantage fed to the clipped surrogate: the Lagrangian mix of :math:`A^r` and :math:`A^c`.
-
-        The multiplier's rule (:meth:`~sg_torchrl.objectives.Multiplier.combine`): SafePO's
-        :math:`(A^r - \\lambda A^c) / (1 + \\lambda)` when ``multiplier.sum_norm`` (PPO-Lag,
-        CPPO-PID), :math:`(1 - \\lambda) A^r - \\lambda A^c` when ``multiplier.diff_norm`` (Stooke
-        et al. 2020) and :math:`A^r - \\lambda A^c` otherwise, with :math:`\\lambda` =
-        ``multiplier.value`` (no gradient flows into the multiplier).
+        """The advantage fed to the clipped surrogate: the multiplier's Lagrangian mix of :math:`A^r` and
+        :math:`A^c` (:meth:`~sg_torchrl.objectives.Multiplier.combine`, no gradient into the multiplier).
 
         Args:
             tensordict (TensorDictBase): the input batch, holding ``tensor_keys.advantage`` and
