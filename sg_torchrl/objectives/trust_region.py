@@ -15,22 +15,15 @@ with :math:`g` and :math:`b` the gradients of the reward and cost surrogates
 (:math:`r_\\theta = \\pi_\\theta(a|s) / \\pi_{\\text{behaviour}}(a|s)`) and
 :math:`c = J_c - d` the constraint violation.
 
-This module is the one-actor front of the package's single trust-region implementation:
-
-* :class:`TrustRegionLoss`, a TorchRL :class:`~torchrl.objectives.LossModule` that computes the two
-  surrogates and the mean KL of a TorchRL actor in one pass, by the steps' own evaluation
-  (:meth:`~sg_torchrl.objectives.stacked_trust_region.SeedSurrogates.evaluate` on one seed);
-* the pure step computations :func:`cpo_direction` and :func:`pcpo_direction` over
-  :func:`~sg_torchrl.objectives.second_order.linearise` (functions of :math:`g, b, H, c, \\delta`,
-  unit-tested against an independent QP solver), with each method's proposal and settings as a rule
-  mixin, in :mod:`sg_torchrl.objectives.step_rules`;
-* the step strategies the trainer calls once per epoch, one small class each (a rule over
-  :class:`TrustRegionStep`): :class:`NaturalPolicyStep` (Kakade 2002), :class:`TRPOStep` (Schulman et
-  al. 2015), :class:`CPOStep` (Achiam et al. 2017) and :class:`PCPOStep` (Yang et al. 2020). Each is
-  the seed-batched step of :mod:`sg_torchrl.objectives.stacked_trust_region` with S = 1: the actor is
-  put into a one-seed view (:class:`OneSeedActor`), stepped, and its parameters written back, so a
-  single actor and a seed group move by the same code (:data:`STACKED_STEPS` names the group class
-  of each).
+This module is the one-actor front of the package's single trust-region implementation
+(:mod:`sg_torchrl.objectives.stacked_trust_region`): :class:`TrustRegionLoss`, a TorchRL
+:class:`~torchrl.objectives.LossModule` giving the two surrogates and the mean KL of a TorchRL actor by
+the steps' own evaluation, and the steps of one actor, :class:`NaturalPolicyStep`
+(Kakade 2002), :class:`TRPOStep` (Schulman et al. 2015), :class:`CPOStep` (Achiam et al. 2017) and
+:class:`PCPOStep` (Yang et al. 2020). Each is a rule of :mod:`sg_torchrl.objectives.step_rules` (home of
+:func:`cpo_direction` and :func:`pcpo_direction`, unit-tested against an independent QP solver) over
+the seed-group step with S = 1 (:class:`OneSeedActor`), so a single actor and a seed group move by the
+same code (:data:`STACKED_STEPS` names the group class of each).
 
 Lagrangian variants are not separate classes: TRPO-Lag is :class:`TRPOStep` fed the Lagrangian
 advantage :math:`(A_r - \\lambda A_c)/(1 + \\lambda)` (``multiplier.combine``), and RCPO as SafePO
