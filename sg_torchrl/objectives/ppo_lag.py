@@ -98,14 +98,9 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
     minibatch loop; TorchRL's per-minibatch ``normalize_advantage`` / ``advantage_norm`` are refused.
 
     Advantages follow TorchRL's convention: when the input lacks ``"advantage"`` (or
-    ``"cost_advantage"``), the loss computes it, and its value target, from the input's
-    trajectories with its reward (cost) critic and estimator (GAE 0.99 / 0.95 unless
-    :meth:`make_value_estimator` says otherwise), normalised with SafePO's batch rule; a raw
-    ``env.rollout(...)`` can be passed as is. Minibatch loops compute them once per batch instead
-    (:meth:`estimate_advantages`, or :func:`~sg_torchrl.objectives.make_gae` /
-    :func:`~sg_torchrl.objectives.make_cost_gae` and
-    :func:`~sg_torchrl.objectives.normalize_advantages`), and the loss uses them as given. See
-    :class:`~sg_torchrl.objectives.value.AdvantageEstimation`.
+    ``"cost_advantage"``), the loss computes it and its value target from the input's trajectories
+    (a raw ``env.rollout(...)`` can be passed as is); given ones are used as they are
+    (:class:`~sg_torchrl.objectives.value.AdvantageEstimation`).
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the policy; must write the action
