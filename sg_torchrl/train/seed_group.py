@@ -205,8 +205,8 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda).to(self.device)
         # Second order has no actor learning rate (SafePO's Adam holds the critics alone): the actor's
         # group is kept at lr 0 and never stepped, its trust-region step moves it.
-        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
-        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
+        self.actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
+        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, self.actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
         self.shuffler = SeedShuffler(self.seeds)
         self.action_generators = [seeding.generator(seed, seeding.Purpose.ACTIONS) for seed in self.seeds]
@@ -238,15 +238,14 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
         lagrange = [float(m.update(run.last_mean_cost) if run.alive else m.value)
                     for m, run in zip(self.multipliers, self.runs)]
         data, raw_advantages = self._seed_data(batch.to(device, non_blocking=True))
-        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
-        self.optimizer.param_groups[0]["lr"] = actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
+        self.optimizer.param_groups[0]["lr"] = self.actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
         violation = torch.tensor([m.violation(run.last_mean_cost) for m, run in zip(self.multipliers, self.runs)],
                                  dtype=torch.float64)
         result = self.group_update(data, multiplier_values(self.multipliers).to(device), violation, alive)
         names = list(result.metrics)
         values = torch.stack([result.metrics[name].to(device, torch.float64) for name in names]
                              + [raw_advantages[0].double(), raw_advantages[1].double()]).tolist()
-        next_lr = actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
+        next_lr = self.actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
         rows = []
         for index, lam in enumerate(lagrange):
             update = {name: int(values[i][index]) if name in _COUNTS else values[i][index]
