@@ -34,7 +34,8 @@ from sg_torchrl.modules.direct import DirectTensorDictModule, DirectValueOperato
 
 __all__ = [
     "DEPTH_RANGE", "IMAGE_CHUNK", "EncodedMLP", "ObservationEncoder", "ObservationLayout",
-    "forward_in_chunks", "make_actor", "make_actor_critics", "make_network", "make_value", "write_values",
+    "forward_in_chunks", "image_channels", "make_actor", "make_actor_critics", "make_network", "make_value",
+    "write_values",
 ]
 
 #: Depth (metres) at which the encoder's depth channel saturates: ``min(depth, DEPTH_RANGE) / DEPTH_RANGE``.
@@ -45,8 +46,6 @@ DEPTH_RANGE = 5.0
 #: values, the KL early stop): a 20,000-image batch in float32 is about 1 GB per network before its
 #: first convolution, so it is never converted at once.
 IMAGE_CHUNK = 1024
-
-
 
 
 @dataclass(frozen=True)
@@ -145,16 +144,24 @@ class ObservationEncoder(nn.Module):
         """``inputs`` in :attr:`in_keys` order (``pixels``, ``depth``, ``observation``, those present);
         images channels last, ``(..., H, W, C)``."""
         entries = dict(zip(self.in_keys, inputs))
-        channels = []
-        if "pixels" in entries:
-            channels.append(entries["pixels"] / 255.0)  # uint8 -> float32 in one new tensor, input untouched
-        if "depth" in entries:
-            channels.append(entries["depth"].clamp(0.0, self.depth_range).div_(self.depth_range))
-        images = channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
+        images = image_channels(entries.get("pixels"), entries.get("depth"), self.depth_range)
         features = self.cnn(images.movedim(-1, -3))  # (..., H, W, C) -> (..., C, H, W), a view
         if "observation" in entries:
             features = torch.cat([features, entries["observation"]], dim=-1)
         return features
+
+
+def image_channels(pixels: Tensor | None, depth: Tensor | None, depth_range: float) -> Tensor:
+    """The encoders' float input channels, channels last: ``pixels / 255``, then ``depth`` as
+    ``min(depth, depth_range) / depth_range``. Each is converted in one new tensor (the ``uint8`` input is
+    untouched); at least one must be given.
+    """
+    channels = []
+    if pixels is not None:
+        channels.append(pixels / 255.0)
+    if depth is not None:
+        channels.append(depth.clamp(0.0, depth_range).div_(depth_range))
+    return channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
 
 
 class EncodedMLP(nn.Module):

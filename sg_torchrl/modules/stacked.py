@@ -47,7 +47,7 @@ from torchrl.modules import MLP, ConvNet
 
 from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.mlp import ObservationLayout, make_actor_critics
-from sg_torchrl.modules.stacked_layers import StackedEncodedMLP, StackedMLP, linear_layers
+from sg_torchrl.modules.stacked_layers import StackedEncodedMLP, StackedMLP, linear_layers, only_submodule
 
 __all__ = ["StackedActorCritic", "StackedMLP", "in_chunks", "quiet_layout_warning"]
 
@@ -63,19 +63,12 @@ def in_chunks(fn, obs: Tensor | TensorDictBase, chunk_size: int | None) -> tuple
     return tuple(torch.cat(outputs, dim=1) for outputs in zip(*parts))
 
 
-def _find(module: nn.Module, kind: type) -> nn.Module:
-    found = [m for m in module.modules() if isinstance(m, kind)]
-    if len(found) != 1:
-        raise TypeError(f"expected exactly one {kind.__name__} in {type(module).__name__}, found {len(found)}")
-    return found[0]
-
-
 def _actor_parts(actor: nn.Module) -> tuple[nn.Module, AddStateIndependentNormalScale]:
     """The mean MLP and the log-std module of an actor built by ``make_actor``."""
-    scale = _find(actor, AddStateIndependentNormalScale)
+    scale = only_submodule(actor, AddStateIndependentNormalScale)
     if scale.scale_mapping != "exp":
         raise ValueError(f"stacked actors use scale = exp(log_std); this actor maps with {scale.scale_mapping!r}")
-    return _find(actor, MLP), scale
+    return only_submodule(actor, MLP), scale
 
 
 @contextmanager
@@ -193,11 +186,6 @@ class StackedActorCritic(nn.Module):
         """``(flat_actor, flat_critics)``: the optimiser's two tensors."""
         return self.flat_actor, self.flat_critics
 
-    @property
-    def reward_critic_width(self) -> int:
-        """Columns of :attr:`flat_critics` that hold the reward critic (the cost critic's follow)."""
-        return sum(p[0].numel() for p in _net_params(self.critic))
-
     def _flatten(self) -> None:
         """Move every parameter into its group's flat buffer (as a view) and alias the gradients."""
         self.flat_actor = self._flatten_group(
@@ -232,23 +220,19 @@ class StackedActorCritic(nn.Module):
         self._flatten()
         return self
 
-    def zero_grad_(self) -> None:
-        """Zero both flat gradient buffers (two ops; the parameters' ``.grad`` views follow)."""
-        self.flat_actor.grad.zero_()
-        self.flat_critics.grad.zero_()
-
     def zero_grad(self, set_to_none: bool = True) -> None:
-        """Zero the gradients in place, whatever ``set_to_none`` says.
+        """Zero both flat gradient buffers in place (the ``.grad`` views follow), whatever ``set_to_none`` says.
 
         Setting a parameter's ``.grad`` to ``None`` would cut it from the flat gradient buffer (the
         next backward would store a fresh tensor that the optimiser never reads).
         """
-        self.zero_grad_()
+        self.flat_actor.grad.zero_()
+        self.flat_critics.grad.zero_()
 
     @torch.no_grad()
     def critic_squared_norms(self) -> tuple[Tensor, Tensor]:
         """Per seed, the sum of squares of the reward critic's and of the cost critic's parameters, ``(S,)`` each."""
-        width = self.reward_critic_width
+        width = sum(p[0].numel() for p in _net_params(self.critic))  # the reward critic's columns come first
         flat = self.flat_critics
         return flat[:, :width].pow(2).sum(1), flat[:, width:].pow(2).sum(1)
 
@@ -348,7 +332,7 @@ class StackedActorCritic(nn.Module):
         if float(scale.scale_lb) != self.scale_lb:
             raise ValueError(f"scale lower bound {scale.scale_lb} differs from the group's {self.scale_lb}")
         for net, module in ((self.actor_mean, actor), (self.critic, critic), (self.cost_critic, cost_critic)):
-            net.load_seed(seed, module if isinstance(net, StackedEncodedMLP) else _find(module, MLP))
+            net.load_seed(seed, module if isinstance(net, StackedEncodedMLP) else only_submodule(module, MLP))
         self.log_std[seed].copy_(scale.state_independent_scale.detach())
 
     @torch.no_grad()
@@ -356,7 +340,7 @@ class StackedActorCritic(nn.Module):
         """Write seed ``seed``'s weights into single-seed modules (e.g. for evaluation or a checkpoint)."""
         _, scale = _actor_parts(actor)
         for net, module in ((self.actor_mean, actor), (self.critic, critic), (self.cost_critic, cost_critic)):
-            net.copy_seed_to(seed, module if isinstance(net, StackedEncodedMLP) else _find(module, MLP))
+            net.copy_seed_to(seed, module if isinstance(net, StackedEncodedMLP) else only_submodule(module, MLP))
         scale.state_independent_scale.copy_(self.log_std[seed])
 
     def export_seed(self, seed: int, action_spec: TensorSpec, device: torch.device | str | None = None

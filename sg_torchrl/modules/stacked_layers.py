@@ -29,11 +29,11 @@ from torch.nn import functional as F
 from torchrl.modules import MLP, ConvNet
 
 from sg_torchrl.modules.cnn import DEFAULT_CNN, CNNArchitecture
-from sg_torchrl.modules.mlp import DEPTH_RANGE, ObservationLayout
+from sg_torchrl.modules.mlp import DEPTH_RANGE, ObservationLayout, image_channels
 
 __all__ = [
     "StackedConvNet", "StackedEncodedMLP", "StackedEncoder", "StackedMLP", "conv_layers", "linear_layers",
-    "stacked_mlp_forward",
+    "only_submodule", "stacked_mlp_forward",
 ]
 
 
@@ -127,23 +127,24 @@ class StackedMLP(nn.Module):
             stacked.load_seed(seed, module)
         return stacked
 
-    @torch.no_grad()
-    def load_seed(self, seed: int, module: nn.Module) -> None:
-        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
+    def _paired_layers(self, module: nn.Module) -> Iterable[tuple[nn.Linear, Tensor, Tensor]]:
+        """``(Linear, weights, biases)`` per layer of a single tanh MLP of this shape."""
         layers = linear_layers(module)
         if len(layers) != len(self.weights):
             raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
+        return zip(layers, self.weights, self.biases)
+
+    @torch.no_grad()
+    def load_seed(self, seed: int, module: nn.Module) -> None:
+        """Copy the weights of a single tanh MLP of this shape into seed ``seed``'s slice."""
+        for linear, weight, bias in self._paired_layers(module):
             weight[seed].copy_(linear.weight.detach().T)
             bias[seed, 0].copy_(linear.bias.detach())
 
     @torch.no_grad()
     def copy_seed_to(self, seed: int, module: nn.Module) -> nn.Module:
         """Write seed ``seed``'s weights into a single tanh MLP of this shape; returns it."""
-        layers = linear_layers(module)
-        if len(layers) != len(self.weights):
-            raise ValueError(f"expected {len(self.weights)} Linear layers, got {len(layers)}")
-        for linear, weight, bias in zip(layers, self.weights, self.biases):
+        for linear, weight, bias in self._paired_layers(module):
             linear.weight.copy_(weight[seed].T)
             linear.bias.copy_(bias[seed, 0])
         return module
@@ -243,14 +244,10 @@ class StackedEncoder(nn.Module):
 
     def forward(self, obs: TensorDictBase) -> Tensor:
         """``obs`` of batch ``[S, B]`` (the layout's entries) to features ``(S, B, out_features)``."""
-        channels = []
-        if self.layout.rgb:
-            channels.append(obs.get("pixels") / 255.0)
-        if self.layout.depth:
-            channels.append(obs.get("depth").clamp(0.0, self.depth_range).div_(self.depth_range))
-        images = channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
-        features = self.conv(images)
-        if self.layout.vector_dim is not None:
+        layout = self.layout
+        features = self.conv(image_channels(obs.get("pixels") if layout.rgb else None,
+                                            obs.get("depth") if layout.depth else None, self.depth_range))
+        if layout.vector_dim is not None:
             features = torch.cat([features, obs.get("observation")], dim=-1)
         return features
 
@@ -295,16 +292,17 @@ class StackedEncodedMLP(nn.Module):
 
     def load_seed(self, seed: int, network: nn.Module) -> None:
         """Copy a single encoded network (its one ``ConvNet`` and one ``MLP``) into seed ``seed``."""
-        self.encoder.conv.load_seed(seed, _only(network, ConvNet))
-        self.head.load_seed(seed, _only(network, MLP))
+        self.encoder.conv.load_seed(seed, only_submodule(network, ConvNet))
+        self.head.load_seed(seed, only_submodule(network, MLP))
 
     def copy_seed_to(self, seed: int, network: nn.Module) -> None:
         """Write seed ``seed``'s weights into a single encoded network of this shape."""
-        self.encoder.conv.copy_seed_to(seed, _only(network, ConvNet))
-        self.head.copy_seed_to(seed, _only(network, MLP))
+        self.encoder.conv.copy_seed_to(seed, only_submodule(network, ConvNet))
+        self.head.copy_seed_to(seed, only_submodule(network, MLP))
 
 
-def _only(module: nn.Module, kind: type) -> nn.Module:
+def only_submodule(module: nn.Module, kind: type) -> nn.Module:
+    """The one sub-module of ``module`` (itself included) of type ``kind``; a ``TypeError`` unless exactly one."""
     found = [m for m in module.modules() if isinstance(m, kind)]
     if len(found) != 1:
         raise TypeError(f"expected exactly one {kind.__name__} in {type(module).__name__}, found {len(found)}")

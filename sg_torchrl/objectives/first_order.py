@@ -27,15 +27,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from tensordict import TensorDictBase
-from tensordict.nn import dispatch, ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from sg_torchrl.objectives.actor_terms import release_compile_refs
 from sg_torchrl.objectives.multipliers import _as_finite_float, Multiplier, NoMultiplier
 from sg_torchrl.objectives.ppo_lag import _as_key_list, PPOLagLoss
-from sg_torchrl.objectives.surrogates import CUPProjectionSurrogate, FOCOPSSurrogate, PGSurrogate, SeedBatchedObjective
+from sg_torchrl.objectives.surrogates import CUPProjectionSurrogate, FOCOPSSurrogate, PGSurrogate
 
 __all__ = ["CUPLoss", "FOCOPSLoss", "PGLoss"]
 
@@ -341,27 +339,6 @@ class CUPLoss(PPOLagLoss):
     def surrogate(self) -> CUPProjectionSurrogate:
         """CUP's projection objective with this loss's :math:`c` (stage one is :attr:`reward_stage`'s)."""
         return CUPProjectionSurrogate(float(self.cost_coeff))
-
-    def seed_batched_objective(self, *, critics_only: bool = False) -> SeedBatchedObjective:
-        """The projection stage in the engine's form (stage one: ``reward_stage.seed_batched_objective()``).
-
-        The checks of :meth:`PPOLagLoss.seed_batched_objective` apply; the projection trains the
-        actor alone.
-        """
-        return super().seed_batched_objective(critics_only=critics_only)
-
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """CUP's projection (stage-two) loss on a batch; see the class docstring for keys."""
-        tensordict = self._with_advantages(tensordict, reward=False)  # computed if missing
-        td_out = self._reduce_losses(self._actor_loss(tensordict, self._policy_advantage(tensordict)), tensordict)
-        ref = td_out.get("loss_objective")
-        td_out.set(
-            "lagrange_multiplier", self.multiplier.value.to(device=ref.device, dtype=ref.dtype)
-        )
-        release_compile_refs(tensordict, td_out, self.actor_network_params,
-                             self.target_actor_network_params if self.delay_actor else None)
-        return td_out
 
     def extra_repr(self) -> str:
         return (

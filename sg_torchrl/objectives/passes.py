@@ -27,12 +27,12 @@ snapshot that puts a diverged seed back.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-__all__ = ["Means", "Order", "PassesReport", "RowMeans", "Step", "run_passes", "whole_batch"]
+__all__ = ["Order", "PassesReport", "RowMeans", "Step", "run_passes", "whole_batch"]
 
 #: The minibatches of one pass: ``order(size, generator)`` yields indices ``data[index]`` gathers
 #: (``size = len(data)``), or ``None`` for the whole batch as it is (no gather, no copy). It is
@@ -50,19 +50,9 @@ def whole_batch(size: int, generator: torch.Generator | None) -> tuple[None]:
     return (None,)
 
 
-@runtime_checkable
-class Means(Protocol):
-    """What :func:`run_passes` averages: one :meth:`add` per optimiser step, :meth:`result` at the end."""
-
-    def add(self, out: Mapping[str, Tensor], norms: Sequence[Tensor]) -> None:
-        """Take one step's outputs and clip-group norms into the sums."""
-
-    def result(self) -> dict[str, Any]:
-        """Each metric averaged over the steps."""
-
-
 class RowMeans:
-    """Metrics kept as float64 tensors with one entry per row (per seed), never read back per step.
+    """What :func:`run_passes` averages: metrics kept as float64 tensors with one entry per row (per seed),
+    never read back per step (one :meth:`add` per optimiser step, :meth:`result` at the end).
 
     Each step adds ``output * weight`` to a metric's sum and ``weight`` to the row counts, so a row
     whose weight is 0 (a seed that no longer steps) is not averaged over those steps; :meth:`result`
@@ -103,7 +93,7 @@ class PassesReport(NamedTuple):
 
     Attributes:
         passes: passes run (SafePO's ``StopIter`` when every row ran them all).
-        means: each metric averaged over the optimiser steps (:meth:`Means.result`).
+        means: each metric averaged over the optimiser steps (:meth:`RowMeans.result`).
     """
 
     passes: int
@@ -116,7 +106,7 @@ def run_passes(
     *,
     passes: int,
     order: Order,
-    metrics: Means,
+    metrics: RowMeans,
     generator: torch.Generator | None = None,
     go_on: Callable[[], bool] | None = None,
 ) -> PassesReport:

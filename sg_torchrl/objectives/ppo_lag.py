@@ -98,14 +98,9 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
     minibatch loop; TorchRL's per-minibatch ``normalize_advantage`` / ``advantage_norm`` are refused.
 
     Advantages follow TorchRL's convention: when the input lacks ``"advantage"`` (or
-    ``"cost_advantage"``), the loss computes it, and its value target, from the input's
-    trajectories with its reward (cost) critic and estimator (GAE 0.99 / 0.95 unless
-    :meth:`make_value_estimator` says otherwise), normalised with SafePO's batch rule; a raw
-    ``env.rollout(...)`` can be passed as is. Minibatch loops compute them once per batch instead
-    (:meth:`estimate_advantages`, or :func:`~sg_torchrl.objectives.make_gae` /
-    :func:`~sg_torchrl.objectives.make_cost_gae` and
-    :func:`~sg_torchrl.objectives.normalize_advantages`), and the loss uses them as given. See
-    :class:`~sg_torchrl.objectives.value.AdvantageEstimation`.
+    ``"cost_advantage"``), the loss computes it and its value target from the input's trajectories
+    (a raw ``env.rollout(...)`` can be passed as is); given ones are used as they are
+    (:class:`~sg_torchrl.objectives.value.AdvantageEstimation`).
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the policy; must write the action
@@ -313,13 +308,8 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
 
     # ------------------------------------------------------------------ hook
     def _combined_advantage(self, tensordict: TensorDictBase) -> Tensor:
-        """The advantage fed to the clipped surrogate: the Lagrangian mix of :math:`A^r` and :math:`A^c`.
-
-        The multiplier's rule (:meth:`~sg_torchrl.objectives.Multiplier.combine`): SafePO's
-        :math:`(A^r - \\lambda A^c) / (1 + \\lambda)` when ``multiplier.sum_norm`` (PPO-Lag,
-        CPPO-PID), :math:`(1 - \\lambda) A^r - \\lambda A^c` when ``multiplier.diff_norm`` (Stooke
-        et al. 2020) and :math:`A^r - \\lambda A^c` otherwise, with :math:`\\lambda` =
-        ``multiplier.value`` (no gradient flows into the multiplier).
+        """The advantage fed to the clipped surrogate: the multiplier's Lagrangian mix of :math:`A^r` and
+        :math:`A^c` (:meth:`~sg_torchrl.objectives.Multiplier.combine`, no gradient into the multiplier).
 
         Args:
             tensordict (TensorDictBase): the input batch, holding ``tensor_keys.advantage`` and
@@ -482,11 +472,15 @@ class PPOLagLoss(ActorTerms, CostCriticLosses, AdvantageEstimation, ClipPPOLoss)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes the PPO-Lag losses on a batch (see the class docstring for keys)."""
-        tensordict = self._with_advantages(tensordict)
+        """Computes the losses on a batch (see the class docstring for keys); the critics' only when the surrogate
+        trains them (not CUP's projection, which needs no reward advantage either)."""
+        trains_critics = self.surrogate.trains_critics
+        reward = trains_critics or self.surrogate.advantage != "cost"
+        tensordict = self._with_advantages(tensordict, reward=reward)  # computed if missing
         td_out = self._actor_loss(tensordict, self._policy_advantage(tensordict))
         td_out = self._reduce_losses(td_out, tensordict)
-        td_out.update(self.critic_losses(tensordict))
+        if trains_critics:
+            td_out.update(self.critic_losses(tensordict))
         ref = td_out.get("loss_objective")
         td_out.set(
             "lagrange_multiplier",

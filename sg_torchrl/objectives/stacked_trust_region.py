@@ -383,8 +383,6 @@ class StackedTrustRegionStep(TrustRegionEngine):
         if shape[0] != seeds or action.shape[:2] != shape:
             raise ValueError(f"expected (S={seeds}, N, ...) observations and actions, got "
                              f"{tuple(observation.shape)} and {tuple(action.shape)}.")
-        if self.uses_cost and cost_advantage is None:
-            raise ValueError(f"{type(self).__name__} needs the cost advantage.")
         violations = torch.as_tensor(cost_violation, dtype=torch.float64).reshape(-1).tolist()
         if len(violations) != seeds:
             raise ValueError(f"expected one cost violation per seed ({seeds}), got {len(violations)}.")

@@ -6,10 +6,8 @@ seed group's stacked steps (:mod:`sg_torchrl.objectives.stacked_trust_region`):
 
 * :func:`cpo_direction` / :func:`pcpo_direction`: the CPO QP's solution and PCPO's projected step
   (functions of :math:`g, b, H, c, \\delta`, unit-tested against an independent QP solver);
-* :class:`Proposal` and :func:`natural_proposal`, :func:`cpo_proposal`, :func:`pcpo_proposal`: a
-  step direction with the line-search tests it must pass, one per method;
 * :class:`NaturalRule`, :class:`TRPORule`, :class:`CPORule`, :class:`PCPORule`: small mixins holding a
-  method's proposal, options (``safepo_dual``, ``use_hx_direction``), default line-search length and
+  method's :class:`Proposal` (a step direction with the line-search tests it must pass), options (``safepo_dual``, ``use_hx_direction``), default line-search length and
   whether it needs the cost gradient; a step class is a rule plus a step engine.
 
 See :mod:`sg_torchrl.objectives.trust_region` for the conventions (KL averaged over action dims) and
@@ -28,8 +26,8 @@ from torch import Tensor
 from sg_torchrl.objectives.second_order import Linearisation, natural_step_size
 
 __all__ = [
-    "TrustRegionOptions", "CPODirection", "CPORule", "NaturalRule", "PCPORule", "Proposal", "TRPORule", "cpo_direction", "cpo_proposal",
-    "natural_proposal", "pcpo_direction", "pcpo_proposal",
+    "TrustRegionOptions", "CPODirection", "CPORule", "NaturalRule", "PCPORule", "Proposal", "TRPORule",
+    "cpo_direction", "pcpo_direction",
 ]
 
 _EPS = 1e-8  # SafePO's guard in the CPO / PCPO divisions by s and lambda
@@ -194,37 +192,6 @@ class Proposal:
     metrics: dict[str, float] = field(default_factory=dict)
 
 
-def natural_proposal(lin: Linearisation, cost_violation: float, delta: float) -> Proposal:
-    """The natural step :math:`\\sqrt{2\\delta/q}\\, x` with TRPO's tests (NPG applies it without any).
-
-    The per-step proposal of :class:`NaturalPolicyStep` and :class:`TRPOStep` as a function of the
-    linearisation, so that seed-group steps (:mod:`sg_torchrl.objectives.stacked_trust_region`) apply it
-    seed by seed; ``cost_violation`` is unused.
-    """
-    return Proposal(direction=natural_step_size(lin.q, delta) * lin.x)
-
-
-def cpo_proposal(lin: Linearisation, cost_violation: float, delta: float, *, safepo_dual: bool = False) -> Proposal:
-    """:func:`cpo_direction` with CPO's acceptance tests: the proposal of :class:`CPOStep`.
-
-    The cost surrogate may grow by at most :math:`\\max(-c, 0)`; the reward surrogate must not
-    decrease in cases 2-4 (feasible policy). Logs the case and the optimal duals.
-    """
-    sol = cpo_direction(lin, cost_violation, delta, safepo_dual=safepo_dual)
-    return Proposal(
-        direction=sol.direction,
-        require_improvement=sol.case >= 2,
-        cost_tolerance=max(-cost_violation, 0.0),
-        metrics={"Misc/CPOCase": float(sol.case), "Misc/Lambda_star": sol.lam, "Misc/Nu_star": sol.nu},
-    )
-
-
-def pcpo_proposal(lin: Linearisation, cost_violation: float, delta: float, *, use_hx: bool = False) -> Proposal:
-    """:func:`pcpo_direction` with CPO's cost test and no reward test: the proposal of :class:`PCPOStep`."""
-    direction = pcpo_direction(lin, cost_violation, delta, use_hx=use_hx)
-    return Proposal(direction=direction, require_improvement=False, cost_tolerance=max(-cost_violation, 0.0))
-
-
 class TrustRegionOptions:
     """The settings of a trust-region step engine, checked and stored once for the single-seed
     :class:`~sg_torchrl.objectives.TrustRegionStep` and the seed group's stacked step.
@@ -269,10 +236,11 @@ class TrustRegionOptions:
 
 class NaturalRule:
     """What NPG / RCPO add to a trust-region step (mixed into :class:`NaturalPolicyStep` and the seed
-    group's stacked step, so the two share one definition): the natural proposal, no line search."""
+    group's stacked step, so the two share one definition): the natural step :math:`\\sqrt{2\\delta/q}\\, x`
+    with TRPO's tests (NPG, without a line search, applies it untested); ``cost_violation`` is unused."""
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return natural_proposal(lin, cost_violation, self.target_kl)
+        return Proposal(direction=natural_step_size(lin.q, self.target_kl) * lin.x)
 
 
 class TRPORule(NaturalRule):
@@ -282,8 +250,12 @@ class TRPORule(NaturalRule):
 
 
 class CPORule:
-    """CPO's settings and proposal (:func:`cpo_proposal`; ``safepo_dual``): the cost gradient is needed,
-    15 backtracking trials by default. Shared by :class:`CPOStep` and the seed group's stacked step."""
+    """CPO's settings and proposal (:func:`cpo_direction`; ``safepo_dual``): the cost gradient is needed,
+    15 backtracking trials by default. Shared by :class:`CPOStep` and the seed group's stacked step.
+
+    The cost surrogate may grow by at most :math:`\\max(-c, 0)`; the reward surrogate must not
+    decrease in cases 2-4 (feasible policy). Logs the case and the optimal duals.
+    """
 
     default_line_search_steps = 15
     uses_cost = True
@@ -293,12 +265,19 @@ class CPORule:
         self.safepo_dual = bool(safepo_dual)
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return cpo_proposal(lin, cost_violation, self.target_kl, safepo_dual=self.safepo_dual)
+        sol = cpo_direction(lin, cost_violation, self.target_kl, safepo_dual=self.safepo_dual)
+        return Proposal(
+            direction=sol.direction,
+            require_improvement=sol.case >= 2,
+            cost_tolerance=max(-cost_violation, 0.0),
+            metrics={"Misc/CPOCase": float(sol.case), "Misc/Lambda_star": sol.lam, "Misc/Nu_star": sol.nu},
+        )
 
 
 class PCPORule:
-    """PCPO's settings and proposal (:func:`pcpo_proposal`; ``use_hx_direction``): the cost gradient is
-    needed, 200 backtracking trials by default. Shared by :class:`PCPOStep` and the stacked step."""
+    """PCPO's settings and proposal (:func:`pcpo_direction`; ``use_hx_direction``) with CPO's cost test and
+    no reward test: the cost gradient is needed, 200 backtracking trials by default. Shared by
+    :class:`PCPOStep` and the stacked step."""
 
     default_line_search_steps = 200
     uses_cost = True
@@ -308,4 +287,5 @@ class PCPORule:
         self.use_hx_direction = bool(use_hx_direction)
 
     def _propose(self, lin: Linearisation, cost_violation: float) -> Proposal:
-        return pcpo_proposal(lin, cost_violation, self.target_kl, use_hx=self.use_hx_direction)
+        direction = pcpo_direction(lin, cost_violation, self.target_kl, use_hx=self.use_hx_direction)
+        return Proposal(direction=direction, require_improvement=False, cost_tolerance=max(-cost_violation, 0.0))

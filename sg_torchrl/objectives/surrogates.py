@@ -312,13 +312,6 @@ class SeedBatchedObjective:
         return self.surrogate.loss(log_weight, advantage, cost_advantage=cost_advantage, kl=kl, lam=lam,
                                    seed_dims=1).mean((1, 2))
 
-    def policy_loss(self, model, batch: Mapping[str, Tensor], lam: Tensor) -> Tensor:
-        """Each seed's policy loss on its minibatch, ``(S,)`` (differentiable in the actor).
-
-        ``batch`` holds ``(S, mb, width)`` fields, ``lam`` each seed's multiplier value ``(S,)``.
-        """
-        return self._objective(*self._policy_terms(model, batch), batch, lam)
-
     @staticmethod
     def critic_losses(model, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
         """Each seed's reward- and cost-critic MSE to the targets, ``(S,)`` each, without the L2 term."""
@@ -329,14 +322,14 @@ class SeedBatchedObjective:
                 ((cost_value - batch["cost_value_target"]) ** 2).mean((1, 2)))
 
     def losses(self, model, batch: Mapping[str, Tensor], lam: Tensor) -> tuple[Tensor, ...]:
-        """The per-seed losses a gradient step sums: ``(objective?, reward critic?, cost critic?)``.
+        """The per-seed losses a gradient step sums: ``(objective?, reward critic?, cost critic?)``, ``(S,)`` each.
 
         ``(objective,)`` for an actor-only surrogate, the two critics' MSE for ``surrogate=None``,
-        else all three.
+        else all three. ``batch`` holds ``(S, mb, width)`` fields, ``lam`` each seed's multiplier value ``(S,)``.
         """
         if self.critics_only:
             return self.critic_losses(model, batch)
-        objective = self.policy_loss(model, batch, lam)
+        objective = self._objective(*self._policy_terms(model, batch), batch, lam)
         if self.actor_only:
             return (objective,)
         return (objective, *self.critic_losses(model, batch))

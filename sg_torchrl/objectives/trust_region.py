@@ -15,22 +15,15 @@ with :math:`g` and :math:`b` the gradients of the reward and cost surrogates
 (:math:`r_\\theta = \\pi_\\theta(a|s) / \\pi_{\\text{behaviour}}(a|s)`) and
 :math:`c = J_c - d` the constraint violation.
 
-This module is the one-actor front of the package's single trust-region implementation:
-
-* :class:`TrustRegionLoss`, a TorchRL :class:`~torchrl.objectives.LossModule` that computes the two
-  surrogates and the mean KL of a TorchRL actor in one pass, by the steps' own evaluation
-  (:meth:`~sg_torchrl.objectives.stacked_trust_region.SeedSurrogates.evaluate` on one seed);
-* the pure step computations :func:`cpo_direction` and :func:`pcpo_direction` over
-  :func:`~sg_torchrl.objectives.second_order.linearise` (functions of :math:`g, b, H, c, \\delta`,
-  unit-tested against an independent QP solver), with each method's proposal and settings as a rule
-  mixin, in :mod:`sg_torchrl.objectives.step_rules`;
-* the step strategies the trainer calls once per epoch, one small class each (a rule over
-  :class:`TrustRegionStep`): :class:`NaturalPolicyStep` (Kakade 2002), :class:`TRPOStep` (Schulman et
-  al. 2015), :class:`CPOStep` (Achiam et al. 2017) and :class:`PCPOStep` (Yang et al. 2020). Each is
-  the seed-batched step of :mod:`sg_torchrl.objectives.stacked_trust_region` with S = 1: the actor is
-  put into a one-seed view (:class:`OneSeedActor`), stepped, and its parameters written back, so a
-  single actor and a seed group move by the same code (:data:`STACKED_STEPS` names the group class
-  of each).
+This module is the one-actor front of the package's single trust-region implementation
+(:mod:`sg_torchrl.objectives.stacked_trust_region`): :class:`TrustRegionLoss`, a TorchRL
+:class:`~torchrl.objectives.LossModule` giving the two surrogates and the mean KL of a TorchRL actor by
+the steps' own evaluation, and the steps of one actor, :class:`NaturalPolicyStep`
+(Kakade 2002), :class:`TRPOStep` (Schulman et al. 2015), :class:`CPOStep` (Achiam et al. 2017) and
+:class:`PCPOStep` (Yang et al. 2020). Each is a rule of :mod:`sg_torchrl.objectives.step_rules` (home of
+:func:`cpo_direction` and :func:`pcpo_direction`, unit-tested against an independent QP solver) over
+the seed-group step with S = 1 (:class:`OneSeedActor`), so a single actor and a seed group move by the
+same code (:data:`STACKED_STEPS` names the group class of each).
 
 Lagrangian variants are not separate classes: TRPO-Lag is :class:`TRPOStep` fed the Lagrangian
 advantage :math:`(A_r - \\lambda A_c)/(1 + \\lambda)` (``multiplier.combine``), and RCPO as SafePO
@@ -63,7 +56,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
@@ -78,7 +70,6 @@ from sg_torchrl.objectives.stacked_trust_region import (
     StackedPCPOStep,
     StackedTRPOStep,
     StackedTrustRegionStep,
-    TrustRegionEngine,
     _per_sample,  # value reshaped to the per-sample shape, refusing silent broadcasting
 )
 from sg_torchrl.objectives.step_rules import (  # the directions are re-exported (sg_torchrl.objectives)
@@ -288,38 +279,30 @@ class OneSeedActor:
         return self
 
 
-class TrustRegionStep(TrustRegionEngine):
-    """The trust-region step of one TorchRL actor: the seed-batched engine with S = 1.
+class TrustRegionStep(StackedTrustRegionStep):
+    """The trust-region step of one TorchRL actor: the seed-group step with S = 1.
 
-    :meth:`step` (called by the trainer once per epoch on the whole flattened batch) anchors
-    :math:`\\pi_{\\text{old}}` at the actor as it is (for on-policy data the behaviour policy the
-    collector stored; it keeps :math:`H` exactly the Fisher matrix at :math:`\\theta_k`), puts the
-    actor into a one-seed view (:class:`OneSeedActor`) and runs
-    :meth:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine.step_seeds`: surrogates and
-    Fisher-vector product, conjugate gradient, the subclass's proposal (:meth:`_propose`), then the
-    direction applied directly (``line_search_steps=0``) or backtracked, a candidate accepted when its
-    surrogates and KL are finite, :math:`\\mathrm{KL} \\le \\delta` and the proposal's improvement /
-    cost tests pass (:meth:`acceptable`); if none passes the actor is left unchanged.
+    :meth:`step` (called by the trainer once per epoch on the whole flattened batch) puts the actor
+    into a one-seed view (:class:`OneSeedActor`) and runs
+    :meth:`~sg_torchrl.objectives.stacked_trust_region.StackedTrustRegionStep.step` on the batch as one
+    seed's ``(1, N)`` rows: :math:`\\pi_{\\text{old}}` anchored at the actor as it is (for on-policy data the
+    behaviour policy the collector stored; it keeps :math:`H` exactly the Fisher matrix at
+    :math:`\\theta_k`), then the subclass's proposal (:meth:`_propose`) applied directly
+    (``line_search_steps=0``) or backtracked; if no candidate passes the actor is left unchanged.
 
     Args:
         actor (ProbabilisticTensorDictSequential): the diagonal-Gaussian policy (e.g. with
             :class:`~torchrl.modules.IndependentNormal`); its parameters are changed in place.
 
     Keyword Args:
-        **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (``target_kl`` 0.01,
-            ``cg_iters`` 15, ``cg_damping`` 0.1, ``line_search_steps`` (``None``: the method's default),
-            ``step_fraction`` 0.8, ``cg_residual_tol``, ``cg_eps``, ``kl_action_reduction`` ``"mean"``, see
-            the module docstring).
+        **options: :class:`~sg_torchrl.objectives.step_rules.TrustRegionOptions` (see the module docstring).
 
     Returned metrics: those of :class:`~sg_torchrl.objectives.stacked_trust_region.TrustRegionEngine`
-    as Python floats (``Misc/Alpha``, ``Misc/FinalStepNorm``, ``Misc/xHx``, ``Misc/gradient_norm``,
-    ``Misc/H_inv_g``, ``Misc/AcceptanceStep``, ``Train/KL``, ``Loss/Loss_actor``, plus
-    ``Misc/cost_gradient_norm`` for the constrained steps and subclass extras).
+    as Python floats.
     """
 
     def __init__(self, actor: ProbabilisticTensorDictSequential, **options) -> None:
-        super().__init__(**options)
-        self.model = OneSeedActor(actor)
+        super().__init__(OneSeedActor(actor), **options)
         self.action_key: NestedKey = "action"
         self.log_prob_key: NestedKey = _log_prob_key(actor)
 
@@ -342,23 +325,18 @@ class TrustRegionStep(TrustRegionEngine):
         model, shape = self.model, data.batch_size
         model.load()
         rows = (1, data.numel())
-        observation = data.select(*model.actor.in_keys).reshape(rows)
         action = data.get(self.action_key)
-        action = action.reshape(*rows, *action.shape[len(shape):])
 
         def per_sample(value: Tensor, name: str) -> Tensor:
             return _per_sample(value.detach(), shape, name).reshape(rows)
 
-        with torch.no_grad():
-            old_loc, old_scale = model.dist_params(observation)
-        surrogates = SeedSurrogates(
-            observation, action, per_sample(data.get(self.log_prob_key), "action_log_prob"),
-            per_sample(advantage, "advantage"),
-            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
-            old_loc, old_scale, self.kl_action_reduction,
-        )
+        batch = {"observation": data.select(*model.actor.in_keys).reshape(rows),
+                 "action": action.reshape(*rows, *action.shape[len(shape):]),
+                 "action_log_prob": per_sample(data.get(self.log_prob_key), "action_log_prob")}
         try:
-            metrics = self.step_seeds(surrogates, [float(cost_violation)])
+            metrics = super().step(batch, per_sample(advantage, "advantage"),
+                                   None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+                                   [float(cost_violation)])
         finally:
             model.store()
         return {name: float(value[0]) for name, value in metrics.items()}

@@ -137,30 +137,18 @@ def make_cost_gae(
     Configured with ``set_keys(reward="cost", value="cost_value", advantage="cost_advantage",
     value_target="cost_value_target")``: it reads ``("next", "cost")``, the done flags and the cost
     critic's ``"cost_value"``, and writes ``"cost_advantage"`` and ``"cost_value_target"``, so it
-    runs on the same TensorDict as the reward GAE without touching its entries.
-
-    A cost critic writing a nested key, e.g. ``("agents", "cost_value")``, gets every key in its
-    group: it reads ``("next", "agents", "cost")``, ``("next", "agents", "done")`` /
-    ``"terminated"`` and writes ``("agents", "cost_advantage")`` / ``"cost_value_target"`` (one
-    estimate per agent, each its own cost and flags). Other layouts: pass ``keys`` (applied in one
-    ``set_keys`` call, so a nested value key never meets the plain default) or remap further with
-    ``.set_keys(...)``.
-
-    SafePO uses the same :math:`\\gamma` and :math:`\\lambda` for cost and reward
-    (``lambda_c = 0.95``), which are the defaults here.
+    runs on the same TensorDict as the reward GAE without touching its entries. A nested cost critic
+    (``("agents", "cost_value")``) gets every key in its group, one estimate per agent, as in
+    :func:`make_gae`. SafePO uses the same :math:`\\gamma` and :math:`\\lambda` for cost and
+    reward (``lambda_c = 0.95``), which are the defaults here.
 
     Args:
         cost_value_network (TensorDictModuleBase or None): the cost critic, writing ``"cost_value"``;
             ``None`` when the caller writes ``"cost_value"`` and ``("next", "cost_value")`` itself.
 
     Keyword Args:
-        gamma (float): cost discount factor. Defaults to ``0.99``.
-        lmbda (float): GAE :math:`\\lambda` for the cost. Defaults to ``0.95``.
-        keys (mapping, optional): estimator keys to set instead of the defaults (``reward``,
-            ``value``, ``advantage``, ``value_target``, ``done``, ``terminated``). Defaults to
-            ``None``.
-        group (str, optional), estimator (type): as in :func:`make_gae`.
-        **gae_kwargs: forwarded to ``estimator``.
+        gamma, lmbda, keys, group, estimator, **gae_kwargs: as in :func:`make_gae` (``keys`` is applied
+            in one ``set_keys`` call, so a nested value key never meets the plain default).
 
     Returns:
         A :class:`~torchrl.objectives.value.GAE` module with the cost keys.

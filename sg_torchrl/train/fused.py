@@ -130,17 +130,13 @@ class SeedBatch:
     def num_seeds(self) -> int:
         return self.data.shape[0]
 
-    @property
-    def num_samples(self) -> int:
-        return self.data.shape[1]
-
     def fields(self) -> dict[str, Tensor | TensorDictBase]:
         """Every field as a view ``(S, N, width)``, a field with entries apart as a TensorDict."""
         return field_views(self.data, self.names, self.widths, self.apart)
 
     def __len__(self) -> int:
         """The samples per seed: what minibatch indices range over (``len(data)`` in ``run_passes``)."""
-        return self.num_samples
+        return self.data.shape[1]
 
     def __getitem__(self, key: str | Tensor) -> Tensor | SeedBatch:
         """A field by name (a view ``(S, N, width)``) or, as a TensorDict, the minibatch ``key`` (:meth:`gather`)."""

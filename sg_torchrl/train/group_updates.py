@@ -15,14 +15,8 @@ chosen by the algorithm table (``Algorithm.make_group_update`` in :mod:`sg_torch
   step of every seed's actor (:mod:`sg_torchrl.objectives.stacked_trust_region`), then critics-only passes.
 
 All run :func:`seed_passes`, a group's minibatch passes through the package's one update loop
-(:func:`~sg_torchrl.objectives.passes.run_passes`, which the multi-agent rounds also run). Each seed
-follows its single-seed run (SafePO's loop on its own):
-its own minibatch order (:class:`~sg_torchrl.train.fused.SeedShuffler`), its own KL early stop (after
-every pass, KL(reference || current) over the seed's batch against ``target_kl``; none for the
-critics-only passes). A seed that
-stopped takes no further step: its later steps are masked (:class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`),
-so its parameters, Adam moments and step counts stay exactly as they are, and its shuffler draws no
-more orders, as its single run would not; the passes end when no seed is active.
+(:func:`~sg_torchrl.objectives.passes.run_passes`): each seed follows its single-seed run (its own
+minibatch order and KL early stop; a seed that stopped is masked and draws no more orders).
 
 **Divergence.** A seed whose loss, KL or parameters turn non-finite during a pass is flagged in
 :attr:`GroupResult.diverged`, stops at the end of that pass and is put back to its state before the

@@ -38,25 +38,10 @@ generators and simulator blocks draw the same numbers, and the stacked actor com
 actions as for S = 1); across epochs the seeds' updates agree to float rounding (batched matmuls
 of the critics' one-wide output sum in another order for S = 1 and S > 1, about 1e-7).
 
-**Layout** (every seed group, single- or multi-agent). ``<output_dir>/<env_id>/<algo>/seeds-0-1-2/``
-(or ``--run-name``) holds the group's ``config.json`` and ``checkpoint.pt`` and one directory per seed::
-
-    seeds-0-1-2/
-      config.json  checkpoint.pt  summary.json   the group: its config, checkpoint, per-seed and mean summary
-      curves.png   every seed's return and cost curves (thin) and their mean (thick), with the cost limit
-      seed-000/    config.json (that seed's single-seed config), progress.csv, csv/, wandb/, summary.json, curves.png
-      seed-001/ ...
-
-``--resume <group dir>`` continues the group, and a new group refuses a directory holding one
-unless ``--overwrite`` (the single-seed rules, :mod:`sg_torchrl.train.checkpoint`). The checkpoint
-keeps every seed's networks (as single-seed modules' state dicts), Adam rows, multiplier,
-normaliser row, generators and statistics under ``"seeds"``
-(:func:`~sg_torchrl.train.seed_runs.seed_entry` reads one out).
-
-**Divergence.** A seed whose parameters are not finite before an epoch, or whose update turns
-non-finite, is frozen (no more updates, multiplier or logs; its simulators idle with zero actions)
-and reported: on stderr, in its ``summary.json`` (``Diverged``) and the group's. The others go on;
-when none is left the run ends early.
+**Layout, checkpoint, divergence.** The engine's (:mod:`sg_torchrl.train.seed_runs`,
+:mod:`sg_torchrl.train.trainer`; the directory tree is in the README). This family's checkpoint entry
+per seed (networks as single-seed modules' state dicts, Adam rows, multiplier, normaliser row,
+generators) is :meth:`OnPolicyGroupTrainer._seed_state`'s.
 
 **Device** (``--device``, :mod:`sg_torchrl.train.devices`). The networks, the masked Adam's state,
 the multiplier values the losses read, GAE, the epoch's batch and the whole update live on
@@ -65,13 +50,6 @@ collection, never in the update) and the multipliers' own state (each follows a 
 :math:`J_c` once per epoch) stay on the host. :class:`StackedPolicy` copies each step's observation
 to the device and its outputs back once; the batch crosses once per epoch; the update reads back
 once per pass and per epoch (:mod:`sg_torchrl.train.group_updates`). Checkpoints hold CPU tensors.
-
-**One seed** (``sg-train --seed s``): :class:`OnPolicyGroupTrainer` with the one seed, in a single run's
-layout (:class:`~sg_torchrl.train.seed_runs.SingleRunLayout`). It trains exactly as seed ``s`` of
-``--seeds s`` (the same code with S = 1: progress rows but their timings, parameters, the seed's
-checkpoint entry) and writes a single run's files in its run directory, no ``seed-XXX/`` level. Its
-checkpoint's ``"seed_group"`` entry is what tells it from a checkpoint of the retired ``LossModule``
-trainer, which ``--resume`` refuses.
 """
 
 from __future__ import annotations
@@ -227,8 +205,8 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
         self.cost_gae = make_cost_gae(None, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda).to(self.device)
         # Second order has no actor learning rate (SafePO's Adam holds the critics alone): the actor's
         # group is kept at lr 0 and never stepped, its trust-region step moves it.
-        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
-        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, actor_lr, cfg.critic_lr,
+        self.actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
+        self.optimizer = FusedFirstOrderStep.make_optimizer(self.model, self.actor_lr, cfg.critic_lr,
                                                             max_grad_norm=cfg.max_grad_norm, compile=cfg.compile)
         self.shuffler = SeedShuffler(self.seeds)
         self.action_generators = [seeding.generator(seed, seeding.Purpose.ACTIONS) for seed in self.seeds]
@@ -260,15 +238,14 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
         lagrange = [float(m.update(run.last_mean_cost) if run.alive else m.value)
                     for m, run in zip(self.multipliers, self.runs)]
         data, raw_advantages = self._seed_data(batch.to(device, non_blocking=True))
-        actor_lr = 0.0 if cfg.second_order else cfg.actor_lr
-        self.optimizer.param_groups[0]["lr"] = actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
+        self.optimizer.param_groups[0]["lr"] = self.actor_lr * max(0.0, 1.0 - self.epoch / cfg.epochs)
         violation = torch.tensor([m.violation(run.last_mean_cost) for m, run in zip(self.multipliers, self.runs)],
                                  dtype=torch.float64)
         result = self.group_update(data, multiplier_values(self.multipliers).to(device), violation, alive)
         names = list(result.metrics)
         values = torch.stack([result.metrics[name].to(device, torch.float64) for name in names]
                              + [raw_advantages[0].double(), raw_advantages[1].double()]).tolist()
-        next_lr = actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
+        next_lr = self.actor_lr * max(0.0, 1.0 - (self.epoch + 1) / cfg.epochs)  # as the trainer logs its scheduler's
         rows = []
         for index, lam in enumerate(lagrange):
             update = {name: int(values[i][index]) if name in _COUNTS else values[i][index]

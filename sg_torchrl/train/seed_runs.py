@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import abc
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -143,8 +142,7 @@ class RunLayout(abc.ABC):
 
     What the engine asks of it: the seeds to train (:attr:`seeds`), each seed's own config
     (:meth:`seed_config`, whose ``run_dir`` receives its logs), the end of the run once every seed has
-    written its summary (:meth:`finish`), the episode statistics of a one-seed run (:meth:`stats`) and how
-    a checkpoint given to the trainer is read (:meth:`read_checkpoint`).
+    written its summary (:meth:`finish`).
     """
 
     def __init__(self, cfg: TrainConfig) -> None:
@@ -161,16 +159,6 @@ class RunLayout(abc.ABC):
                train_seconds: float) -> dict[str, Any]:
         """The end of the run, after each seed's ``summary.json`` (``summaries``, in the order of ``runs``);
         returns what ``sg-train`` prints."""
-
-    @abc.abstractmethod
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        """The run's episode statistics, where there is one run."""
-
-    @abc.abstractmethod
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """``checkpoint`` in the engine's form; ``single_run_form`` is the family's reading of a single run's
-        checkpoint written by an earlier trainer (identity where there was none)."""
 
 
 class GroupLayout(RunLayout):
@@ -209,14 +197,6 @@ class GroupLayout(RunLayout):
             out.update({prefix + name: value for name, value in {**(run.last_row or {}), **summary}.items()})
         return out
 
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        raise AttributeError("a seed group has no one run's episode statistics: each seed's is runs[i].stats")
-
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """As it is (a group's checkpoint; anything else is refused when it is restored)."""
-        return checkpoint
-
 
 class SingleRunLayout(RunLayout):
     """One run (``cfg.seed``; no ``cfg.seeds``): ``cfg.run_dir`` itself is its directory, with a single run's files.
@@ -242,14 +222,6 @@ class SingleRunLayout(RunLayout):
         """The run's summary (with ``Diverged``, ``DivergedEpoch``, ``DivergedReason`` when it diverged); its
         ``summary.json`` and ``curves.png`` are all the run writes at its end."""
         return summaries[0]
-
-    def stats(self, runs: list[SeedRun]) -> EpisodeStats:
-        return runs[0].stats
-
-    def read_checkpoint(self, checkpoint: dict[str, Any],
-                        single_run_form: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
-        """``single_run_form(checkpoint)``: a single run's checkpoint of an earlier trainer reads as the engine's."""
-        return single_run_form(checkpoint)
 
 
 def run_layout(cfg: TrainConfig) -> RunLayout:

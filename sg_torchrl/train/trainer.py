@@ -14,8 +14,8 @@ subclass each (:func:`sg_torchrl.train.trainer_class` picks it):
 
 Where the runs write is not a subclass either: the config picks a layout
 (:func:`~sg_torchrl.train.seed_runs.run_layout`; a group's ``seed-XXX/`` directories or a single run's
-directory, :mod:`sg_torchrl.train.seed_runs`), which the engine asks for the seeds, each seed's config,
-the end of the run and how a checkpoint is read. One seed trains exactly as seed ``s`` of ``--seeds s``.
+directory, :mod:`sg_torchrl.train.seed_runs`), which the engine asks for the seeds, each seed's config
+and the end of the run. One seed trains exactly as seed ``s`` of ``--seeds s``.
 
 One epoch (SafePO's loop, Safety-Gymnasium paper appendix):
 
@@ -164,7 +164,8 @@ class SeedGroupTrainer(abc.ABC):
     * :meth:`_evaluate_seed`: a seed's deterministic evaluation;
     * :meth:`_seed_state` / :meth:`_load_seed_state`: a seed's algorithm entries of the checkpoint;
 
-    and, where the family had a single-seed trainer of its own before, :meth:`_single_run_checkpoint`.
+    and, where the family had a single-seed trainer of its own before, :meth:`_single_run_checkpoint`
+    (applied to a checkpoint given to a single run; a group's is restored as it is).
     """
 
     title: str
@@ -194,7 +195,9 @@ class SeedGroupTrainer(abc.ABC):
         Raises:
             AttributeError: a seed group (each seed's are ``runs[i].stats``).
         """
-        return self.layout.stats(self.runs)
+        if self.cfg.group:
+            raise AttributeError("a seed group has no one run's episode statistics: each seed's is runs[i].stats")
+        return self.runs[0].stats
 
     def _start(self, checkpoint: dict[str, Any] | None) -> None:
         """Restore ``checkpoint`` (when given) and open the runs' logs; the last step of a subclass's ``__init__``.
@@ -208,7 +211,8 @@ class SeedGroupTrainer(abc.ABC):
         """
         cfg = self.cfg
         if checkpoint is not None:
-            checkpoint = self.layout.read_checkpoint(checkpoint, self._single_run_checkpoint)
+            if not cfg.group:
+                checkpoint = self._single_run_checkpoint(checkpoint)
             self._restore(checkpoint)
         else:
             checkpoint_files.check_new_run_dir(cfg.run_dir, cfg.overwrite)
@@ -267,16 +271,12 @@ class SeedGroupTrainer(abc.ABC):
                            file=sys.stderr)
         self._sync_frozen()
 
-    def _freeze_nonfinite(self) -> None:
-        """Freeze the live seeds whose parameters are not finite (set from outside, or loaded so)."""
+    def _exhausted(self) -> bool:
+        """Whether every seed is frozen, after freezing the live seeds whose parameters are not finite (set from
+        outside, or loaded so)."""
         bad = (self.alive & ~self._finite_seeds()).tolist()
         if any(bad):
             self._freeze(bad, self.epoch + 1, "non-finite parameters at the start of the epoch")
-
-    def _exhausted(self) -> bool:
-        """Whether nothing is left to train: freeze seeds with non-finite parameters first; then whether every
-        seed is frozen."""
-        self._freeze_nonfinite()
         return not any(run.alive for run in self.runs)
 
     # ------------------------------------------------------------------ epochs
