@@ -296,8 +296,10 @@ class AgentRows:
         return [self.flat_actor]
 
     def actor_rows(self, rows: Tensor) -> AgentRows:
-        """The actors of the rows ``rows`` alone, on a copy of their :attr:`flat_actor` rows."""
-        return AgentRows(None, rows, self.agents[rows], _like=self, _actor=self.flat_actor.detach()[rows].clone())
+        """The actors of the rows ``rows`` alone, on a copy of their :attr:`flat_actor` rows (``rows`` may live on
+        the networks' device, a line search's indices: the agents are looked up there, without a read back)."""
+        agents = self.agents.to(rows.device, non_blocking=True)[rows]
+        return AgentRows(None, rows, agents, _like=self, _actor=self.flat_actor.detach()[rows].clone())
 
     def zero_grad(self) -> None:
         for name in NETWORKS:
