@@ -1,5 +1,7 @@
 """``--device``: where a single-agent run's networks and updates live (``sg_torchrl.train.devices``).
 
+The multi-agent and off-policy families' device checks are ``tests/test_device_families.py``.
+
 What is checked, on any machine:
 
 * ``--device cpu`` given explicitly trains exactly as the default (checkpointed parameters, progress
@@ -9,8 +11,7 @@ What is checked, on any machine:
   made by one epoch are counted, and they are as many with 8 minibatches per pass as
   with 2 (first order, CUP's two stages, second order), while a read added per minibatch shows up;
 * a device this machine lacks is refused with a message naming it (exit status 2 from ``sg-train``,
-  ``ValueError`` from the Python API), multi-agent runs refuse any device but the CPU, and a bad
-  name is refused;
+  ``ValueError`` from the Python API), and a bad name is refused;
 * checkpoints hold CPU tensors only and load on the CPU; a run whose saved config names CUDA is
   refused on a machine without it unless continued with ``--device cpu``, which then trains on.
 
@@ -22,10 +23,8 @@ count of synchronising calls the same for 2 and 8 minibatches per pass.
 from __future__ import annotations
 
 import collections
-import contextlib
 import csv
 import json
-import warnings
 
 import pytest
 import torch
@@ -36,11 +35,10 @@ from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig, main  # noqa: E4
 from sg_torchrl.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint  # noqa: E402
 from sg_torchrl.train.devices import check_device_available  # noqa: E402
 from sg_torchrl.train.group_updates import MaskedSeedStep  # noqa: E402
+from device_checks import counting_host_reads, synchronising_calls, tensors  # noqa: E402
 
 CHEETAH = "SafetyHalfCheetahVelocity-v1"
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-#: The tensor methods that hand a value to Python, which on a GPU waits for the device.
-HOST_READS = ("item", "tolist", "cpu", "numpy", "__float__", "__int__", "__bool__")
 
 
 def group_config(tmp_path, **overrides) -> TrainConfig:
@@ -57,18 +55,6 @@ def group_config(tmp_path, **overrides) -> TrainConfig:
 def without_times(path) -> list[dict[str, str]]:
     with open(path) as f:
         return [{k: v for k, v in row.items() if not k.startswith("Time/")} for row in csv.DictReader(f)]
-
-
-def tensors(tree):
-    """Every tensor in a checkpoint's nested dicts and lists."""
-    if isinstance(tree, torch.Tensor):
-        yield tree
-    elif isinstance(tree, dict):
-        for value in tree.values():
-            yield from tensors(value)
-    elif isinstance(tree, (list, tuple)):
-        for value in tree:
-            yield from tensors(value)
 
 
 # --------------------------------------------------------------------------- cpu, explicitly
@@ -94,22 +80,6 @@ def test_device_cpu_given_explicitly_trains_as_the_default(tmp_path):
 
 
 # --------------------------------------------------------------------------- host reads in the update path
-@contextlib.contextmanager
-def counting_host_reads(monkeypatch):
-    """Count calls of :data:`HOST_READS` on any tensor while the block runs."""
-    counts: collections.Counter[str] = collections.Counter()
-    with monkeypatch.context() as patch:
-        for name in HOST_READS:
-            original = getattr(torch.Tensor, name)
-
-            def counted(self, *args, _name=name, _original=original, **kwargs):
-                counts[_name] += 1
-                return _original(self, *args, **kwargs)
-
-            patch.setattr(torch.Tensor, name, counted)
-        yield counts
-
-
 def epoch_host_reads(tmp_path, monkeypatch, algo: str, minibatch_size: int) -> collections.Counter[str]:
     """The host reads of one epoch of ``algo`` (collection, multipliers, GAE, the group update, the metrics, logs).
 
@@ -180,15 +150,6 @@ def test_bad_device_names_exit_2(tmp_path, capsys, name):
     assert "config: device must be one of cpu, cuda, cuda:N" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("device", ["cuda", "cuda:0"])
-def test_multi_agent_runs_refuse_any_device_but_the_cpu(tmp_path, capsys, device):
-    assert main(["--algo", "mappo", "--output-dir", str(tmp_path), "--device", device, "--total-steps", "400",
-                 "--steps-per-epoch", "200", "--num-envs", "2"]) == 2
-    assert "multi-agent training runs on cpu only so far" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="multi-agent training runs on cpu only so far"):
-        TrainConfig(algo="macpo", device=device)
-
-
 def test_env_options_cannot_place_the_simulators():
     with pytest.raises(ValueError, match="env_options cannot set device: the simulators run on their backend"):
         TrainConfig(env_options={"device": "cuda"})
@@ -229,23 +190,14 @@ def test_a_group_trains_an_epoch_on_cuda_and_continues_on_the_cpu(tmp_path):
     assert on_cpu.epoch == 2
 
 
-def synchronising_calls(tmp_path, algo: str, minibatch_size: int) -> int:
-    """Synchronising CUDA calls (``set_sync_debug_mode("warn")``) of one epoch on ``cuda`` (as :func:`epoch_host_reads`)."""
+def epoch_synchronising_calls(tmp_path, algo: str, minibatch_size: int) -> int:
+    """Synchronising CUDA calls of one epoch on ``cuda`` (as :func:`epoch_host_reads`)."""
     cfg = group_config(tmp_path / f"{algo}-{minibatch_size}", algo=algo, minibatch_size=minibatch_size,
                        target_kl=1e9, device="cuda")
-    trainer = OnPolicyGroupTrainer(cfg)
-    torch.cuda.synchronize()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            trainer.train_epoch()
-        finally:
-            torch.cuda.set_sync_debug_mode("default")
-    return sum("synchroniz" in str(w.message) for w in caught)
+    return synchronising_calls(OnPolicyGroupTrainer(cfg).train_epoch)
 
 
 @CUDA
 @pytest.mark.parametrize("algo", ["ppo_lag", "trpo_lag"])
 def test_the_cuda_update_synchronises_no_more_with_more_minibatches(tmp_path, algo):
-    assert synchronising_calls(tmp_path, algo, 32) == synchronising_calls(tmp_path, algo, 128)
+    assert epoch_synchronising_calls(tmp_path, algo, 32) == epoch_synchronising_calls(tmp_path, algo, 128)

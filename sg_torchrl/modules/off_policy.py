@@ -148,6 +148,8 @@ class StackedOffPolicyNets:
         stochastic: SAC's squashed Gaussian actor (else a deterministic tanh actor with a target copy).
         num_critics: K reward critics (and K cost critics when ``constrained``).
         constrained: whether there are cost critics.
+        device: where the rows, the targets and the action bounds live (``sg-train --device``); the modules
+            :meth:`export_seed` builds and :meth:`load_seed` reads may live anywhere (a trainer's are on the CPU).
 
     Attributes:
         actor, critic, cost_critic: the trained rows (leaves with gradients); ``cost_critic`` ``None``
@@ -157,14 +159,15 @@ class StackedOffPolicyNets:
     """
 
     def __init__(self, num_seeds: int, obs_dim: int, action_spec: Bounded, hidden_sizes: Sequence[int], *,
-                 stochastic: bool, num_critics: int, constrained: bool) -> None:
+                 stochastic: bool, num_critics: int, constrained: bool,
+                 device: torch.device | str | None = None) -> None:
         self.num_seeds, self.obs_dim, self.action_spec = int(num_seeds), int(obs_dim), action_spec
         self.hidden_sizes, self.stochastic = list(hidden_sizes), stochastic
         self.num_critics, self.constrained = int(num_critics), constrained
         action_dim = self.action_dim
         self.actor_layout = FlatMLP([obs_dim, *hidden_sizes, (2 if stochastic else 1) * action_dim])
         self.critic_layout = FlatMLP([obs_dim + action_dim, *hidden_sizes, 1])
-        low, high = action_spec.space.low.float(), action_spec.space.high.float()
+        low, high = action_spec.space.low.float().to(device), action_spec.space.high.float().to(device)
         self.low, self.high = low, high
         # TanhNormal's affine map after its tanh, present when the bounds are not [-1, 1] (TanhModule always rescales)
         self.affine = (high + low) / 2, (high - low) / 2
@@ -172,7 +175,7 @@ class StackedOffPolicyNets:
         self._scale_mapping = mappings(SCALE_MAPPING)
 
         def rows(width: int, grad: bool) -> Tensor:
-            return torch.zeros(num_seeds, width, requires_grad=grad)
+            return torch.zeros(num_seeds, width, requires_grad=grad, device=device)
 
         critics = num_critics * self.critic_layout.numel
         self.actor = rows(self.actor_layout.numel, True)
@@ -181,6 +184,11 @@ class StackedOffPolicyNets:
         self.target_actor = None if stochastic else rows(self.actor_layout.numel, False)
         self.target_critic = rows(critics, False)
         self.target_cost_critic = rows(critics, False) if constrained else None
+
+    @property
+    def device(self) -> torch.device:
+        """Where the rows live."""
+        return self.actor.device
 
     @property
     def action_dim(self) -> int:
@@ -288,11 +296,12 @@ class StackedOffPolicyNets:
 
     @classmethod
     def from_single(cls, networks: Sequence[tuple[nn.Module, list, list]], obs_dim: int, action_spec: Bounded,
-                    hidden_sizes: Sequence[int], *, stochastic: bool) -> StackedOffPolicyNets:
-        """Stack S runs' :func:`make_off_policy_networks` outputs (seed ``s`` from ``networks[s]``)."""
+                    hidden_sizes: Sequence[int], *, stochastic: bool,
+                    device: torch.device | str | None = None) -> StackedOffPolicyNets:
+        """Stack S runs' :func:`make_off_policy_networks` outputs (seed ``s`` from ``networks[s]``) on ``device``."""
         first = networks[0]
         stacked = cls(len(networks), obs_dim, action_spec, hidden_sizes, stochastic=stochastic,
-                      num_critics=len(first[1]), constrained=bool(first[2]))
+                      num_critics=len(first[1]), constrained=bool(first[2]), device=device)
         for seed, triple in enumerate(networks):
             stacked.load_seed(seed, *triple)
         return stacked

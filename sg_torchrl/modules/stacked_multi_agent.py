@@ -119,6 +119,11 @@ class StackedMultiAgentNetworks:
         return len(self.teams)
 
     @property
+    def device(self) -> torch.device:
+        """Where the stacks live (the teams' parameters: a trainer moves its teams to ``cfg.device`` first)."""
+        return self.log_std.device
+
+    @property
     def n_agents(self) -> int:
         return self.teams[0].n_agents
 
@@ -129,7 +134,7 @@ class StackedMultiAgentNetworks:
     @torch.no_grad()
     def finite_seeds(self) -> Tensor:
         """``(S,)`` bool: which seeds' parameters are all finite (one check per stacked tensor)."""
-        finite = torch.ones(self.num_seeds, dtype=torch.bool)
+        finite = torch.ones(self.num_seeds, dtype=torch.bool, device=self.device)
         for tensor in self.tensors():
             finite &= torch.isfinite(tensor.reshape(self.num_seeds, -1)).all(1)
         return finite
@@ -178,6 +183,10 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
     ``scale`` 1, action 0, log-probability 0), draw no noise and are not computed: a diverged seed's
     actions may not be finite, which the env refuses.
 
+    With the networks on another device than the env's observations (``--device cuda``), a step copies the
+    observation and the noise (drawn on the CPU generators, so a run draws the same numbers on every
+    device) to the networks' device once each, and its four outputs back in one tensor.
+
     Args:
         networks: the seeds' stacked teams.
         generators: one per seed, each at the state its seed's global RNG has after its team is built.
@@ -201,8 +210,8 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         observation = tensordict.get(self.in_keys[0])
-        seeds = self.networks.num_seeds
-        observation = observation.reshape(seeds, self.num_envs, *observation.shape[1:])
+        seeds, device, host = self.networks.num_seeds, self.networks.device, observation.device
+        observation = observation.reshape(seeds, self.num_envs, *observation.shape[1:]).to(device, non_blocking=True)
         live = list(range(seeds)) if self.frozen is None else [s for s in range(seeds) if not bool(self.frozen[s])]
         loc = self.networks.actor_loc(observation, live)
         scale = self.networks.actor_scale().expand_as(loc)
@@ -210,15 +219,23 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
         if len(live) < seeds:
             idle = torch.ones(seeds, dtype=torch.bool)
             idle[live] = False
+            idle = idle.to(device)
             scale = torch.where(idle.view(-1, 1, 1, 1), 1.0, scale)
-        noise = torch.zeros_like(loc) if idle is not None else torch.empty_like(loc)
+        # on the generators' device, laid out as loc (the draws fill it in memory order, as a single run's do)
+        on = self.generators[0].device
+        noise = torch.zeros_like(loc, device=on) if idle is not None else torch.empty_like(loc, device=on)
         for s in live:  # each seed's block drawn as its own run draws it: one (N, A, Da) normal_
             noise[s].normal_(generator=self.generators[s])
-        action = loc + noise * scale  # Normal.rsample: loc + eps * scale
+        action = loc + noise.to(device, non_blocking=True) * scale  # Normal.rsample: loc + eps * scale
         # Normal.log_prob, summed over the action dims (Independent)
         log_prob = (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI).sum(-1)
         if idle is not None:
             log_prob = torch.where(idle.view(-1, 1, 1), 0.0, log_prob)
+        if device != host:  # the step's one copy back: what the env steps with and the batch keeps
+            width = loc.shape[-1]
+            packed = torch.cat((loc, scale, action, log_prob.unsqueeze(-1)), dim=-1).to(host)
+            loc, scale, action, log_prob = packed.split((width, width, width, 1), dim=-1)
+            log_prob = log_prob.squeeze(-1)
         for key, value in zip(self.out_keys, (loc, scale, action, log_prob)):
             tensordict.set(key, value.reshape(-1, *value.shape[2:]))
         return tensordict
@@ -279,8 +296,10 @@ class AgentRows:
         return [self.flat_actor]
 
     def actor_rows(self, rows: Tensor) -> AgentRows:
-        """The actors of the rows ``rows`` alone, on a copy of their :attr:`flat_actor` rows."""
-        return AgentRows(None, rows, self.agents[rows], _like=self, _actor=self.flat_actor.detach()[rows].clone())
+        """The actors of the rows ``rows`` alone, on a copy of their :attr:`flat_actor` rows (``rows`` may live on
+        the networks' device, a line search's indices: the agents are looked up there, without a read back)."""
+        agents = self.agents.to(rows.device, non_blocking=True)[rows]
+        return AgentRows(None, rows, agents, _like=self, _actor=self.flat_actor.detach()[rows].clone())
 
     def zero_grad(self) -> None:
         for name in NETWORKS:

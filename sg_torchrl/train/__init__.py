@@ -22,9 +22,10 @@ side in one process, one seed (``--seed s``) written in a single run's layout, a
 in earlier versions) is refused (:func:`refuse_retired_checkpoint`), saying how to go on.
 Ctrl-C (or ``SIGTERM``) stops a run after the epoch under way, checkpointed; ``--resume`` continues it.
 
-``--device cuda`` (``TrainConfig.device``; :mod:`sg_torchrl.train.devices`) puts a single-agent run's networks,
-optimiser state and updates on a GPU while the simulators stay on their backend; a machine without the
-device is refused with the option checks (exit status 2), and multi-agent runs train on the CPU only so far.
+``--device cuda`` (``TrainConfig.device``; :mod:`sg_torchrl.train.devices`) puts a run's networks, optimiser
+state and updates on a GPU, for every family (the off-policy replay buffers stay on the host), while the
+simulators stay on their backend; a machine without the device is refused with the option checks (exit
+status 2).
 
 Importing this package loads neither torch, TorchRL nor MuJoCo (seconds on a busy machine): ``main``
 parses and checks the whole command line first, so a bad flag or option fails in about a second. The

@@ -190,7 +190,7 @@ class TrainConfig:
         None, "off-policy: reduction of the twin cost critics (max: pessimistic for cost)")
     device: str = _opt(
         "cpu", "where the networks, optimiser state and updates live: cpu, cuda or cuda:N (the simulators stay on "
-        "their backend; single-agent algorithms; a resumed run may change it)")
+        "their backend; a resumed run may change it)")
 
     def __post_init__(self) -> None:
         for name, value in ALGORITHM_DEFAULTS.get(self.algo, {}).items():
@@ -325,14 +325,10 @@ class TrainConfig:
             raise ValueError("config: --compile applies to the on-policy algorithms; the off-policy steps run eagerly")
 
     def _validate_device(self) -> None:
-        """``device``'s form (:func:`~sg_torchrl.train.devices.check_device_name`); the multi-agent engine trains
-        on the CPU only so far, as do the off-policy algorithms. Whether this machine has the device is checked where training starts
+        """``device``'s form (:func:`~sg_torchrl.train.devices.check_device_name`), for every family. Whether this
+        machine has the device is checked where training starts
         (:func:`~sg_torchrl.train.devices.check_device_available`), so a saved config reads anywhere."""
         check_device_name(self.device)
-        if (self.multi_agent or self.off_policy) and self.device != "cpu":
-            family = "multi-agent" if self.multi_agent else "off-policy"
-            raise ValueError(f"config: device {self.device!r}: {family} training runs on cpu only so far "
-                             f"({self.algo!r}); give --device cpu")
 
     def _validate_checkpointing(self) -> None:
         """Checkpoint intervals, and ``resume`` with ``overwrite`` (continue or start over: not both)."""

@@ -2,7 +2,9 @@
 
 The simulators always step where their backend runs them (CPU MuJoCo, or the Warp backend's device);
 ``device`` places what learns: the stacked networks, the optimiser state, the multiplier values fed
-to the losses, GAE, the epoch's batch and every update step. The random streams (action noise,
+to the losses, GAE, the epoch's batch and every update step, in every family (multi-agent: also the
+rounds' PopArt statistics; off-policy: also the targets, while the replay buffers stay on the host and
+each gradient step copies its sampled rows over once). The random streams (action noise,
 minibatch order) are CPU ``torch.Generator``\\ s whatever the device, so a run draws the same numbers
 on every device and its checkpoint (all CPU tensors) continues on another one.
 

@@ -153,6 +153,13 @@ class MultiAgentTeam:
             cost_gae=make_multi_agent_cost_gae(networks.cost_critic, gamma=cfg.gamma, lmbda=cfg.cost_gae_lambda),
         )
 
+    def to(self, device: torch.device | str) -> MultiAgentTeam:
+        """Move the networks and both GAEs to ``device`` (built on the CPU, from the global RNG); returns the team."""
+        self.networks.to(device)
+        self.reward_gae.to(device)
+        self.cost_gae.to(device)
+        return self
+
     @torch.no_grad()
     def estimate_advantages(self, batch: TensorDictBase) -> None:
         """Per-agent reward and cost GAEs on the ``(N, T)`` batch, written into it."""

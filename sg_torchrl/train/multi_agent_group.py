@@ -35,6 +35,16 @@ single-seed run bit for bit (``tests/test_multi_agent_group.py``). One caveat: a
 32,768 elements of a row (a batch past that many samples per seed) may be split across threads
 differently for different S, and a seed then follows its single-seed run to float rounding.
 
+**Device** (``--device``, :mod:`sg_torchrl.train.devices`). Each team is built on the CPU (from its seed's
+global RNG, so the initial numbers are the same on every device) and moved to ``cfg.device`` before it is
+stacked: the stacks, the rounds' Adam moments, step counts, PopArt statistics and multipliers, both GAEs,
+the epoch's batch (one copy per epoch) and every update step live there. The simulators, the observation
+normalisers (they run in the env's transform during collection) and every generator stay on the host:
+the policy copies each step's observation and noise to the device and its outputs back once, and the
+rounds move each pass's minibatch order once. A round reads back to the host once per pass (which seeds
+are still active) and once per stage (its metrics), never per minibatch. Checkpoints hold CPU tensors, so a
+run continues on another device.
+
 Layout, logs, summaries, ``--resume`` / ``--overwrite`` and divergence (a seed whose parameters or
 update turn non-finite is put back to its parameters before that update and frozen; its simulators
 idle with zero actions; the others go on) are the engine's
@@ -61,6 +71,7 @@ from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, StackedMultiAgentPolicy
 from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.devices import training_device
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.multi_agent import MULTI_AGENT_ALGORITHMS, MultiAgentTeam, observation_norms
 from sg_torchrl.train.seed_runs import SeedRun
@@ -93,6 +104,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         if not cfg.multi_agent:
             raise ValueError(f"{type(self).__name__} trains the multi-agent algorithms, not {cfg.algo!r} "
                              f"(trainer_class(cfg) picks the trainer of a config)")
+        self.device = training_device(cfg)  # refuses a device this machine lacks before anything is built
         super().__init__(cfg)
         self.algorithm = MULTI_AGENT_ALGORITHMS[cfg.algo]
         self.title = self.algorithm.title
@@ -109,9 +121,10 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         generators = []
         for run in self.runs:  # each seed's team from torch.manual_seed(seed), as the group of that seed alone
             seeding.seed_torch(run.seed)
-            self.teams.append(MultiAgentTeam.build(self.base_env, run.cfg))
+            team = MultiAgentTeam.build(self.base_env, run.cfg)
             # where that run's action noise starts: its global RNG's state once its team is built
             generators.append(torch.Generator().set_state(torch.get_rng_state()))
+            self.teams.append(team.to(self.device))
         self.networks = StackedMultiAgentNetworks([team.networks for team in self.teams])
         self.round = self.algorithm.make_round(
             self.networks, cfg, [seeding.generator(run.seed, seeding.Purpose.MINIBATCHES) for run in self.runs])
@@ -121,7 +134,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
 
     # ------------------------------------------------------------------ seeds and epochs
     def _finite_seeds(self) -> Tensor:
-        return self.networks.finite_seeds()
+        return self.networks.finite_seeds().cpu()
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float] | None], list[bool]]:
         """Each live seed's GAEs on its block, then one round of every live seed.
@@ -130,6 +143,7 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         non-finite is put back to its state before the round and flagged (:meth:`_train_epoch`
         freezes it).
         """
+        batch = batch.to(self.device, non_blocking=True)  # the epoch's one copy to the networks' device
         blocks = [block if run.alive else None for run, block in zip(self.runs, batch.split(self.cfg.num_envs, 0))]
         before = {}
         for index, (team, block) in enumerate(zip(self.teams, blocks)):
@@ -156,10 +170,11 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
 
     # ------------------------------------------------------------------ evaluation
     def _evaluate_seed(self, index: int) -> dict[str, float]:
-        """Seed ``index``'s deterministic evaluation: its actor and normaliser rows, env seed + 10_000."""
+        """Seed ``index``'s deterministic evaluation: a CPU copy of its actor, its normaliser rows, env seed + 10_000."""
         cfg, seed = self.cfg, self.seeds[index]
         norms = [norm.group_copy(index) for norm in self.obs_norms]
-        return evaluate_policy(cfg.env_id, self.teams[index].networks.actor, cfg.eval_episodes,
+        actor = copy.deepcopy(self.teams[index].networks.actor).to("cpu")
+        return evaluate_policy(cfg.env_id, actor, cfg.eval_episodes,
                                seed=seeding.env_seed(seed, seeding.Purpose.EVALUATION), obs_norm=norms,
                                env_options=cfg.env_options)
 
@@ -169,10 +184,11 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         return team_checkpoint_as_group(checkpoint)
 
     def _seed_state(self, index: int) -> dict[str, Any]:
-        """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG."""
+        """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG;
+        CPU tensors whatever ``cfg.device``."""
         return {
-            "networks": self.teams[index].networks.state_dict(),
-            "update": self.round.seed_state_dict(index),
+            "networks": _host_tree(self.teams[index].networks.state_dict()),
+            "update": _host_tree(self.round.seed_state_dict(index)),
             "obs_norms": [norm.group_state_dict(index) for norm in self.obs_norms],
             "torch_rng": self.policy.generators[index].get_state(),
         }
@@ -208,12 +224,32 @@ def team_checkpoint_as_group(checkpoint: dict[str, Any]) -> dict[str, Any]:
     return {**rest, "seeds": [entry], "seed_group": {"seeds": [seed]}}
 
 
-def _finite(value: Any) -> bool:
-    """Whether every floating-point tensor in ``value`` (nested dicts, lists, tuples) is finite."""
+def _tensors(value: Any) -> list[Tensor]:
+    """Every tensor in ``value`` (nested dicts, lists, tuples)."""
     if isinstance(value, Tensor):
-        return not value.is_floating_point() or bool(torch.isfinite(value).all())
+        return [value]
     if isinstance(value, dict):
-        return all(_finite(item) for item in value.values())
+        return [t for item in value.values() for t in _tensors(item)]
     if isinstance(value, (list, tuple)):
-        return all(_finite(item) for item in value)
-    return True
+        return [t for item in value for t in _tensors(item)]
+    return []
+
+
+def _finite(value: Any) -> bool:
+    """Whether every floating-point tensor in ``value`` (nested dicts, lists, tuples) is finite (one read per device)."""
+    flags: dict[torch.device, list[Tensor]] = {}
+    for tensor in _tensors(value):
+        if tensor.is_floating_point():
+            flags.setdefault(tensor.device, []).append(torch.isfinite(tensor).all())
+    return all(bool(torch.stack(found).all()) for found in flags.values())
+
+
+def _host_tree(value: Any) -> Any:
+    """``value`` (nested dicts, lists, tuples) with every tensor as a CPU copy (a checkpoint's)."""
+    if isinstance(value, Tensor):
+        return value.detach().to("cpu", copy=True)
+    if isinstance(value, dict):
+        return type(value)((key, _host_tree(item)) for key, item in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(value)(_host_tree(item) for item in value)
+    return value

@@ -22,6 +22,14 @@ and :func:`~sg_torchrl.objectives.passes.run_passes`.
 A seed's round state is written in a single team's checkpoint format (:meth:`SeedBatchedRound.seed_state_dict`:
 per-agent ``torch.optim.Adam`` state dicts, the multipliers' and PopArt normalisers' module state dicts,
 the generator), so checkpoints of the rounds before they were seed-batched load as they are.
+
+**Device.** The round's state lives where the stacked networks do (``networks.device``): Adam's moments
+and step counts, the PopArt statistics and the multipliers (moved there when the round is built), and the
+stage's batch, factor, masks and metric sums. What stays on the host: the agent orders and the
+generators, the seeds and agents a stage gathers (CPU index tensors), and :math:`J_c`. A stage reads back
+once per pass (the KL stop's active seeds) and once for its metrics (:func:`host_lists`), never per
+minibatch. :meth:`SeedBatchedRound.seed_state_dict` gives the state where it lives; a trainer copies it to
+the CPU for its checkpoint.
 """
 
 from __future__ import annotations
@@ -45,7 +53,7 @@ from sg_torchrl.objectives.passes import RowMeans, run_passes, whole_batch
 from sg_torchrl.train.fused import SeedBatch, SeedShuffler
 from sg_torchrl.train.seed_adam import clip_grad_norm_per_seed_, SeedMaskedAdam
 
-__all__ = ["CRITIC_METRICS", "SeedBatchedRound", "episode_costs", "round_metrics"]
+__all__ = ["CRITIC_METRICS", "SeedBatchedRound", "episode_costs", "host_lists", "round_metrics"]
 
 #: The critics' losses averaged over an agent's steps, by SafePO's metric names.
 CRITIC_METRICS = {"Loss/Loss_reward_critic": "loss_critic", "Loss/Loss_cost_critic": "loss_cost_critic",
@@ -135,7 +143,7 @@ class SeedBatchedRound(abc.ABC):
         #: Per seed, one multiplier per agent (they hold the cost limit).
         self.team_multipliers = [
             nn.ModuleList(multipliers if multipliers is not None else
-                          [self._make_multiplier(cost_limit) for _ in range(n)])
+                          [self._make_multiplier(cost_limit) for _ in range(n)]).to(networks.device)
             for _ in range(seeds)
         ]
         # The agents' loss (a view of the objective) hands the round its seed-batched form.
@@ -146,12 +154,12 @@ class SeedBatchedRound(abc.ABC):
                                  **(loss_kwargs or {}))
         self.objective: AgentObjective = self.loss.seed_batched_objective()
         self.value_norm = bool(value_norm)
-        self.popart = {name: torch.zeros(seeds, n, 1) for name in _POPART}
+        self.popart = {name: torch.zeros(seeds, n, 1, device=networks.device) for name in _POPART}
         # Adam's moments as (S, A, ...) stacks beside the networks', per optimiser group, and step counts
         self._stacks = [[t for name in names for t in networks.tensors_of(name)] for names in self.optimised]
         self.exp_avg = [[torch.zeros_like(t) for t in group_] for group_ in self._stacks]
         self.exp_avg_sq = [[torch.zeros_like(t) for t in group_] for group_ in self._stacks]
-        self.steps = torch.zeros(len(self._stacks), seeds, n, dtype=torch.float64)
+        self.steps = torch.zeros(len(self._stacks), seeds, n, dtype=torch.float64, device=networks.device)
 
     #: Whether the agents' loss weights its advantage by the factor (MACPO's trains the critics only).
     _loss_weighted: ClassVar[bool] = True
@@ -199,14 +207,16 @@ class SeedBatchedRound(abc.ABC):
         fields = self._stack_fields([batches[s] for s in live])
         orders = torch.stack([self._permutation(s) for s in live])
         size = fields["state"].shape[1]
-        factor = torch.ones(len(live), size) if self.weighted else None
+        factor = torch.ones(len(live), size, device=self.networks.device) if self.weighted else None
         stages = []
         for stage in range(self.n_agents):
             metrics, factor = self._stage(rows, orders[:, stage], fields, factor, costs)
             stages.append(metrics)
         results: list[dict[str, float] | None] = [None] * seeds
+        multipliers = torch.stack([m.value.to(torch.float64) for s in live for m in self.team_multipliers[s]])
+        values = multipliers.view(len(live), self.n_agents).tolist()  # the round's one read of them
         for index, s in enumerate(live):
-            lam = [float(m.value) for m in self.team_multipliers[s]]
+            lam = values[index]
             # a metric a row's stage does not have (None: another row's CPO case had it) is left out, as alone
             results[s] = round_metrics([(int(orders[index, k]), {name: values[index] for name, values in stage.items()
                                                                  if values[index] is not None})
@@ -262,7 +272,7 @@ class SeedBatchedRound(abc.ABC):
     def _critic_passes(self, rows: AgentRows, batch: SeedBatch, optimizer: SeedMaskedAdam, value_norm,
                        passes: int, seeds: Tensor) -> dict[str, Tensor]:
         """``passes`` passes of Adam steps on the rows' two critics (MACPO's), no early stop; the means per row."""
-        means = RowMeans(CRITIC_METRICS, (len(seeds),))
+        means = RowMeans(CRITIC_METRICS, (len(seeds),), self.networks.device)
 
         def step(minibatch: SeedBatch):
             out = self.objective.critic_losses(rows, minibatch.fields(), value_norm, None)
@@ -272,20 +282,21 @@ class SeedBatchedRound(abc.ABC):
             optimizer.step()
             return out, ()
 
-        active = torch.ones(len(seeds), dtype=torch.bool)
+        active = torch.ones(len(seeds), dtype=torch.bool, device=self.networks.device)
         return run_passes(batch, step, passes=passes, order=self._order(seeds, active), metrics=means).means
 
     def _order(self, seeds: Tensor, active: Tensor):
-        """The minibatches of a pass: the whole batch, or each active seed's permutation cut in chunks."""
+        """The minibatches of a pass: the whole batch, or each active seed's permutation cut in chunks (drawn on
+        the host, moved to the networks' device once per pass)."""
         if self.num_minibatches == 1:
             return whole_batch
         chunks = self.num_minibatches
 
         def order(size: int, generator: torch.Generator | None) -> list[Tensor]:
             drawing = [False] * self.networks.num_seeds
-            for row, seed in enumerate(seeds.tolist()):
-                drawing[seed] = bool(active[row])
-            permutation = self.shuffler.permutation(size, drawing)[seeds]
+            for seed, flag in zip(seeds.tolist(), active.tolist(), strict=True):  # one read per pass
+                drawing[seed] = flag
+            permutation = self.shuffler.permutation(size, drawing)[seeds].to(self.networks.device, non_blocking=True)
             return list(permutation.split(-(-size // chunks), dim=1))
 
         return order
@@ -357,10 +368,11 @@ class SeedBatchedRound(abc.ABC):
 
     def _adam_state(self, seed: int, agent: int) -> dict[str, Any]:
         state, param_groups, index = {}, [], 0
+        steps = self.steps[:, seed, agent].tolist()
         for g, (group, lr) in enumerate(zip(self._agent_slices(agent), self._learning_rates(), strict=True)):
             start = index
             for position, (_, size) in enumerate(group):
-                step = float(self.steps[g, seed, agent])
+                step = steps[g]
                 if step > 0:
                     avg, avg_sq = self.exp_avg[g][position][seed, agent], self.exp_avg_sq[g][position][seed, agent]
                     if size is not None:
@@ -399,6 +411,15 @@ def episode_costs(mean_episode_cost: float | Tensor, n_agents: int) -> list[floa
         raise ValueError(f"mean_episode_cost must be one finite value or one per agent ({n_agents}), "
                          f"got {mean_episode_cost!r}.")
     return value.tolist()
+
+
+def host_lists(values: Mapping[str, Tensor]) -> dict[str, list[float]]:
+    """Each ``(R,)`` tensor of ``values`` as a list of floats, read back to the host in one copy (a stage's metrics)."""
+    if not values:
+        return {}
+    device = next(iter(values.values())).device
+    rows = torch.stack([value.detach().to(device, torch.float64) for value in values.values()]).tolist()
+    return dict(zip(values, rows))
 
 
 def round_metrics(stages: Sequence[tuple[int, Mapping[str, float]]], multipliers: Sequence[float]) -> dict[str, float]:

@@ -66,7 +66,7 @@ from sg_torchrl.objectives.multi_agent.multiplier import MAPPOLagMultiplier
 from sg_torchrl.objectives.multipliers import Multiplier
 from sg_torchrl.objectives.passes import RowMeans, run_passes
 from sg_torchrl.train.fused import SeedBatch
-from sg_torchrl.train.multi_agent_round import CRITIC_METRICS, SeedBatchedRound
+from sg_torchrl.train.multi_agent_round import CRITIC_METRICS, SeedBatchedRound, host_lists
 
 __all__ = ["HAPPOUpdate", "MACPOUpdate", "MAPPOLagUpdate", "MAPPOUpdate", "MultiAgentPPOUpdate"]
 
@@ -120,7 +120,7 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
     def _stage(self, seeds: Tensor, agents: Tensor, fields: dict[str, Tensor], factor: Tensor | None,
                costs: Tensor) -> tuple[dict[str, list[float]], Tensor | None]:
         """Stage ``k``: seed ``seeds[i]`` updates agent ``agents[i]``; returns its metrics per row and the new factor."""
-        live = len(seeds)
+        live, device = len(seeds), self.networks.device
         batch = self._stage_data(seeds, agents, fields, factor)
         rows = self.networks.agent_rows(seeds, agents)
         observation, action = batch["observation"], batch["action"]
@@ -137,12 +137,17 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
         optimizer = self._optimizer(rows, seeds, agents)
         multipliers = [self.team_multipliers[int(s)][int(a)] for s, a in zip(seeds, agents)]
         lam = torch.stack([m.value.to(torch.float64) for m in multipliers])
-        violation = costs[torch.arange(live), agents] - torch.stack([m.cost_limit for m in multipliers])
+        violation = (costs[torch.arange(live), agents].to(device, non_blocking=True)
+                     - torch.stack([m.cost_limit for m in multipliers]))
+        if self.steps_multiplier:  # the multipliers' constants, on the device once per stage
+            f64 = dict(dtype=torch.float64, device=device)
+            multiplier_lr = torch.tensor([m.lr for m in multipliers], **f64)
+            multiplier_gamma = torch.tensor([m.gamma for m in multipliers], **f64)
         value_norm = self._value_norm(seeds, agents)
-        active = torch.ones(live, dtype=torch.bool)
-        passes = torch.zeros(live, dtype=torch.float64)
-        kl = torch.zeros(live, dtype=torch.float32)
-        means = RowMeans(STEP_METRICS, (live,))
+        active = torch.ones(live, dtype=torch.bool, device=device)
+        passes = torch.zeros(live, dtype=torch.float64, device=device)
+        kl = torch.zeros(live, dtype=torch.float32, device=device)
+        means = RowMeans(STEP_METRICS, (live,), device)
 
         def step(minibatch: SeedBatch):
             nonlocal lam, pending
@@ -156,8 +161,7 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
             optimizer.step(active)
             if self.steps_multiplier:
                 stepped = MAPPOLagMultiplier.step_rule(lam, violation, out["cost_surrogate"].to(torch.float64),
-                                                       torch.tensor([m.lr for m in multipliers], dtype=torch.float64),
-                                                       torch.tensor([m.gamma for m in multipliers], dtype=torch.float64))
+                                                       multiplier_lr, multiplier_gamma)
                 lam = torch.where(active, stepped, lam)
             return out, ()
 
@@ -187,13 +191,13 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
             for multiplier, value in zip(multipliers, lam, strict=True):
                 multiplier.multiplier.copy_(value)
         with torch.no_grad():
-            metrics = {name: value.tolist() for name, value in report.means.items()}
-            metrics.update({
-                "Misc/Entropy": rows.entropy().tolist(),
-                "Misc/Factor": (factor.mean(1) if factor is not None else torch.ones(live)).tolist(),
-                "Train/KL": kl.tolist(),
-                "Train/StopIter": passes.tolist(),
-                "Train/LagrangeMultiplier": lam.tolist(),
+            metrics = host_lists({
+                **report.means,
+                "Misc/Entropy": rows.entropy(),
+                "Misc/Factor": factor.mean(1) if factor is not None else torch.ones(live, device=device),
+                "Train/KL": kl,
+                "Train/StopIter": passes,
+                "Train/LagrangeMultiplier": lam,
             })
             if factor is not None:
                 factor = factor * (gaussian_log_prob(action, *policy_now) - before).exp()
@@ -310,14 +314,11 @@ class MACPOUpdate(SeedBatchedRound):
         value_norm = self._value_norm(seeds, agents)
         critic_metrics = self._critic_passes(rows, batch, optimizer, value_norm, self.critic_epochs, seeds)
         self._write_back(rows, optimizer, value_norm)
-        metrics = {name: [v if v == v else None for v in value.tolist()] for name, value in step_metrics.items()}
-        metrics.update({name: value.tolist() for name, value in critic_metrics.items()})
         with torch.no_grad():
-            metrics.update({
-                "Misc/Entropy": rows.entropy().tolist(),
-                "Misc/Ratio": ratio.tolist(),
-                "Misc/Factor": factor.mean(1).tolist(),
-                "Misc/ConstraintValue": c,
-            })
+            metrics = {name: [v if v == v else None for v in value]
+                       for name, value in host_lists(step_metrics).items()}
+            metrics.update(host_lists({**critic_metrics, "Misc/Entropy": rows.entropy(), "Misc/Ratio": ratio,
+                                       "Misc/Factor": factor.mean(1)}))
+            metrics["Misc/ConstraintValue"] = c
             factor = factor * (after - before).exp()
         return metrics, factor

@@ -26,6 +26,16 @@ same numbers up to the batched matmuls' float rounding). A seed whose loss turns
 once and is put back to its state at the start of the epoch, then frozen. ``--resume`` continues bit for
 bit: the checkpoint holds the rows, targets, optimisers, multipliers and generators, and the replay
 buffers' state (their memory maps and undo files in the run directory, :mod:`sg_torchrl.train.replay`).
+
+**Device** (``--device``, :mod:`sg_torchrl.train.devices`). The rows and targets, the Adam moments, the
+multiplier values the actor loss reads, every gradient step and the epoch's loss sums live on ``cfg.device``;
+the simulators and the replay buffers (memory maps in the run directory) stay on the host. A collection step
+copies the observation to the device and the action back once; a gradient step copies its sampled rows to
+the device in one tensor (:meth:`~sg_torchrl.train.replay.SeedReplay.sample`) and its standard-normal draws
+(CPU generators, so a run draws the same numbers on every device) once each. Nothing in a gradient step
+reads back to the host: a seed whose loss turns non-finite is masked on the device
+(:class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`'s ``active``); the flags and the sums are read once
+per epoch. Checkpoints hold CPU tensors, so a run continues on another device.
 """
 
 from __future__ import annotations
@@ -47,6 +57,7 @@ from sg_torchrl.modules.off_policy import StackedOffPolicyNets, make_off_policy_
 from sg_torchrl.objectives.off_policy import OffPolicyObjective
 from sg_torchrl.train.algorithms import make_multiplier
 from sg_torchrl.train.config import TrainConfig
+from sg_torchrl.train.devices import training_device
 from sg_torchrl.train.evaluate import evaluate_policy
 from sg_torchrl.train.fused import multiplier_values
 from sg_torchrl.train.replay import SeedReplay
@@ -105,10 +116,18 @@ def _row_spec(env) -> Any:
     return env.action_spec[0]
 
 
+def _host_copy(value: Tensor) -> Tensor:
+    """A CPU copy of ``value`` (a checkpoint's)."""
+    return value.detach().to("cpu", copy=True)
+
+
 class OffPolicyStackedPolicy(TensorDictModuleBase):
     """S seeds' actors acting on their simulator blocks: uniform random (warm-up), sampled (SAC), or the
     deterministic action plus Gaussian ``noise`` clamped to the bounds (TD3, DDPG); means under a
-    deterministic exploration type; frozen seeds act with zeros."""
+    deterministic exploration type; frozen seeds act with zeros.
+
+    The draws come from the seeds' CPU generators; the observation goes to the networks' device and the
+    action comes back to the env's in one copy each (none when both are the CPU)."""
 
     def __init__(self, nets: StackedOffPolicyNets, generators: list[torch.Generator], noise: float) -> None:
         super().__init__()
@@ -119,12 +138,14 @@ class OffPolicyStackedPolicy(TensorDictModuleBase):
 
     def _draw(self, batch: int, kind: str) -> Tensor:
         draw = torch.rand if kind == "rand" else torch.randn
-        return torch.stack([draw(batch, self.nets.action_dim, generator=g) for g in self.generators])
+        draws = torch.stack([draw(batch, self.nets.action_dim, generator=g) for g in self.generators])
+        return draws.to(self.nets.device, non_blocking=True)
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         nets = self.nets
-        obs = tensordict.get("observation").reshape(nets.num_seeds, -1, nets.obs_dim)
+        host_obs = tensordict.get("observation")
+        obs = host_obs.reshape(nets.num_seeds, -1, nets.obs_dim).to(nets.device, non_blocking=True)
         batch = obs.shape[1]
         deterministic = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE,
                                                ExplorationType.MEAN)
@@ -136,6 +157,7 @@ class OffPolicyStackedPolicy(TensorDictModuleBase):
             action = nets.sample(nets.actor, obs, self._draw(batch, "randn"))[0]
         else:
             action = (nets.action(nets.actor, obs) + self.noise * self._draw(batch, "randn")).clamp(nets.low, nets.high)
+        action = action.to(host_obs.device)  # the step's one copy back
         if self.frozen is not None:
             action = torch.where(self.frozen.view(-1, 1, 1), torch.zeros_like(action), action)
         tensordict.set("action", action.reshape(-1, nets.action_dim))
@@ -165,6 +187,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
     def __init__(self, cfg: TrainConfig, checkpoint: dict[str, Any] | None = None) -> None:
         if not cfg.off_policy:
             raise ValueError(f"{type(self).__name__} trains the off-policy algorithms, not {cfg.algo!r}")
+        self.device = training_device(cfg)  # refuses a device this machine lacks before anything is built
         super().__init__(cfg)
         entry = manifest.get(cfg.algo)
         self.title, seeds = entry.title, self.seeds
@@ -182,7 +205,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         # One seed's loss, the LossModule users compose, names the objective and its hyper-parameters.
         self.objective = off_policy_objective_of(make_loss(cfg, singles[0], self.multipliers[0], spec))
         self.nets = StackedOffPolicyNets.from_single(singles, obs_dim, spec, cfg.network_sizes,
-                                                     stochastic=options["stochastic"])
+                                                     stochastic=options["stochastic"], device=self.device)
         self.optimizers = {name: SeedMaskedAdam([{"params": [rows], "lr": cfg.actor_lr if name == "actor"
                                                   else cfg.critic_lr}], max_grad_norm=cfg.max_grad_norm)
                            for name, rows in self.nets.trained().items()}
@@ -201,18 +224,22 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
 
     # ------------------------------------------------------------------ the steps
     def _new_epoch_state(self) -> None:
-        """Per-epoch sums and flags, the multiplier values in force, the policy's warm-up flag."""
-        S = len(self.seeds)
-        self.lam = multiplier_values(self.multipliers)
-        self.sums = {name: torch.zeros(S, dtype=torch.float64) for name in _METRICS}
+        """Per-epoch sums and flags, the multiplier values in force, the live seeds, the policy's warm-up flag
+        (on the networks' device, one copy each per epoch)."""
+        S, device = len(self.seeds), self.device
+        self.lam = multiplier_values(self.multipliers).to(device)
+        self.sums = {name: torch.zeros(S, dtype=torch.float64, device=device) for name in _METRICS}
         self.counts = {"critic": 0, "actor": 0}
-        self.bad = torch.zeros(S, dtype=torch.bool)
+        self.bad = torch.zeros(S, dtype=torch.bool, device=device)
+        self.live = self.alive.to(device)
         self.update_seconds = 0.0
         self.policy.random = self.total_steps < self.cfg.warmup_steps
         self.snapshot = self._rows_and_moments()
 
     def _noise(self, like: Tensor) -> Tensor:
-        return torch.stack([torch.randn(like.shape[1:], generator=g) for g in self.update_generators])
+        """Every seed's standard-normal draw shaped as ``like``'s rows, from its CPU generator, on ``like``'s device."""
+        noise = torch.stack([torch.randn(like.shape[1:], generator=g) for g in self.update_generators])
+        return noise.to(like.device, non_blocking=True)
 
     def _after_step(self, transition: TensorDictBase) -> None:
         """Store every seed's transitions, then take the gradient steps now due (``utd_ratio`` per env step)."""
@@ -238,7 +265,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
     def _gradient_step(self, nets: StackedOffPolicyNets) -> None:
         """One gradient step of every seed (module docstring)."""
         cfg, objective = self.cfg, self.objective
-        obs, action, reward, cost, terminated, next_obs = self.replay.sample()
+        obs, action, reward, cost, terminated, next_obs = self.replay.sample(self.device)
         self.gradient_steps += 1
         actor_due = self.gradient_steps % cfg.policy_delay == 0
         with torch.no_grad():
@@ -277,11 +304,9 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         torch.stack(list(losses.values())).sum().backward()
         finite = torch.isfinite(torch.stack(list(losses.values()))).all(0)
         self.bad |= ~finite
-        mask = self.alive & ~self.bad
-        active = None if bool(mask.all()) else mask
-        for name in losses:
-            if active is not None:  # a frozen or failed seed's gradient may not be finite: zero it
-                trained[name].grad = torch.where(active.view(-1, 1), trained[name].grad, 0.0)
+        active = self.live & ~self.bad  # masked on the device: no read back per step
+        for name in losses:  # a frozen or failed seed's gradient may not be finite: zeroed
+            trained[name].grad = torch.where(active.view(-1, 1), trained[name].grad, 0.0)
             self.optimizers[name].step(active)
         if actor_due:
             nets.soft_update(cfg.polyak, list(nets.targets()))
@@ -308,6 +333,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
     def _restore_seeds(self, seeds: Tensor) -> None:
         """Put the rows and Adam moments of the seeds where ``seeds`` is true back to the epoch's start."""
         nets, saved = self.nets, self.snapshot
+        seeds = seeds.to(self.device)
         current = {**nets.trained(), **{"target_" + n: t for n, t in nets.targets().items()}}
         for name, tensor in current.items():
             tensor.copy_(torch.where(seeds.view(-1, 1), saved["rows"][name], tensor))
@@ -333,19 +359,21 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
 
     def _learn(self, batch: TensorDictBase) -> tuple[list[dict[str, float]], list[bool]]:
         """Freeze the seeds whose steps failed (back to the epoch's start), move the multipliers, build the rows."""
-        diverged = self.bad & self.alive
+        diverged = self.bad.cpu() & self.alive
         self._restore_seeds(diverged)
         lagrange = [float(m.update(run.last_mean_cost) if run.alive else m.value)
                     for m, run in zip(self.multipliers, self.runs)]
         critic, actor = max(self.counts["critic"], 1), max(self.counts["actor"], 1)
-        means = {name: (self.sums[name] / (actor if name == "Loss/Loss_pi" else critic)).tolist() for name in _METRICS}
+        sums = torch.stack([self.sums[name] for name in _METRICS]).tolist()  # the epoch's one read of them
+        means = {name: [value / (actor if name == "Loss/Loss_pi" else critic) for value in row]
+                 for name, row in zip(_METRICS, sums)}
         rows = [{"Train/LagrangeMultiplier": lam, "Train/LR": self.cfg.actor_lr,
                  "Train/GradientSteps": self.gradient_steps, **{name: means[name][i] for name in _METRICS}}
                 for i, lam in enumerate(lagrange)]
         return rows, diverged.tolist()
 
     def _finite_seeds(self) -> Tensor:
-        return torch.stack([torch.isfinite(t).all(1) for t in self.nets.trained().values()]).all(0)
+        return torch.stack([torch.isfinite(t).all(1) for t in self.nets.trained().values()]).all(0).cpu()
 
     def _evaluate_seed(self, index: int) -> dict[str, float]:
         """Seed ``index``'s deterministic evaluation (its exported TorchRL actor), env seed + 10_000."""
@@ -357,15 +385,15 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
     # ------------------------------------------------------------------ checkpoints
     def _seed_state(self, index: int) -> dict[str, Any]:
         """Seed ``index``'s networks (its :func:`make_off_policy_networks` modules' state dicts), targets and Adam
-        rows, multiplier and generators."""
+        rows, multiplier and generators; CPU tensors whatever ``cfg.device``."""
         actor, critics, costs = self.nets.export_seed(index)
         return {
             "networks": {"actor": actor.state_dict(), "critics": [c.state_dict() for c in critics],
                          "cost_critics": [c.state_dict() for c in costs]},
-            "targets": {name: t[index].clone() for name, t in self.nets.targets().items()},
-            "optimizer": {name: {"step": opt.state[0]["step"][index].clone(),
-                                 "exp_avg": opt.state[0]["exp_avg"][0][index].clone(),
-                                 "exp_avg_sq": opt.state[0]["exp_avg_sq"][0][index].clone()}
+            "targets": {name: _host_copy(t[index]) for name, t in self.nets.targets().items()},
+            "optimizer": {name: {"step": _host_copy(opt.state[0]["step"][index]),
+                                 "exp_avg": _host_copy(opt.state[0]["exp_avg"][0][index]),
+                                 "exp_avg_sq": _host_copy(opt.state[0]["exp_avg_sq"][0][index])}
                           for name, opt in self.optimizers.items()},
             "multiplier": self.multipliers[index].state_dict(),
             "action_rng": self.action_generators[index].get_state(),

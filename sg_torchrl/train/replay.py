@@ -150,10 +150,15 @@ class SeedReplay:
                 undo.before_write(buffer, len(seed_rows))
                 buffer.extend(TensorDict({"row": seed_rows}, batch_size=seed_rows.shape[:1]))
 
-    def sample(self) -> tuple[Tensor, ...]:
+    def sample(self, device: torch.device | str | None = None) -> tuple[Tensor, ...]:
         """One minibatch per seed: ``obs``, ``action`` ``(S, B, k)``; ``reward``, ``cost`` ``(S, B)``;
-        ``terminated`` ``(S, B)`` bool; ``next_obs``."""
+        ``terminated`` ``(S, B)`` bool; ``next_obs``.
+
+        The buffers stay on the host; the drawn rows go to ``device`` (default: stay) in one copy, then split there.
+        """
         rows = torch.stack([buffer.sample().get("row") for buffer in self.buffers])
+        if device is not None:
+            rows = rows.to(device, non_blocking=True)
         obs, action, reward, cost, terminated, next_obs = rows.split(self.widths, -1)
         return obs, action, reward.squeeze(-1), cost.squeeze(-1), terminated.squeeze(-1) > 0.5, next_obs
 

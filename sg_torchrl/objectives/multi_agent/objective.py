@@ -39,9 +39,10 @@ def seed_popart(running_mean: Tensor, running_mean_sq: Tensor, debiasing_term: T
     """TorchRL's :class:`~torchrl.modules.PopArtValueNorm` holding one row of statistics per seed.
 
     ``running_mean`` / ``running_mean_sq`` / ``debiasing_term``: ``(S, 1)`` (copied). The norm takes
-    values laid out ``(N, S, 1)`` (samples first): TorchRL reduces over the leading dims.
+    values laid out ``(N, S, 1)`` (samples first): TorchRL reduces over the leading dims. The norm lives where the
+    statistics do (the round's device).
     """
-    norm = PopArtValueNorm(shape=tuple(running_mean.shape))
+    norm = PopArtValueNorm(shape=tuple(running_mean.shape), device=running_mean.device)
     norm.running_mean.copy_(running_mean)
     norm.running_mean_sq.copy_(running_mean_sq)
     norm.debiasing_term = debiasing_term.clone()  # one debiasing term per seed: seeds stop at different steps
