@@ -166,7 +166,8 @@ def test_export_and_reload_round_trip(group):
 def test_parameters_are_views_of_the_flat_buffers(group):
     model = StackedActorCritic.from_single(group[0])
     for which, flat in (("actor", model.flat_actor), ("critics", model.flat_critics)):
-        params = model.actor_parameters() if which == "actor" else model.critic_parameters()
+        params = model.actor_parameters() if which == "actor" else [*model.critic.parameters(),
+                                                                     *model.cost_critic.parameters()]
         assert sum(p[0].numel() for p in params) == flat.shape[1]
         assert all(p.untyped_storage().data_ptr() == flat.untyped_storage().data_ptr() for p in params)
         assert all(p.grad.untyped_storage().data_ptr() == flat.grad.untyped_storage().data_ptr() for p in params)
