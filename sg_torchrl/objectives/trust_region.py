@@ -59,9 +59,10 @@ from typing import Literal
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
-from torch import Tensor, distributions as D
+from torch import Tensor
 from torchrl.objectives import LossModule
 
+from sg_torchrl.objectives.kl import diagonal_gaussian_params
 from sg_torchrl.objectives.second_order import flat_params, set_flat_params
 from sg_torchrl.objectives.stacked_trust_region import (
     SeedSurrogates,
@@ -102,15 +103,6 @@ def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
     """Where the collector stored the behaviour log-prob: the actor's ``log_prob_key``, else ``"action_log_prob"``."""
     key = getattr(actor, "log_prob_key", None)
     return key if isinstance(key, (str, tuple)) else "action_log_prob"
-
-
-def _gaussian_params(dist: D.Distribution) -> tuple[Tensor, Tensor]:
-    """``(loc, scale)`` of a diagonal Gaussian (``Normal`` or ``Independent(Normal)``, e.g. ``IndependentNormal``)."""
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
-        raise TypeError(f"trust-region steps need a diagonal-Gaussian policy (e.g. IndependentNormal); the actor's "
-                        f"distribution is {type(dist).__name__}.")
-    return dist.mean, dist.stddev
 
 
 # ============================================================================ loss module
@@ -198,7 +190,7 @@ class TrustRegionLoss(LossModule):
         """Computes ``loss_objective``, ``loss_cost`` (if the cost advantage is given) and ``kl``."""
         tk = self.tensor_keys
         dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys))
-        loc, scale = _gaussian_params(dist)
+        loc, scale = diagonal_gaussian_params(dist, "A trust-region step")
         advantage = tensordict.get(tk.advantage, None)
         if advantage is None:
             raise KeyError(
@@ -270,7 +262,7 @@ class OneSeedActor:
     def dist_params(self, obs: TensorDictBase) -> tuple[Tensor, Tensor]:
         """``(loc, scale)`` of the policy with the row's parameters, ``(1, N, A)`` each."""
         self.store()
-        loc, scale = _gaussian_params(self.actor.get_dist(obs[0]))
+        loc, scale = diagonal_gaussian_params(self.actor.get_dist(obs[0]), "A trust-region step")
         return loc.unsqueeze(0), scale.unsqueeze(0)
 
     def actor_rows(self, rows: Tensor) -> OneSeedActor:
