@@ -105,6 +105,11 @@ def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
     return key if isinstance(key, (str, tuple)) else "action_log_prob"
 
 
+def _one_seed_rows(value: Tensor, shape: tuple[int, ...], name: str) -> Tensor:
+    """A per-sample ``value`` (``shape`` or ``shape + (1,)``, checked) as one seed's ``(1, N)`` rows."""
+    return _per_sample(value, shape, name).reshape(1, -1)
+
+
 # ============================================================================ loss module
 class TrustRegionLoss(LossModule):
     """Reward / cost surrogates and the mean KL of a Gaussian policy, for trust-region steps.
@@ -201,19 +206,16 @@ class TrustRegionLoss(LossModule):
             )
         # the trust-region step's own evaluation (one seed, the samples flattened)
         shape = loc.shape[:-1]
-        rows = (1, shape.numel())
-
-        def per_sample(value: Tensor, name: str) -> Tensor:
-            return _per_sample(value, shape, name).reshape(rows)
 
         def per_action(value: Tensor) -> Tensor:
-            return value.expand_as(loc).reshape(*rows, loc.shape[-1])
+            return value.expand_as(loc).reshape(1, shape.numel(), loc.shape[-1])
 
         cost_advantage = tensordict.get(tk.cost_advantage, None)
         surrogates = SeedSurrogates(
             None, per_action(tensordict.get(tk.action)),
-            per_sample(tensordict.get(tk.sample_log_prob), "action_log_prob"), per_sample(advantage, "advantage"),
-            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+            _one_seed_rows(tensordict.get(tk.sample_log_prob), shape, "action_log_prob"),
+            _one_seed_rows(advantage, shape, "advantage"),
+            None if cost_advantage is None else _one_seed_rows(cost_advantage, shape, "cost_advantage"),
             per_action(tensordict.get(tk.loc)), per_action(tensordict.get(tk.scale)), self.kl_action_reduction,
         )
         reward, cost, kl = surrogates.evaluate(per_action(loc), per_action(scale))
@@ -320,7 +322,7 @@ class TrustRegionStep(StackedTrustRegionStep):
         action = data.get(self.action_key)
 
         def per_sample(value: Tensor, name: str) -> Tensor:
-            return _per_sample(value.detach(), shape, name).reshape(rows)
+            return _one_seed_rows(value.detach(), shape, name)
 
         batch = {"observation": data.select(*model.actor.in_keys).reshape(rows),
                  "action": action.reshape(*rows, *action.shape[len(shape):]),
