@@ -20,7 +20,8 @@ the order its single-seed run draws from the global RNG (``IndependentNormal.rsa
 ``empty((N, A, Da)).normal_()``), started from the state that run's global RNG has after its networks
 are built, so the numbers are the same. Everything but the matrix products is computed on the
 stacked ``(S, N, A, Da)`` tensors at once, with the formulas of the per-agent modules (``masked_fill``
-of the padding, the head's ``sigmoid`` scale, ``Normal.log_prob`` summed over action dims).
+of the padding, the head's scale :func:`~sg_torchrl.modules.multi_agent.agent_gaussian_scale`, ``Normal.log_prob``
+summed over action dims).
 
 **Why the matrix products go slice by slice.** Each ``(seed, agent)`` layer is applied with
 ``torch.addmm`` on its slice, the call ``nn.Linear`` makes in the per-agent module. A batched
@@ -41,7 +42,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
-from sg_torchrl.modules.multi_agent import MultiAgentNetworks
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks, agent_gaussian_scale
 
 __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 
@@ -170,8 +171,7 @@ class StackedMultiAgentNetworks:
     @torch.no_grad()
     def actor_scale(self) -> Tensor:
         """The heads' scales, ``(S, 1, A, Da)``: :math:`\\mathrm{sigmoid}(\\ell / x)\\, y`, 1 on padding slots."""
-        std = torch.sigmoid(self.log_std / self.std_x_coef) * self.std_y_coef
-        return torch.where(self.mask, std, 1.0).unsqueeze(1)
+        return agent_gaussian_scale(self.log_std, self.std_x_coef, self.std_y_coef, self.mask).unsqueeze(1)
 
 
 class StackedMultiAgentPolicy(TensorDictModuleBase):
@@ -321,8 +321,7 @@ class AgentRows:
 
     def std(self) -> Tensor:
         """``(R, 1, Da)``: each row's scale, 1 on its padding slots."""
-        log_std = self.tensors("policy")[-1]
-        return torch.where(self.mask, torch.sigmoid(log_std / self.std_x_coef) * self.std_y_coef, 1.0).unsqueeze(1)
+        return agent_gaussian_scale(self.tensors("policy")[-1], self.std_x_coef, self.std_y_coef, self.mask).unsqueeze(1)
 
     def dist_params(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         """``observation (R, N, D)`` to the policy's ``loc (R, N, Da)`` (0 on padding) and ``scale (R, 1, Da)``."""
