@@ -21,7 +21,7 @@ the order its single-seed run draws from the global RNG (``IndependentNormal.rsa
 are built, so the numbers are the same. Everything but the matrix products is computed on the
 stacked ``(S, N, A, Da)`` tensors at once, with the formulas of the per-agent modules (``masked_fill``
 of the padding, the head's scale :func:`~sg_torchrl.modules.multi_agent.agent_gaussian_scale`, ``Normal.log_prob``
-summed over action dims).
+summed over action dims as :func:`~sg_torchrl.modules.gaussian.gaussian_log_prob` writes it).
 
 **Why the matrix products go slice by slice.** Each ``(seed, agent)`` layer is applied with
 ``torch.addmm`` on its slice, the call ``nn.Linear`` makes in the per-agent module. A batched
@@ -42,13 +42,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
+from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks, agent_gaussian_scale
 
 __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 
 #: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
 NETWORKS = ("policy", "reward_value", "cost_value")
-_HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
 #: A Normal's entropy less its log-scale, per action dim.
 _HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
@@ -227,8 +227,7 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
         for s in live:  # each seed's block drawn as its own run draws it: one (N, A, Da) normal_
             noise[s].normal_(generator=self.generators[s])
         action = loc + noise.to(device, non_blocking=True) * scale  # Normal.rsample: loc + eps * scale
-        # Normal.log_prob, summed over the action dims (Independent)
-        log_prob = (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI).sum(-1)
+        log_prob = gaussian_log_prob(action, loc, scale)
         if idle is not None:
             log_prob = torch.where(idle.view(-1, 1, 1), 0.0, log_prob)
         if device != host:  # the step's one copy back: what the env steps with and the batch keeps
