@@ -166,7 +166,8 @@ def test_export_and_reload_round_trip(group):
 def test_parameters_are_views_of_the_flat_buffers(group):
     model = StackedActorCritic.from_single(group[0])
     for which, flat in (("actor", model.flat_actor), ("critics", model.flat_critics)):
-        params = model.actor_parameters() if which == "actor" else model.critic_parameters()
+        params = model.actor_parameters() if which == "actor" else [*model.critic.parameters(),
+                                                                     *model.cost_critic.parameters()]
         assert sum(p[0].numel() for p in params) == flat.shape[1]
         assert all(p.untyped_storage().data_ptr() == flat.untyped_storage().data_ptr() for p in params)
         assert all(p.grad.untyped_storage().data_ptr() == flat.grad.untyped_storage().data_ptr() for p in params)
@@ -338,6 +339,45 @@ def test_adam_groups_argument_leaves_other_groups_alone():
     adam.step(groups=[0])
     assert torch.equal(b[0], before) and adam.state[1]["step"].tolist() == [0.0, 0.0]
     assert adam.state[0]["step"].tolist() == [1.0, 1.0]
+
+
+def test_adam_seed_rows_read_write_and_restore_touch_one_seed():
+    gen = torch.Generator().manual_seed(4)
+
+    def stepped(seeds: int, steps: int) -> SeedMaskedAdam:
+        adam = SeedMaskedAdam([{"params": _stacked_tensors(seeds, gen), "lr": 1e-2},
+                               {"params": _stacked_tensors(seeds, gen)[:1], "lr": 1e-3}])
+        for _ in range(steps):
+            for group in adam.param_groups:
+                for t in group["params"]:
+                    t.grad = torch.randn(t.shape, generator=gen)
+            adam.step(torch.tensor([True] * (seeds - 1) + [False]))
+        return adam
+
+    def rows(adam: SeedMaskedAdam, seed: int) -> list[torch.Tensor]:
+        return [t[seed] for state in adam.state for t in [state["step"], *state["exp_avg"], *state["exp_avg_sq"]]]
+
+    source, target = stepped(3, 3), stepped(2, 1)
+    saved = source.seed_state_dict(1)
+    assert all(t.device.type == "cpu" for group in saved for t in [group["step"], *group["exp_avg"]])
+    other = [t.clone() for t in rows(target, 1)]
+    target.load_seed_state_dict(0, saved)
+    assert all(torch.equal(x, y) for x, y in zip(rows(target, 0), rows(source, 1)))
+    assert all(torch.equal(x, y) for x, y in zip(rows(target, 1), other))  # the other seed is untouched
+    with pytest.raises(ValueError):  # a state of another group count is refused
+        target.load_seed_state_dict(0, saved[:1])
+
+    snapshot = source.state_dict()
+    before = [[t.clone() for t in rows(source, s)] for s in range(3)]
+    for group in source.param_groups:
+        for t in group["params"]:
+            t.grad = torch.randn(t.shape, generator=gen)
+    source.step()
+    moved = [[t.clone() for t in rows(source, s)] for s in range(3)]
+    source.restore_seeds(torch.tensor([False, True, False]), snapshot)
+    assert all(torch.equal(x, y) for x, y in zip(rows(source, 1), before[1]))
+    for s in (0, 2):
+        assert all(torch.equal(x, y) for x, y in zip(rows(source, s), moved[s]))
 
 
 def test_per_seed_clip_matches_clip_grad_norm():

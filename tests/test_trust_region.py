@@ -29,6 +29,7 @@ from sg_torchrl.objectives import (  # noqa: E402
     TRPOStep,
     TrustRegionLoss,
 )
+from sg_torchrl.objectives.kl import diagonal_gaussian_params, kl_to_stored_gaussian  # noqa: E402
 
 DELTA = 0.01
 N = 6  # size of the random QPs
@@ -396,6 +397,21 @@ class TestSteps:
         data, adv, cost_adv = synthetic_batch(actor)
         with pytest.raises(TypeError, match="diagonal-Gaussian"):
             TRPOStep(tanh).step(data, adv, cost_adv, 0.0)
+
+    def test_the_diagonal_gaussian_check_names_its_user(self):
+        loc, scale = torch.zeros(4, 2), torch.ones(4, 2)
+        for dist in (torch.distributions.Normal(loc, scale), IndependentNormal(loc, scale)):
+            got = diagonal_gaussian_params(dist, "A trust-region step")
+            assert torch.equal(got[0], dist.mean) and torch.equal(got[1], dist.stddev)
+        over_two_dims = torch.distributions.Independent(torch.distributions.Normal(loc, scale), 2)
+        for dist in (over_two_dims, TanhNormal(loc, scale)):
+            for user in ("A trust-region step", "The closed-form KL to a stored policy"):
+                with pytest.raises(TypeError, match=f"^{user} needs a diagonal-Gaussian policy.*"
+                                                    f"distribution is {type(dist).__name__}"):
+                    diagonal_gaussian_params(dist, user)
+        data = TensorDict(loc=loc, scale=scale, batch_size=[4])
+        with pytest.raises(TypeError, match="closed-form KL to a stored policy"):
+            kl_to_stored_gaussian(TanhNormal(loc, scale), data, "loc", "scale")
 
     def test_defaults_and_validation(self):
         actor = make_actor()

@@ -50,6 +50,7 @@ __all__ = [
     "MultiAgentNetworks",
     "MultiAgentStateValue",
     "PerAgentMLP",
+    "agent_gaussian_scale",
     "make_multi_agent_networks",
 ]
 
@@ -133,6 +134,16 @@ class PerAgentMLP(MultiAgentMLP):
         raise NotImplementedError("PerAgentMLP's agents are ordinary modules already: use agent_networks[i].")
 
 
+def agent_gaussian_scale(log_std: Tensor, std_x_coef: float, std_y_coef: float, mask: Tensor | None = None) -> Tensor:
+    """SafePO's multi-agent Gaussian scale :math:`\\sigma = \\mathrm{sigmoid}(\\ell / x)\\, y` of ``log_std``
+    (:math:`\\ell`); with a ``mask`` (``True`` on real action slots) 1 on the padding slots.
+
+    The one formula of :class:`AgentGaussianHead` and its seed-stacked copies, so they agree to the last bit.
+    """
+    std = torch.sigmoid(log_std / std_x_coef) * std_y_coef
+    return std if mask is None else torch.where(mask, std, 1.0)
+
+
 class AgentGaussianHead(nn.Module):
     """One agent's state-independent Gaussian scale and padding mask (SafePO's multi-agent head).
 
@@ -175,7 +186,7 @@ class AgentGaussianHead(nn.Module):
 
     def std(self) -> Tensor:
         """The real dims' standard deviations, shape ``[action_size]``."""
-        return torch.sigmoid(self.log_std / self.std_x_coef) * self.std_y_coef
+        return agent_gaussian_scale(self.log_std, self.std_x_coef, self.std_y_coef)
 
     def padded_scale(self) -> Tensor:
         """The scale of every slot, shape ``[padded_size]`` (1 on padding slots)."""

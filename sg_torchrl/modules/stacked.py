@@ -177,10 +177,6 @@ class StackedActorCritic(nn.Module):
         """The actor's parameters in flat-buffer order: mean MLP layer by layer, then ``log_std``."""
         return [*_net_params(self.actor_mean), self.log_std]
 
-    def critic_parameters(self) -> list[nn.Parameter]:
-        """Both critics' parameters in flat-buffer order (reward critic first)."""
-        return [*_net_params(self.critic), *_net_params(self.cost_critic)]
-
     @property
     def flat_groups(self) -> tuple[Tensor, Tensor]:
         """``(flat_actor, flat_critics)``: the optimiser's two tensors."""

@@ -20,7 +20,8 @@ the order its single-seed run draws from the global RNG (``IndependentNormal.rsa
 ``empty((N, A, Da)).normal_()``), started from the state that run's global RNG has after its networks
 are built, so the numbers are the same. Everything but the matrix products is computed on the
 stacked ``(S, N, A, Da)`` tensors at once, with the formulas of the per-agent modules (``masked_fill``
-of the padding, the head's ``sigmoid`` scale, ``Normal.log_prob`` summed over action dims).
+of the padding, the head's scale :func:`~sg_torchrl.modules.multi_agent.agent_gaussian_scale`, ``Normal.log_prob``
+summed over action dims as :func:`~sg_torchrl.modules.gaussian.gaussian_log_prob` writes it).
 
 **Why the matrix products go slice by slice.** Each ``(seed, agent)`` layer is applied with
 ``torch.addmm`` on its slice, the call ``nn.Linear`` makes in the per-agent module. A batched
@@ -41,13 +42,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
-from sg_torchrl.modules.multi_agent import MultiAgentNetworks
+from sg_torchrl.modules.gaussian import gaussian_log_prob
+from sg_torchrl.modules.multi_agent import MultiAgentNetworks, agent_gaussian_scale
 
 __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 
 #: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
 NETWORKS = ("policy", "reward_value", "cost_value")
-_HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
 #: A Normal's entropy less its log-scale, per action dim.
 _HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
@@ -170,8 +171,7 @@ class StackedMultiAgentNetworks:
     @torch.no_grad()
     def actor_scale(self) -> Tensor:
         """The heads' scales, ``(S, 1, A, Da)``: :math:`\\mathrm{sigmoid}(\\ell / x)\\, y`, 1 on padding slots."""
-        std = torch.sigmoid(self.log_std / self.std_x_coef) * self.std_y_coef
-        return torch.where(self.mask, std, 1.0).unsqueeze(1)
+        return agent_gaussian_scale(self.log_std, self.std_x_coef, self.std_y_coef, self.mask).unsqueeze(1)
 
 
 class StackedMultiAgentPolicy(TensorDictModuleBase):
@@ -227,8 +227,7 @@ class StackedMultiAgentPolicy(TensorDictModuleBase):
         for s in live:  # each seed's block drawn as its own run draws it: one (N, A, Da) normal_
             noise[s].normal_(generator=self.generators[s])
         action = loc + noise.to(device, non_blocking=True) * scale  # Normal.rsample: loc + eps * scale
-        # Normal.log_prob, summed over the action dims (Independent)
-        log_prob = (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI).sum(-1)
+        log_prob = gaussian_log_prob(action, loc, scale)
         if idle is not None:
             log_prob = torch.where(idle.view(-1, 1, 1), 0.0, log_prob)
         if device != host:  # the step's one copy back: what the env steps with and the batch keeps
@@ -321,8 +320,7 @@ class AgentRows:
 
     def std(self) -> Tensor:
         """``(R, 1, Da)``: each row's scale, 1 on its padding slots."""
-        log_std = self.tensors("policy")[-1]
-        return torch.where(self.mask, torch.sigmoid(log_std / self.std_x_coef) * self.std_y_coef, 1.0).unsqueeze(1)
+        return agent_gaussian_scale(self.tensors("policy")[-1], self.std_x_coef, self.std_y_coef, self.mask).unsqueeze(1)
 
     def dist_params(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         """``observation (R, N, D)`` to the policy's ``loc (R, N, Da)`` (0 on padding) and ``scale (R, 1, Da)``."""

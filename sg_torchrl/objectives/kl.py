@@ -11,7 +11,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import distributions as D, Tensor
 
-__all__ = ["gaussian_kl", "kl_to_stored_gaussian"]
+__all__ = ["diagonal_gaussian_params", "gaussian_kl", "kl_to_stored_gaussian"]
 
 
 def gaussian_kl(loc_old: Tensor, scale_old: Tensor, loc_new: Tensor, scale_new: Tensor) -> Tensor:
@@ -40,6 +40,20 @@ def gaussian_kl(loc_old: Tensor, scale_old: Tensor, loc_new: Tensor, scale_new: 
     return 0.5 * (var_ratio + mean_term - 1.0 - var_ratio.log()).sum(-1)
 
 
+def diagonal_gaussian_params(dist: D.Distribution, needed_by: str) -> tuple[Tensor, Tensor]:
+    """``(loc, scale)`` of a diagonal Gaussian: a ``Normal``, or an ``Independent`` ``Normal`` over one (action)
+    dimension such as ``IndependentNormal``.
+
+    Raises:
+        TypeError: for any other distribution, naming ``needed_by`` (what needs the Gaussian).
+    """
+    base = dist.base_dist if isinstance(dist, D.Independent) else dist
+    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
+        raise TypeError(f"{needed_by} needs a diagonal-Gaussian policy (Normal / IndependentNormal over the action "
+                        f"dimension); the actor's distribution is {type(dist).__name__}.")
+    return base.loc, base.scale
+
+
 def kl_to_stored_gaussian(
     dist: D.Distribution, tensordict: TensorDictBase, loc_key: NestedKey, scale_key: NestedKey
 ) -> Tensor:
@@ -50,15 +64,10 @@ def kl_to_stored_gaussian(
     is differentiable in the current policy only.
 
     Raises:
-        TypeError: if ``dist`` is not a (possibly ``Independent``-wrapped) ``Normal``.
+        TypeError: if ``dist`` is not a diagonal Gaussian (:func:`diagonal_gaussian_params`).
         KeyError: if a stored parameter is missing.
     """
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal):
-        raise TypeError(
-            f"The KL to a stored policy is computed in closed form for diagonal Gaussian policies "
-            f"(Normal / IndependentNormal); the actor produced {type(dist).__name__}."
-        )
+    loc_now, scale_now = diagonal_gaussian_params(dist, "The closed-form KL to a stored policy")
     stored = []
     for key in (loc_key, scale_key):
         value = tensordict.get(key, None)
@@ -69,4 +78,4 @@ def kl_to_stored_gaussian(
             )
         stored.append(value)
     loc, scale = stored
-    return gaussian_kl(base.loc, base.scale, loc, scale).unsqueeze(-1)
+    return gaussian_kl(loc_now, scale_now, loc, scale).unsqueeze(-1)

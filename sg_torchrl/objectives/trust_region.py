@@ -59,9 +59,10 @@ from typing import Literal
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
-from torch import Tensor, distributions as D
+from torch import Tensor
 from torchrl.objectives import LossModule
 
+from sg_torchrl.objectives.kl import diagonal_gaussian_params
 from sg_torchrl.objectives.second_order import flat_params, set_flat_params
 from sg_torchrl.objectives.stacked_trust_region import (
     SeedSurrogates,
@@ -104,13 +105,9 @@ def _log_prob_key(actor: ProbabilisticTensorDictSequential) -> NestedKey:
     return key if isinstance(key, (str, tuple)) else "action_log_prob"
 
 
-def _gaussian_params(dist: D.Distribution) -> tuple[Tensor, Tensor]:
-    """``(loc, scale)`` of a diagonal Gaussian (``Normal`` or ``Independent(Normal)``, e.g. ``IndependentNormal``)."""
-    base = dist.base_dist if isinstance(dist, D.Independent) else dist
-    if not isinstance(base, D.Normal) or (isinstance(dist, D.Independent) and dist.reinterpreted_batch_ndims != 1):
-        raise TypeError(f"trust-region steps need a diagonal-Gaussian policy (e.g. IndependentNormal); the actor's "
-                        f"distribution is {type(dist).__name__}.")
-    return dist.mean, dist.stddev
+def _one_seed_rows(value: Tensor, shape: tuple[int, ...], name: str) -> Tensor:
+    """A per-sample ``value`` (``shape`` or ``shape + (1,)``, checked) as one seed's ``(1, N)`` rows."""
+    return _per_sample(value, shape, name).reshape(1, -1)
 
 
 # ============================================================================ loss module
@@ -198,7 +195,7 @@ class TrustRegionLoss(LossModule):
         """Computes ``loss_objective``, ``loss_cost`` (if the cost advantage is given) and ``kl``."""
         tk = self.tensor_keys
         dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys))
-        loc, scale = _gaussian_params(dist)
+        loc, scale = diagonal_gaussian_params(dist, "A trust-region step")
         advantage = tensordict.get(tk.advantage, None)
         if advantage is None:
             raise KeyError(
@@ -209,19 +206,16 @@ class TrustRegionLoss(LossModule):
             )
         # the trust-region step's own evaluation (one seed, the samples flattened)
         shape = loc.shape[:-1]
-        rows = (1, shape.numel())
-
-        def per_sample(value: Tensor, name: str) -> Tensor:
-            return _per_sample(value, shape, name).reshape(rows)
 
         def per_action(value: Tensor) -> Tensor:
-            return value.expand_as(loc).reshape(*rows, loc.shape[-1])
+            return value.expand_as(loc).reshape(1, shape.numel(), loc.shape[-1])
 
         cost_advantage = tensordict.get(tk.cost_advantage, None)
         surrogates = SeedSurrogates(
             None, per_action(tensordict.get(tk.action)),
-            per_sample(tensordict.get(tk.sample_log_prob), "action_log_prob"), per_sample(advantage, "advantage"),
-            None if cost_advantage is None else per_sample(cost_advantage, "cost_advantage"),
+            _one_seed_rows(tensordict.get(tk.sample_log_prob), shape, "action_log_prob"),
+            _one_seed_rows(advantage, shape, "advantage"),
+            None if cost_advantage is None else _one_seed_rows(cost_advantage, shape, "cost_advantage"),
             per_action(tensordict.get(tk.loc)), per_action(tensordict.get(tk.scale)), self.kl_action_reduction,
         )
         reward, cost, kl = surrogates.evaluate(per_action(loc), per_action(scale))
@@ -270,7 +264,7 @@ class OneSeedActor:
     def dist_params(self, obs: TensorDictBase) -> tuple[Tensor, Tensor]:
         """``(loc, scale)`` of the policy with the row's parameters, ``(1, N, A)`` each."""
         self.store()
-        loc, scale = _gaussian_params(self.actor.get_dist(obs[0]))
+        loc, scale = diagonal_gaussian_params(self.actor.get_dist(obs[0]), "A trust-region step")
         return loc.unsqueeze(0), scale.unsqueeze(0)
 
     def actor_rows(self, rows: Tensor) -> OneSeedActor:
@@ -328,7 +322,7 @@ class TrustRegionStep(StackedTrustRegionStep):
         action = data.get(self.action_key)
 
         def per_sample(value: Tensor, name: str) -> Tensor:
-            return _per_sample(value.detach(), shape, name).reshape(rows)
+            return _one_seed_rows(value.detach(), shape, name)
 
         batch = {"observation": data.select(*model.actor.in_keys).reshape(rows),
                  "action": action.reshape(*rows, *action.shape[len(shape):]),

@@ -112,25 +112,16 @@ class SeedSnapshot:
     def __init__(self, model: StackedActorCritic, optimizer: SeedMaskedAdam) -> None:
         self.model, self.optimizer = model, optimizer
         self.params = [tensor.detach().clone() for tensor in model.flat_groups]
-        self.state = [{"step": state["step"].clone(), "exp_avg": [t.clone() for t in state["exp_avg"]],
-                       "exp_avg_sq": [t.clone() for t in state["exp_avg_sq"]]} for state in optimizer.state]
+        self.state = optimizer.state_dict()
 
     @torch.no_grad()
     def restore(self, seeds: Tensor) -> None:
         """Put the rows of the seeds where ``seeds`` (``(S,)`` bool) is true back to the snapshot."""
         if not bool(seeds.any()):
             return
-
-        def put(current: Tensor, saved: Tensor) -> None:
-            current.copy_(torch.where(seeds.view(-1, *([1] * (current.dim() - 1))), saved, current))
-
         for current, saved in zip(self.model.flat_groups, self.params):
-            put(current, saved)
-        for state, saved in zip(self.optimizer.state, self.state):
-            put(state["step"], saved["step"])
-            for name in ("exp_avg", "exp_avg_sq"):
-                for current, old in zip(state[name], saved[name]):
-                    put(current, old)
+            current.copy_(torch.where(seeds.view(-1, *([1] * (current.dim() - 1))), saved, current))
+        self.optimizer.restore_seeds(seeds, self.state)
 
 
 @dataclass

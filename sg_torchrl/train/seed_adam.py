@@ -230,3 +230,35 @@ class SeedMaskedAdam:
             torch._foreach_copy_(mine["exp_avg_sq"], list(saved["exp_avg_sq"]))
         for group, lr in zip(self.param_groups, state["lr"], strict=True):
             group["lr"] = lr
+
+    # ------------------------------------------------------------------ one seed's rows
+    def seed_state_dict(self, index: int) -> list[dict]:
+        """Seed ``index``'s rows of the state: per group its step count and the rows of both moments.
+
+        CPU copies whatever the device (a checkpoint's: it loads, and continues, on any device)."""
+        def host_copy(row: Tensor) -> Tensor:
+            return row.detach().to("cpu", copy=True)
+
+        return [{"step": host_copy(state["step"][index]),
+                 "exp_avg": [host_copy(t[index]) for t in state["exp_avg"]],
+                 "exp_avg_sq": [host_copy(t[index]) for t in state["exp_avg_sq"]]} for state in self.state]
+
+    @torch.no_grad()
+    def load_seed_state_dict(self, index: int, state: Sequence[Mapping]) -> None:
+        """Restore what :meth:`seed_state_dict` saved into seed ``index``'s rows; the other seeds' are untouched."""
+        for mine, saved in zip(self.state, state, strict=True):
+            mine["step"][index] = saved["step"]
+            for name in ("exp_avg", "exp_avg_sq"):
+                for tensor, row in zip(mine[name], saved[name], strict=True):
+                    tensor[index].copy_(row)
+
+    @torch.no_grad()
+    def restore_seeds(self, seeds: Tensor, state: Mapping) -> None:
+        """Put the rows of the seeds where ``seeds`` (``(S,)`` bool) is true back to ``state`` (a :meth:`state_dict`).
+
+        The other seeds' rows are untouched: a seed group puts back a failed update's seeds alone."""
+        for mine, saved in zip(self.state, state["state"], strict=True):
+            mine["step"].copy_(torch.where(seeds, saved["step"], mine["step"]))
+            for name in ("exp_avg", "exp_avg_sq"):
+                for current, old in zip(mine[name], saved[name], strict=True):
+                    current.copy_(torch.where(seeds.view(-1, *([1] * (current.dim() - 1))), old, current))

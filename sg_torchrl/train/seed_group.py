@@ -145,11 +145,6 @@ class StackedPolicy(TensorDictModuleBase):
         return tensordict
 
 
-def _host_copy(value: Tensor) -> Tensor:
-    """A CPU copy of ``value`` (a checkpoint's)."""
-    return value.detach().to("cpu", copy=True)
-
-
 def _device_of(value: Tensor | TensorDictBase) -> torch.device:
     """Where a tensor, or the first entry of a TensorDict (the env's observations), lives."""
     return value.device if isinstance(value, Tensor) else next(iter(value.values(True, True))).device
@@ -306,10 +301,7 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
             "networks": {"actor": actor.state_dict(), "critic": critic.state_dict(),
                          "cost_critic": cost_critic.state_dict()},
             # Adam's rows of the flat groups (actor, critics): per group the step count and both moments.
-            "optimizer": [{"step": _host_copy(state["step"][index]),
-                           "exp_avg": [_host_copy(t[index]) for t in state["exp_avg"]],
-                           "exp_avg_sq": [_host_copy(t[index]) for t in state["exp_avg_sq"]]}
-                          for state in self.optimizer.state],
+            "optimizer": self.optimizer.seed_state_dict(index),
             "multiplier": self.multipliers[index].state_dict(),
             "obs_norm": None if self.obs_norm is None else self.obs_norm.group_state_dict(index),
             "minibatch_rng": self.shuffler.generators[index].get_state(),
@@ -322,11 +314,7 @@ class OnPolicyGroupTrainer(SeedGroupTrainer):
         for module, name in zip(triple, ("actor", "critic", "cost_critic")):
             module.load_state_dict(entry["networks"][name])
         self.model.load_seed(index, *triple)
-        for group_state, saved in zip(self.optimizer.state, entry["optimizer"], strict=True):
-            group_state["step"][index] = saved["step"]
-            for name in ("exp_avg", "exp_avg_sq"):
-                for tensor, row in zip(group_state[name], saved[name], strict=True):
-                    tensor[index].copy_(row)
+        self.optimizer.load_seed_state_dict(index, entry["optimizer"])
         self.multipliers[index].load_state_dict(entry["multiplier"])
         if self.obs_norm is not None:
             self.obs_norm.load_group_state_dict(index, entry["obs_norm"])
