@@ -6,6 +6,7 @@
   Adam moments, multipliers, generators and the replay buffers (in the run directory, nowhere else), also
   after a kill between replay writes and the next checkpoint, where the buffer has wrapped over rows the
   checkpoint holds (their undo files);
+* a seed whose update failed is put back to its epoch start alone (rows, targets, Adam rows);
 * the multiplier moves with the cost (up over the limit, down under it);
 * the options the family does not take, and the family's options for the on-policy algorithms, are refused.
 """
@@ -187,3 +188,31 @@ def test_multiplier_moves_with_the_cost(tmp_path):
 def test_refused_options(argv, message, capsys):
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_failed_seed_is_put_back_to_its_epoch_start_alone(tmp_path):
+    # A seed whose update diverged gets its epoch-start rows, targets and Adam rows back; the others keep theirs.
+    cfg = parse_args(["--algo", "sac_lag", "--seeds", "0", "1", "--output-dir", str(tmp_path), *FLAGS])
+    trainer = OffPolicyGroupTrainer(cfg)
+    saved = trainer.snapshot
+    nets, optimizers = trainer.nets, trainer.optimizers
+    rows = {**nets.trained(), **{"target_" + name: t for name, t in nets.targets().items()}}
+    with torch.no_grad():
+        for tensor in rows.values():
+            tensor.add_(1.0)
+        for opt in optimizers.values():
+            for state in opt.state:
+                state["step"].add_(3)
+                for moments in (state["exp_avg"], state["exp_avg_sq"]):
+                    for tensor in moments:
+                        tensor.add_(0.5)
+    trainer._restore_seeds(torch.tensor([True, False]))
+    for name, tensor in rows.items():
+        assert torch.equal(tensor[0], saved["rows"][name][0]), name
+        assert torch.equal(tensor[1], saved["rows"][name][1] + 1.0), name
+    for name, opt in optimizers.items():
+        for state, before in zip(opt.state, saved["moments"][name]["state"], strict=True):
+            assert torch.equal(state["step"], before["step"] + torch.tensor([0, 3])), name
+            for key in ("exp_avg", "exp_avg_sq"):
+                for tensor, old in zip(state[key], before[key], strict=True):
+                    assert torch.equal(tensor[0], old[0]) and torch.equal(tensor[1], old[1] + 0.5), (name, key)

@@ -121,6 +121,14 @@ def _host_copy(value: Tensor) -> Tensor:
     return value.detach().to("cpu", copy=True)
 
 
+def _flat_adam_rows(rows: list[dict[str, Any]]) -> dict[str, Tensor]:
+    """One seed's :meth:`~sg_torchrl.train.seed_adam.SeedMaskedAdam.seed_state_dict` in this family's checkpoint
+    format: each optimiser holds one parameter group of one stacked tensor, saved as its three rows."""
+    (row,) = rows
+    (exp_avg,), (exp_avg_sq,) = row["exp_avg"], row["exp_avg_sq"]
+    return {"step": row["step"], "exp_avg": exp_avg, "exp_avg_sq": exp_avg_sq}
+
+
 class OffPolicyStackedPolicy(TensorDictModuleBase):
     """S seeds' actors acting on their simulator blocks: uniform random (warm-up), sampled (SAC), or the
     deterministic action plus Gaussian ``noise`` clamped to the bounds (TD3, DDPG); means under a
@@ -338,12 +346,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         for name, tensor in current.items():
             tensor.copy_(torch.where(seeds.view(-1, 1), saved["rows"][name], tensor))
         for name, opt in self.optimizers.items():
-            old = saved["moments"][name]["state"]
-            for state, before in zip(opt.state, old):
-                state["step"].copy_(torch.where(seeds, before["step"], state["step"]))
-                for key in ("exp_avg", "exp_avg_sq"):
-                    for t, b in zip(state[key], before[key]):
-                        t.copy_(torch.where(seeds.view(-1, 1), b, t))
+            opt.restore_seeds(seeds, saved["moments"][name])
 
     def _train_epoch(self) -> dict[str, float]:
         """The shared epoch (collection with the gradient steps inside it); the update time is moved from the
@@ -391,10 +394,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
             "networks": {"actor": actor.state_dict(), "critics": [c.state_dict() for c in critics],
                          "cost_critics": [c.state_dict() for c in costs]},
             "targets": {name: _host_copy(t[index]) for name, t in self.nets.targets().items()},
-            "optimizer": {name: {"step": _host_copy(opt.state[0]["step"][index]),
-                                 "exp_avg": _host_copy(opt.state[0]["exp_avg"][0][index]),
-                                 "exp_avg_sq": _host_copy(opt.state[0]["exp_avg_sq"][0][index])}
-                          for name, opt in self.optimizers.items()},
+            "optimizer": {name: _flat_adam_rows(opt.seed_state_dict(index)) for name, opt in self.optimizers.items()},
             "multiplier": self.multipliers[index].state_dict(),
             "action_rng": self.action_generators[index].get_state(),
             "replay_rng": self.replay_generators[index].get_state(),
@@ -412,10 +412,9 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         for name, target in self.nets.targets().items():
             target[index].copy_(entry["targets"][name])
         for name, opt in self.optimizers.items():
-            saved, state = entry["optimizer"][name], opt.state[0]
-            state["step"][index] = saved["step"]
-            state["exp_avg"][0][index].copy_(saved["exp_avg"])
-            state["exp_avg_sq"][0][index].copy_(saved["exp_avg_sq"])
+            saved = entry["optimizer"][name]
+            opt.load_seed_state_dict(index, [{"step": saved["step"], "exp_avg": [saved["exp_avg"]],
+                                              "exp_avg_sq": [saved["exp_avg_sq"]]}])
         self.multipliers[index].load_state_dict(entry["multiplier"])
         for generators, key in ((self.action_generators, "action_rng"), (self.replay_generators, "replay_rng"),
                                 (self.update_generators, "update_rng")):
