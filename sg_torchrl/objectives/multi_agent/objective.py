@@ -129,7 +129,9 @@ class AgentObjective:
                      active: Tensor | None) -> Tensor:
         """MSE per row; with ``value_norm``: update it with the targets, then normalised target vs prediction."""
         if value_norm is not None:
-            value, target = value.transpose(0, 1), target.transpose(0, 1)  # (N, S, 1): TorchRL reduces the samples
+            # (N, S, 1): TorchRL reduces the samples. The target is a strided view of the packed batch: made
+            # contiguous first, each row's mean sums its samples in the order of a contiguous (N, 1) column.
+            value, target = value.transpose(0, 1), target.contiguous().transpose(0, 1)
             before = None if active is None else [t.clone() for t in value_norm.buffers()]
             value_norm.update(target)
             if before is not None:
