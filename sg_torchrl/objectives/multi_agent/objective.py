@@ -10,7 +10,8 @@ agent of the stage; S = 1 is one run). It is built from the single-agent pieces:
   factor :math:`M` when ``weighted``);
 * PPO's clipped surrogate (:class:`~sg_torchrl.objectives.surrogates.ClipSurrogate`) on it, and the
   cost surrogate :math:`\\mathbb E[r A_c]` MAPPO-Lag's multiplier steps on;
-* the entropy bonus ``-entropy_coeff * H(pi)`` (state-independent scale: one value per row);
+* the entropy bonus ``-entropy_coeff * H(pi)`` (over the real action slots, averaged over the samples as
+  a per-agent loss averages its distribution's entropy, so the gradients are that loss's bit for bit);
 * the reward critic's MSE through TorchRL's :class:`~torchrl.modules.PopArtValueNorm` (update with the
   targets, then compare normalised target and prediction: :class:`~torchrl.objectives.multiagent.MAPPOLoss`'s
   semantics), the cost critic's plain MSE, each plus ``critic_l2 * sum(p ** 2)``.
@@ -22,6 +23,7 @@ agent of the stage; S = 1 is one run). It is built from the single-agent pieces:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -33,6 +35,9 @@ from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.objectives.surrogates import ClipSurrogate, CombineRule, combine_advantages, sample_mean
 
 __all__ = ["AgentObjective", "seed_popart"]
+
+#: A unit Gaussian's entropy per action dimension, :math:`\\tfrac12 \\log(2 \\pi e)`.
+_HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
 def seed_popart(running_mean: Tensor, running_mean_sq: Tensor, debiasing_term: Tensor) -> PopArtValueNorm:
@@ -90,9 +95,10 @@ class AgentObjective:
         """Each row's losses and diagnostics on its minibatch, ``(S,)`` each.
 
         ``rows``: the rows' networks (:class:`~sg_torchrl.modules.stacked_multi_agent.AgentRows`:
-        ``dist_params``, ``entropy``, ``critic``, ``cost_critic``, ``tensors``); ``batch``: ``(S, N, width)``
-        fields ``observation``, ``state``, ``action``, ``action_log_prob``, ``advantage``, ``cost_advantage``,
-        ``value_target``, ``cost_value_target`` (and ``factor`` when weighted); ``lam``: ``(S,)``;
+        ``dist_params``, ``mask`` (each row's real action slots), ``critic``, ``cost_critic``, ``tensors``);
+        ``batch``: ``(S, N, width)`` fields ``observation``, ``state``, ``action``, ``action_log_prob``,
+        ``advantage``, ``cost_advantage``, ``value_target``, ``cost_value_target`` (and ``factor`` when
+        weighted); ``lam``: ``(S,)``;
         ``value_norm``: the rows' PopArt statistics (:func:`seed_popart`), updated here with the targets
         of the rows in ``active`` (all when ``None``); the others keep theirs. ``policy``: the rows'
         ``rows.dist_params(batch["observation"])`` when the caller already has it (with its graph, at the
@@ -102,11 +108,15 @@ class AgentObjective:
         sums) and ``mean_ratio``, ``cost_surrogate`` (detached).
         """
         loc, scale = rows.dist_params(batch["observation"]) if policy is None else policy
+        # The scale per sample, as the agent's distribution has it: the log-density and the entropy bonus reach
+        # the scale's parameters through one sum over the samples (the order a per-agent loss sums them in).
+        scale = scale.expand_as(loc)
         log_weight = gaussian_log_prob(batch["action"], loc, scale).unsqueeze(-1) - batch["action_log_prob"]
         cost_advantage = batch["cost_advantage"]
         advantage = self.advantage(batch["advantage"], cost_advantage, lam, batch.get("factor"))
+        entropy = torch.where(rows.mask.unsqueeze(1), _HALF_LOG_2PI_E + scale.log(), 0.0).sum(-1)  # (S, N)
         out = {"loss_objective": self.surrogate.loss(log_weight, advantage, seed_dims=1).mean((1, 2)),
-               "loss_entropy": -self.entropy_coeff * rows.entropy()}
+               "loss_entropy": (-self.entropy_coeff * entropy).mean(1)}
         out.update(self.critic_losses(rows, batch, value_norm, active))
         with torch.no_grad():
             out["mean_ratio"] = log_weight.exp().mean((1, 2))
