@@ -98,11 +98,10 @@ class AgentObjective:
         ``dist_params``, ``mask`` (each row's real action slots), ``critic``, ``cost_critic``, ``tensors``);
         ``batch``: ``(S, N, width)`` fields ``observation``, ``state``, ``action``, ``action_log_prob``,
         ``advantage``, ``cost_advantage``, ``value_target``, ``cost_value_target`` (and ``factor`` when
-        weighted); ``lam``: ``(S,)``;
-        ``value_norm``: the rows' PopArt statistics (:func:`seed_popart`), updated here with the targets
-        of the rows in ``active`` (all when ``None``); the others keep theirs. ``policy``: the rows'
-        ``rows.dist_params(batch["observation"])`` when the caller already has it (with its graph, at the
-        rows' current parameters), so it is not evaluated twice.
+        weighted); ``lam``: ``(S,)``; ``value_norm``: the rows' PopArt statistics (:func:`seed_popart`),
+        updated here with the targets of the rows in ``active`` (all when ``None``); the others keep theirs.
+        ``policy``: the rows' ``rows.dist_params(batch["observation"])`` when the caller already has it (with
+        its graph, at the rows' current parameters), so it is not evaluated twice.
 
         Returns ``loss_objective``, ``loss_entropy``, ``loss_critic``, ``loss_cost_critic`` (the terms a step
         sums) and ``mean_ratio``, ``cost_surrogate`` (detached).
