@@ -29,6 +29,7 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.modules.distributions.utils import safetanh_noeps
 
+from sg_torchrl.modules.gaussian import gaussian_log_prob
 from sg_torchrl.modules.stacked_layers import stacked_mlp_forward
 
 __all__ = ["FlatMLP", "SCALE_MAPPING", "StackedOffPolicyNets", "make_off_policy_networks"]
@@ -241,8 +242,7 @@ class StackedOffPolicyNets:
             scale = self._scale_mapping(raw).clamp_min(_SCALE_LB)
             pre = loc + draw * scale  # in TorchRL's order throughout: the gradients sum in the same order too
             actions.append(self._squashed(pre))
-            var, log_scale = scale**2, scale.log()
-            gaussian = (-((pre - loc) ** 2) / (2 * var) - log_scale - math.log(math.sqrt(2 * math.pi))).sum(-1)
+            gaussian = gaussian_log_prob(pre, loc, scale)
             jacobian = 2.0 * (math.log(2.0) - pre - F.softplus(-2.0 * pre))
             if not self.unit_bounds:
                 jacobian = jacobian + self.affine[1].abs().log()

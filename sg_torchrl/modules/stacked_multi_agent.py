@@ -42,7 +42,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn, Tensor
 
-from sg_torchrl.modules.gaussian import gaussian_log_prob
+from sg_torchrl.modules.gaussian import gaussian_entropy, gaussian_log_prob
 from sg_torchrl.modules.multi_agent import MultiAgentNetworks, agent_gaussian_scale
 
 __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
@@ -50,7 +50,6 @@ __all__ = ["AgentRows", "StackedMultiAgentNetworks", "StackedMultiAgentPolicy"]
 #: The three per-agent networks of a team, by their attribute on MultiAgentNetworks.
 NETWORKS = ("policy", "reward_value", "cost_value")
 #: A Normal's entropy less its log-scale, per action dim.
-_HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
 def _linear_layers(net: nn.Module) -> list[nn.Linear]:
@@ -329,7 +328,7 @@ class AgentRows:
 
     def entropy(self) -> Tensor:
         """``(R,)``: each row's policy entropy over its real action slots (the same in every state)."""
-        return torch.where(self.mask, _HALF_LOG_2PI_E + self.std().squeeze(1).log(), 0.0).sum(-1)
+        return gaussian_entropy(self.std().squeeze(1), self.mask)
 
     def critic(self, state: Tensor) -> Tensor:
         """The reward critics on ``state (R, N, Ds)``: ``(R, N, 1)``."""

@@ -23,7 +23,6 @@ agent of the stage; S = 1 is one run). It is built from the single-agent pieces:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -31,13 +30,12 @@ import torch
 from torch import Tensor
 from torchrl.modules import PopArtValueNorm
 
-from sg_torchrl.modules.gaussian import gaussian_log_prob
+from sg_torchrl.modules.gaussian import gaussian_entropy, gaussian_log_prob
 from sg_torchrl.objectives.surrogates import ClipSurrogate, CombineRule, combine_advantages, sample_mean
 
 __all__ = ["AgentObjective", "seed_popart"]
 
 #: A unit Gaussian's entropy per action dimension, :math:`\\tfrac12 \\log(2 \\pi e)`.
-_HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
 def seed_popart(running_mean: Tensor, running_mean_sq: Tensor, debiasing_term: Tensor) -> PopArtValueNorm:
@@ -113,7 +111,7 @@ class AgentObjective:
         log_weight = gaussian_log_prob(batch["action"], loc, scale).unsqueeze(-1) - batch["action_log_prob"]
         cost_advantage = batch["cost_advantage"]
         advantage = self.advantage(batch["advantage"], cost_advantage, lam, batch.get("factor"))
-        entropy = torch.where(rows.mask.unsqueeze(1), _HALF_LOG_2PI_E + scale.log(), 0.0).sum(-1)  # (S, N)
+        entropy = gaussian_entropy(scale, rows.mask.unsqueeze(1))  # (S, N)
         out = {"loss_objective": self.surrogate.loss(log_weight, advantage, seed_dims=1).mean((1, 2)),
                "loss_entropy": (-self.entropy_coeff * entropy).mean(1)}
         out.update(self.critic_losses(rows, batch, value_norm, active))
