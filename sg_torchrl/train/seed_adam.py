@@ -7,9 +7,10 @@ actor and critics at ``max_grad_norm`` (``clip_grad_norm_``) and then takes Adam
 stops moving once its KL early stop fires. :class:`SeedMaskedAdam` does this per seed: step counts
 and bias corrections ``(S,)``, the clip norm taken per seed (:func:`clip_grad_norm_per_seed_`), and
 an ``active`` mask ``(S,)`` under which an inactive seed's parameters, moments and step count do
-not change at all while the others step. Its arithmetic is ``torch.optim.Adam``'s, so S = 1 tracks
-it to float rounding, and it updates each group with ``torch._foreach_*`` ops (about fifteen per
-group, whatever the group's size; on the flat buffers of
+not change at all while the others step. Its arithmetic is ``torch.optim.Adam``'s: each seed's rows
+equal the default CPU (single-tensor) implementation's bit for bit, the fused kernel's to float
+rounding (``tests/test_stacked.py``). It updates each group with ``torch._foreach_*`` ops (about
+fifteen per group, whatever the group's size; on the flat buffers of
 :class:`~sg_torchrl.modules.stacked.StackedActorCritic` a group is one tensor).
 """
 
