@@ -114,7 +114,8 @@ def test_the_multi_agent_round_reads_nothing_back_per_minibatch(tmp_path, monkey
     assert many == few
 
 
-def test_a_read_per_optimiser_step_of_the_round_would_be_seen(tmp_path, monkeypatch):
+def reading_every_adam_step(monkeypatch) -> None:
+    """Make every ``SeedMaskedAdam`` step read one value back to the host: the counts below are not blind."""
     step = SeedMaskedAdam.step
 
     def reading_step(self, *args, **kwargs):
@@ -122,6 +123,10 @@ def test_a_read_per_optimiser_step_of_the_round_would_be_seen(tmp_path, monkeypa
         return step(self, *args, **kwargs)
 
     monkeypatch.setattr(SeedMaskedAdam, "step", reading_step)
+
+
+def test_a_read_per_optimiser_step_of_the_round_would_be_seen(tmp_path, monkeypatch):
+    reading_every_adam_step(monkeypatch)
     few = team_epoch_host_reads(tmp_path, monkeypatch, "mappo_lag", 100)
     many = team_epoch_host_reads(tmp_path, monkeypatch, "mappo_lag", 25)
     assert many["item"] - few["item"] == 2 * 2 * (8 - 2)  # one step for both seeds: 2 agents, 2 passes
@@ -144,13 +149,7 @@ def test_an_off_policy_gradient_step_reads_nothing_back(tmp_path, monkeypatch):
 
 
 def test_a_read_per_gradient_step_would_be_seen(tmp_path, monkeypatch):
-    step = SeedMaskedAdam.step
-
-    def reading_step(self, *args, **kwargs):
-        self.state[0]["step"].sum().item()
-        return step(self, *args, **kwargs)
-
-    monkeypatch.setattr(SeedMaskedAdam, "step", reading_step)
+    reading_every_adam_step(monkeypatch)
     counts, steps = gradient_step_host_reads(tmp_path, monkeypatch)
     delay = replay_config(tmp_path).policy_delay
     assert steps == 100 and delay > 1
