@@ -121,7 +121,7 @@ def main() -> None:
                          "ms_per_seed": 1e3 * seconds / seeds})
             print(f"  {env_id} {kind} S={seeds}: {1e3 * seconds:.3f} ms/step, {1e3 * seconds / seeds:.4f} ms/seed",
                   flush=True)
-    print(f"\n| env | device | S | ms / step | ms / step / seed | per-seed speed vs CPU S=1 |")
+    print("\n| env | device | S | ms / step | ms / step / seed | per-seed speed vs CPU S=1 |")
     print("|---|---|---:|---:|---:|---:|")
     for row in rows:
         base = next(r for r in rows if r["env_id"] == row["env_id"] and r["device"] == "cpu" and r["seeds"] == 1) \

@@ -13,7 +13,7 @@ import torch
 from tensordict import TensorDict
 
 import sg_torchrl
-from sg_torchrl.envs.hands import PAPER_JOINTS, SAFETY_VARIANTS, ShadowHandEnv, build_scene
+from sg_torchrl.envs.hands import PAPER_JOINTS, ShadowHandEnv, build_scene
 from sg_torchrl.envs.hands.rotations import quat_multiply, rotation_distance
 from sg_torchrl.envs.hands.scene import hand_assets_dir
 from seeding_checks import assert_sim0_same_for_any_batch
