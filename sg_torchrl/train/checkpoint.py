@@ -63,9 +63,23 @@ from sg_torchrl.train.writes import write_atomic, writing
 
 __all__ = [
     "CHECKPOINT_NAME", "CheckpointError", "RUN_FILES", "RunDirectoryError", "SEED_DIR_PATTERN", "check_new_run_dir",
-    "checkpoint_file", "clear_run_dir", "decode_state", "encode_state", "existing_run_files", "load_checkpoint", "resume_run_dir",
-    "save_checkpoint",
+    "checkpoint_file", "clear_run_dir", "decode_state", "encode_state", "existing_run_files", "host_copy", "load_checkpoint",
+    "resume_run_dir", "save_checkpoint",
 ]
+
+
+def host_copy(value: Any) -> Any:
+    """``value`` (a tensor, or nested dicts, lists, tuples of them) with every tensor a detached CPU copy.
+
+    What a trainer puts in a checkpoint whatever its device: the file loads, and the run continues, anywhere.
+    """
+    if isinstance(value, torch.Tensor):
+        return value.detach().to("cpu", copy=True)
+    if isinstance(value, dict):
+        return type(value)((key, host_copy(item)) for key, item in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(value)(host_copy(item) for item in value)
+    return value
 
 #: File name of a run's checkpoint inside its run directory.
 CHECKPOINT_NAME = "checkpoint.pt"

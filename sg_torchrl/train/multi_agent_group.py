@@ -70,6 +70,7 @@ from sg_torchrl import seeding
 from sg_torchrl.collectors import EpisodeStats, RolloutCollector
 from sg_torchrl.envs.multi_agent import GROUP
 from sg_torchrl.modules.stacked_multi_agent import StackedMultiAgentNetworks, StackedMultiAgentPolicy
+from sg_torchrl.train.checkpoint import host_copy
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.devices import training_device
 from sg_torchrl.train.evaluate import evaluate_policy
@@ -187,8 +188,8 @@ class MultiAgentGroupTrainer(SeedGroupTrainer):
         """Seed ``index``'s entries under the single-seed run's names: networks, round, normaliser rows, torch RNG;
         CPU tensors whatever ``cfg.device``."""
         return {
-            "networks": _host_tree(self.teams[index].networks.state_dict()),
-            "update": _host_tree(self.round.seed_state_dict(index)),
+            "networks": host_copy(self.teams[index].networks.state_dict()),
+            "update": host_copy(self.round.seed_state_dict(index)),
             "obs_norms": [norm.group_state_dict(index) for norm in self.obs_norms],
             "torch_rng": self.policy.generators[index].get_state(),
         }
@@ -242,14 +243,3 @@ def _finite(value: Any) -> bool:
         if tensor.is_floating_point():
             flags.setdefault(tensor.device, []).append(torch.isfinite(tensor).all())
     return all(bool(torch.stack(found).all()) for found in flags.values())
-
-
-def _host_tree(value: Any) -> Any:
-    """``value`` (nested dicts, lists, tuples) with every tensor as a CPU copy (a checkpoint's)."""
-    if isinstance(value, Tensor):
-        return value.detach().to("cpu", copy=True)
-    if isinstance(value, dict):
-        return type(value)((key, _host_tree(item)) for key, item in value.items())
-    if isinstance(value, (list, tuple)):
-        return type(value)(_host_tree(item) for item in value)
-    return value

@@ -56,6 +56,7 @@ from sg_torchrl.collectors import RolloutCollector
 from sg_torchrl.modules.off_policy import StackedOffPolicyNets, make_off_policy_networks
 from sg_torchrl.objectives.off_policy import OffPolicyObjective
 from sg_torchrl.train.algorithms import make_multiplier
+from sg_torchrl.train.checkpoint import host_copy
 from sg_torchrl.train.config import TrainConfig
 from sg_torchrl.train.devices import training_device
 from sg_torchrl.train.evaluate import evaluate_policy
@@ -114,11 +115,6 @@ def make_loss(cfg: TrainConfig, networks, multiplier, action_spec):
 def _row_spec(env) -> Any:
     """One simulator's action spec (the batched env's first row)."""
     return env.action_spec[0]
-
-
-def _host_copy(value: Tensor) -> Tensor:
-    """A CPU copy of ``value`` (a checkpoint's)."""
-    return value.detach().to("cpu", copy=True)
 
 
 def _flat_adam_rows(rows: list[dict[str, Any]]) -> dict[str, Tensor]:
@@ -393,7 +389,7 @@ class OffPolicyGroupTrainer(SeedGroupTrainer):
         return {
             "networks": {"actor": actor.state_dict(), "critics": [c.state_dict() for c in critics],
                          "cost_critics": [c.state_dict() for c in costs]},
-            "targets": {name: _host_copy(t[index]) for name, t in self.nets.targets().items()},
+            "targets": {name: host_copy(t[index]) for name, t in self.nets.targets().items()},
             "optimizer": {name: _flat_adam_rows(opt.seed_state_dict(index)) for name, opt in self.optimizers.items()},
             "multiplier": self.multipliers[index].state_dict(),
             "action_rng": self.action_generators[index].get_state(),

@@ -22,6 +22,8 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import Tensor
 
+from sg_torchrl.train.checkpoint import host_copy
+
 __all__ = ["SeedMaskedAdam", "clip_grad_norm_per_seed_"]
 
 
@@ -237,12 +239,8 @@ class SeedMaskedAdam:
         """Seed ``index``'s rows of the state: per group its step count and the rows of both moments.
 
         CPU copies whatever the device (a checkpoint's: it loads, and continues, on any device)."""
-        def host_copy(row: Tensor) -> Tensor:
-            return row.detach().to("cpu", copy=True)
-
-        return [{"step": host_copy(state["step"][index]),
-                 "exp_avg": [host_copy(t[index]) for t in state["exp_avg"]],
-                 "exp_avg_sq": [host_copy(t[index]) for t in state["exp_avg_sq"]]} for state in self.state]
+        return host_copy([{"step": state["step"][index], "exp_avg": [t[index] for t in state["exp_avg"]],
+                           "exp_avg_sq": [t[index] for t in state["exp_avg_sq"]]} for state in self.state])
 
     @torch.no_grad()
     def load_seed_state_dict(self, index: int, state: Sequence[Mapping]) -> None:
