@@ -46,32 +46,33 @@ def test_engine_device_needs_cuda_or_allow_cpu():
     assert "no CUDA device" in result.stderr
 
 
-def test_engine_device_cpu_rows(tmp_path):
+def _engine_device_rows(tmp_path, *args: str) -> tuple[list[dict], str]:
+    """Run ``engine_device.py --allow-cpu`` at a tiny budget; its JSON rows and its printed table."""
     out = tmp_path / "rows.json"
-    result = _run("engine_device.py", "--allow-cpu", "--algos", "ppo_lag", "--cpu-seeds", "1", "2",
-                  "--steps-per-epoch", "100", "--num-envs", "2", "--epochs", "1", "--json", str(out))
+    result = _run("engine_device.py", "--allow-cpu", "--steps-per-epoch", "100", "--num-envs", "2",
+                  "--json", str(out), *args)
     assert result.returncode == 0, result.stderr[-2000:]
-    rows = json.loads(out.read_text())["results"]
+    return json.loads(out.read_text())["results"], result.stdout
+
+
+def test_engine_device_cpu_rows(tmp_path):
+    rows, stdout = _engine_device_rows(tmp_path, "--algos", "ppo_lag", "--cpu-seeds", "1", "2", "--epochs", "1")
     assert [(row["algo"], row["device"], row["seeds"]) for row in rows] == [("ppo_lag", "cpu", 1), ("ppo_lag", "cpu", 2)]
     for row in rows:
         assert row["wall_per_1k_per_seed"] > 0 and row["cpu_per_1k_per_seed"] > 0 and row["passes"] >= 1
         assert row["collect_per_1k_per_seed"] + row["update_per_1k_per_seed"] <= row["wall_per_1k_per_seed"]
-    assert "| ppo_lag | cpu | 2 |" in result.stdout and "1.00x |" in result.stdout
+    assert "| ppo_lag | cpu | 2 |" in stdout and "1.00x |" in stdout
 
 
 def test_engine_device_multi_agent_and_off_policy_rows(tmp_path):
     """A MAPPO-Lag and a SAC-Lag row (the off-policy one's first epoch is its warm-up: the second's gradient steps count)."""
-    out = tmp_path / "rows.json"
-    result = _run("engine_device.py", "--allow-cpu", "--algos", "mappo_lag", "sac_lag", "--cpu-seeds", "1",
-                  "--steps-per-epoch", "100", "--num-envs", "2", "--epochs", "2", "--json", str(out))
-    assert result.returncode == 0, result.stderr[-2000:]
-    rows = json.loads(out.read_text())["results"]
+    rows, stdout = _engine_device_rows(tmp_path, "--algos", "mappo_lag", "sac_lag", "--cpu-seeds", "1", "--epochs", "2")
     assert [(row["algo"], row["device"], row["seeds"]) for row in rows] == [("mappo_lag", "cpu", 1), ("sac_lag", "cpu", 1)]
     mappo, sac = rows
     assert mappo["passes"] >= 1 and [epoch["passes"] for epoch in sac["epochs"]] == [0, 100]
     for row in rows:
         assert row["wall_per_1k_per_seed"] > 0 and row["update_per_1k_per_seed"] > 0
-    assert "| mappo_lag | cpu | 1 |" in result.stdout and "| sac_lag | cpu | 1 |" in result.stdout
+    assert "| mappo_lag | cpu | 1 |" in stdout and "| sac_lag | cpu | 1 |" in stdout
 
 
 def test_revision_speed_compares_a_revision_with_this_tree():

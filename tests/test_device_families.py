@@ -174,6 +174,18 @@ def test_checkpoints_hold_cpu_tensors_and_a_cuda_run_continues_on_the_cpu(tmp_pa
 
 
 # --------------------------------------------------------------------------- on a GPU
+def continues_on_the_cpu(gpu, config: TrainConfig, state, epochs: int) -> None:
+    """A cuda run's checkpoint holds CPU tensors; a trainer built from it on the CPU starts from the same
+    ``state(trainer)`` and runs to ``epochs``."""
+    checkpoint = type(gpu).load_checkpoint(gpu.cfg.run_dir)
+    assert all(t.device.type == "cpu" for t in tensors(checkpoint))
+    on_cpu = type(gpu)(config, checkpoint)
+    for mine, theirs in zip(state(on_cpu), state(gpu), strict=True):
+        assert torch.equal(mine, theirs.cpu())
+    on_cpu.run()
+    assert on_cpu.epoch == epochs
+
+
 def round_state(trainer: MultiAgentGroupTrainer) -> list[torch.Tensor]:
     """Every tensor a multi-agent update moves: the stacks, Adam's moments and steps, PopArt, the multipliers."""
     rounds = trainer.round
@@ -199,14 +211,8 @@ def test_a_multi_agent_group_updates_on_cuda_as_on_the_cpu_and_continues_there(t
     for mine, theirs in zip(round_state(cpu), round_state(gpu), strict=True):
         torch.testing.assert_close(theirs.cpu(), mine, rtol=1e-3, atol=1e-4)
     gpu.run(max_epochs=1)  # a whole epoch on cuda: collection, update, checkpoint
-    checkpoint = MultiAgentGroupTrainer.load_checkpoint(gpu.cfg.run_dir)
-    assert all(t.device.type == "cpu" for t in tensors(checkpoint))
-    on_cpu = MultiAgentGroupTrainer(team_config(tmp_path / "gpu", algo=algo, minibatch_size=50, total_steps=400),
-                                    checkpoint)
-    for mine, theirs in zip(round_state(on_cpu), round_state(gpu), strict=True):
-        assert torch.equal(mine, theirs.cpu())
-    on_cpu.run()
-    assert on_cpu.epoch == 2
+    continues_on_the_cpu(gpu, team_config(tmp_path / "gpu", algo=algo, minibatch_size=50, total_steps=400),
+                         round_state, epochs=2)
 
 
 @CUDA
@@ -248,13 +254,8 @@ def test_an_off_policy_group_steps_on_cuda_as_on_the_cpu_and_continues_there(tmp
     for name in gpu.sums:
         torch.testing.assert_close(gpu.sums[name].cpu(), cpu.sums[name], rtol=1e-3, atol=1e-4)
     gpu.run()  # the second epoch on cuda, gradient steps inside collection, then the checkpoint
-    checkpoint = OffPolicyGroupTrainer.load_checkpoint(gpu.cfg.run_dir)
-    assert all(t.device.type == "cpu" for t in tensors(checkpoint))
-    on_cpu = OffPolicyGroupTrainer(replay_config(tmp_path / "gpu", **{**options, "total_steps": 600}), checkpoint)
-    for mine, theirs in zip(replay_state(on_cpu), replay_state(gpu), strict=True):
-        assert torch.equal(mine, theirs.cpu())
-    on_cpu.run()
-    assert on_cpu.epoch == 3
+    continues_on_the_cpu(gpu, replay_config(tmp_path / "gpu", **{**options, "total_steps": 600}), replay_state,
+                         epochs=3)
 
 
 @CUDA
