@@ -86,7 +86,3 @@ class TestCompileOption:
     def test_command_line_flag(self):
         assert parse_args(["--compile", "true"]).compile
         assert not parse_args([]).compile
-
-    def test_multi_agent_algorithms_reject_it(self):
-        with pytest.raises(ValueError, match="compile applies to the single-agent"):
-            TrainConfig(algo="mappo_lag", compile=True)
