@@ -86,7 +86,6 @@ def _round_builder(entry: AlgorithmEntry) -> MakeRound:
         options: dict[str, Any] = dict(
             cost_limit=cfg.cost_limit, gamma=cfg.gamma, critic_lr=cfg.critic_lr, max_grad_norm=cfg.max_grad_norm,
             clip_epsilon=cfg.clip_ratio, num_minibatches=num_minibatches(cfg), target_kl=cfg.target_kl,
-            compile=cfg.compile,
         )
         if cfg.critic_l2:
             options["loss_kwargs"] = {"critic_l2_coeff": cfg.critic_l2}

@@ -50,7 +50,6 @@ from sg_torchrl.objectives.multi_agent.loss import AgentPPOLoss
 from sg_torchrl.objectives.multi_agent.objective import AgentObjective, seed_popart
 from sg_torchrl.objectives.multipliers import Multiplier, NoMultiplier
 from sg_torchrl.objectives.passes import RowMeans, run_passes, whole_batch
-from sg_torchrl.train.compiling import CompileFallback
 from sg_torchrl.train.fused import SeedBatch, SeedShuffler
 from sg_torchrl.train.seed_adam import clip_grad_norm_per_seed_, SeedMaskedAdam
 
@@ -91,9 +90,6 @@ class SeedBatchedRound(abc.ABC):
         generators (sequence of torch.Generator, optional): one per seed (stacked teams).
         group (str): the group key. Defaults to ``"agents"``.
         loss_kwargs (dict, optional): extra :class:`AgentPPOLoss` options (``critic_l2_coeff``).
-        compile (bool): run the agents' minibatch losses (forward and backward) and the masked Adam update
-            through ``torch.compile`` (:class:`~sg_torchrl.train.compiling.CompileFallback`: eager, with a
-            warning, where compiling fails). Defaults to ``False``.
 
     ``batch`` (one per seed) has batch dims ``[*B]`` and holds, per agent under the group key,
     ``observation``, ``action``, ``action_log_prob``, ``advantage``, ``value_target``, ``cost_advantage``,
@@ -124,7 +120,6 @@ class SeedBatchedRound(abc.ABC):
         generators: Sequence[torch.Generator] | None = None,
         group: str = "agents",
         loss_kwargs: dict[str, Any] | None = None,
-        compile: bool = False,
     ) -> None:
         if num_minibatches < 1:
             raise ValueError(f"need num_minibatches >= 1, got {num_minibatches}.")
@@ -158,12 +153,6 @@ class SeedBatchedRound(abc.ABC):
                                  clip_epsilon=clip_epsilon, entropy_coeff=entropy_coeff, functional=False,
                                  **(loss_kwargs or {}))
         self.objective: AgentObjective = self.loss.seed_batched_objective()
-        # The objective's losses as a step evaluates them: compiled or eager, one graph per stage shape
-        self.compile = bool(compile)
-        owner = type(self).__name__
-        self.losses = CompileFallback(self.objective.losses, owner=owner, compile=self.compile)
-        self.critic_losses = CompileFallback(self.objective.critic_losses, owner=owner, compile=self.compile)
-        self._adam_compile_error: str | None = None
         self.value_norm = bool(value_norm)
         self.popart = {name: torch.zeros(seeds, n, 1, device=networks.device) for name in _POPART}
         # Adam's moments as (S, A, ...) stacks beside the networks', per optimiser group, and step counts
@@ -187,11 +176,6 @@ class SeedBatchedRound(abc.ABC):
                   **options: Any) -> SeedBatchedRound:
         """The round of S seeds' stacked teams (what the multi-agent engine builds): one object for all seeds."""
         return cls(networks, generators=generators, **options)
-
-    @property
-    def compile_error(self) -> str | None:
-        """Why compiling a loss or the Adam update failed (that part then runs eagerly); ``None``: nothing failed."""
-        return self.losses.compile_error or self.critic_losses.compile_error or self._adam_compile_error
 
     @property
     def multipliers(self) -> nn.ModuleList:
@@ -291,7 +275,7 @@ class SeedBatchedRound(abc.ABC):
         means = RowMeans(CRITIC_METRICS, (len(seeds),), self.networks.device)
 
         def step(minibatch: SeedBatch):
-            out = self.critic_losses(rows, minibatch.fields(), value_norm, None)
+            out = self.objective.critic_losses(rows, minibatch.fields(), value_norm, None)
             rows.zero_grad()
             (out["loss_critic"] + out["loss_cost_critic"]).sum().backward()
             out["reward_norm"], out["cost_norm"] = self._clip(rows, _CRITICS)
@@ -321,8 +305,7 @@ class SeedBatchedRound(abc.ABC):
         """Adam over the rows' groups of :attr:`optimised` (:meth:`_learning_rates`), with those rows' moments."""
         lrs = self._learning_rates()
         optimizer = SeedMaskedAdam([{"params": [t for name in names for t in rows.tensors(name)], "lr": lr}
-                                    for names, lr in zip(self.optimised, lrs)], eps=self.adam_eps,
-                                   compile=self.compile and self._adam_compile_error is None)
+                                    for names, lr in zip(self.optimised, lrs)], eps=self.adam_eps)
         optimizer.load_state_dict({
             "state": [{"step": self.steps[g, seeds, agents], "exp_avg": [m[seeds, agents] for m in self.exp_avg[g]],
                        "exp_avg_sq": [m[seeds, agents] for m in self.exp_avg_sq[g]]} for g in range(len(lrs))],
@@ -334,7 +317,6 @@ class SeedBatchedRound(abc.ABC):
     def _write_back(self, rows: AgentRows, optimizer: SeedMaskedAdam, value_norm) -> None:
         """The rows' parameters, moments and PopArt statistics back into the round's stacks."""
         seeds, agents = rows.seeds, rows.agents
-        self._adam_compile_error = self._adam_compile_error or optimizer.compile_error  # later stages: eager
         rows.write_back(self.networks)
         for g, state in enumerate(optimizer.state_dict()["state"]):
             self.steps[g, seeds, agents] = state["step"]

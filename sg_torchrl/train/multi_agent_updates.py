@@ -153,7 +153,7 @@ class MultiAgentPPOUpdate(SeedBatchedRound):
             nonlocal lam, pending
             policy = pending if minibatch is batch else None
             pending = None
-            out = self.losses(rows, minibatch.fields(), lam, value_norm, active, policy)
+            out = self.objective.losses(rows, minibatch.fields(), lam, value_norm, active, policy)
             total = out["loss_objective"] + out["loss_critic"] + out["loss_cost_critic"] + out["loss_entropy"]
             rows.zero_grad()
             total.sum().backward()
