@@ -9,7 +9,8 @@ epochs with one torch thread and reports the CPU seconds (``time.process_time``)
 
 Reported per configuration: CPU seconds per 1,000 env steps per seed over the epochs after the first
 (steady state: no compiling, warm caches), for the base and for this tree (the best of
-``--repeats``), and their ratio (this tree / base: <= 1 is no slower). A row of mode ``single`` trains one
+``--repeats``; ``refused`` where a tree's config refuses the row), and their ratio (this tree / base: <= 1
+is no slower). A row of mode ``single`` trains one
 seed as ``sg-train --seed 0`` does (``TrainConfig(seed=0)``: whatever single-seed trainer the tree has);
 with such a row, every row of the same algorithm also gets the base's single-seed figure over this tree's
 (the speed-up per seed against one run of the base).
@@ -85,11 +86,14 @@ def export(revision: str, into: Path) -> Path:
     return into
 
 
-def measure(tree: Path, row: RowSpec, env_id: str, steps: int, num_envs: int, epochs: int) -> list[float]:
-    """CPU seconds of each epoch of ``row`` trained by the ``sg_torchrl`` of ``tree``."""
+def measure(tree: Path, row: RowSpec, env_id: str, steps: int, num_envs: int, epochs: int) -> list[float] | None:
+    """CPU seconds of each epoch of ``row`` trained by the ``sg_torchrl`` of ``tree``; ``None`` when that tree's
+    config refuses the row (an option it does not have for the algorithm, e.g. an older tree's ``compile``)."""
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
     args = json.dumps([row.algo, row.seeds, row.mode, env_id, steps, num_envs, epochs])
     result = subprocess.run([sys.executable, "-c", _CHILD, args], env=env, cwd=tree, capture_output=True, text=True)
+    if result.returncode != 0 and "ValueError: config:" in result.stderr:
+        return None
     if result.returncode != 0:
         raise RuntimeError(f"{row} on {tree} failed:\n{result.stderr[-3000:]}")
     return json.loads(result.stdout.strip().splitlines()[-1])
@@ -128,12 +132,15 @@ def main() -> None:
                 order = list(trees.items()) if repeat % 2 == 0 else list(reversed(trees.items()))
                 for name, tree in order:
                     cpu = measure(tree, row, args.env_id, args.steps_per_epoch, args.num_envs, args.epochs)
-                    best[name] = min(best[name], per_seed_k(cpu, row.seeds, args.steps_per_epoch))
+                    if cpu is not None:
+                        best[name] = min(best[name], per_seed_k(cpu, row.seeds, args.steps_per_epoch))
             if row.mode == "single":
                 single[row.algo] = best["base"]
-            speedup = f"{single[row.algo] / best['this tree']:.2f}x" if row.algo in single else ""
-            print(f"| {row} | {best['base']:.3f} | {best['this tree']:.3f} | {best['this tree'] / best['base']:.3f} "
-                  f"| {speedup} |", flush=True)
+            measured = row.algo in single and best["this tree"] < float("inf")
+            speedup = f"{single[row.algo] / best['this tree']:.2f}x" if measured else ""
+            cells = [f"{best[name]:.3f}" if best[name] < float("inf") else "refused" for name in trees]
+            ratio = f"{best['this tree'] / best['base']:.3f}" if max(best.values()) < float("inf") else ""
+            print(f"| {row} | {' | '.join(cells)} | {ratio} | {speedup} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,8 @@ train without recompiling after the first epoch, and the option is validated lik
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -12,6 +14,7 @@ from torch._dynamo.utils import counters  # noqa: E402
 
 from sg_torchrl.objectives import FOCOPSLoss, LagrangeMultiplier, PPOLagLoss  # noqa: E402
 from sg_torchrl.train import OnPolicyGroupTrainer, TrainConfig  # noqa: E402
+from sg_torchrl.train import compiling  # noqa: E402
 from sg_torchrl.train.command_line import parse_args  # noqa: E402
 from test_first_order_losses import make_batch, make_modules  # noqa: E402
 
@@ -80,6 +83,37 @@ def test_compiled_training_reuses_its_graphs_after_the_first_epoch(tmp_path, alg
         assert multipliers[2] > multipliers[0] > 0  # the multiplier grew, the graphs stayed
     for metrics in (first, *later):
         assert torch.isfinite(torch.tensor(metrics["Loss/Loss_reward_critic"]))
+
+
+def test_a_failing_compile_warns_once_and_runs_eagerly(monkeypatch):
+    def broken(function, **_):
+        def fail(*args, **kwargs):
+            raise RuntimeError("no C++ compiler\nmore lines")
+        return fail
+
+    monkeypatch.setattr(compiling.torch, "compile", broken)
+    calls = []
+
+    def eager(x, *, scale):
+        calls.append(x)
+        return x * scale
+
+    function = compiling.CompileFallback(eager, owner="Owner", compile=True)
+    assert function.compiled and function.compile_error is None
+    with pytest.warns(UserWarning, match=r"Owner: torch.compile failed, running eagerly \(RuntimeError: no C\+\+"):
+        assert function(2.0, scale=3.0) == 6.0
+    assert function.compile_error == "RuntimeError: no C++ compiler" and not function.compiled
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no second warning
+        assert function(1.0, scale=2.0) == 2.0 and calls == [2.0, 1.0]  # eagerly from then on
+
+
+def test_an_eager_function_raises_its_own_errors():
+    def eager():
+        raise KeyError("a bad batch")
+
+    with pytest.raises(KeyError, match="a bad batch"):
+        compiling.CompileFallback(eager, owner="Owner", compile=False)()
 
 
 class TestCompileOption:

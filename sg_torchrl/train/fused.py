@@ -27,7 +27,6 @@ Nothing here calls ``.item()``; diagnostics come from the objective's
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Iterator, Mapping, Sequence
 
 import torch
@@ -38,6 +37,7 @@ from sg_torchrl import seeding
 from sg_torchrl.modules.stacked import StackedActorCritic, quiet_layout_warning
 from sg_torchrl.objectives.kl import gaussian_kl
 from sg_torchrl.objectives.surrogates import SeedBatchedObjective
+from sg_torchrl.train.compiling import CompileFallback
 from sg_torchrl.train.seed_adam import SeedMaskedAdam
 
 __all__ = [
@@ -279,9 +279,18 @@ class FusedFirstOrderStep:
         self.optimizer = optimizer
         self.spec = spec
         self.groups = spec.groups
-        self._losses = torch.compile(self._eager_losses, dynamic=False) if compile else self._eager_losses
-        self.compile_error: str | None = None
+        self._losses = CompileFallback(self._eager_losses, owner="FusedFirstOrderStep", compile=compile)
         self._backward_seen = False
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the losses run through ``torch.compile`` (asked for, and not fallen back to eager)."""
+        return self._losses.compiled
+
+    @property
+    def compile_error(self) -> str | None:
+        """Why compiling the losses failed (the step then runs eagerly); ``None`` when it did not."""
+        return self._losses.compile_error
 
     @staticmethod
     def make_optimizer(model: StackedActorCritic, actor_lr: float, critic_lr: float, *,
@@ -308,7 +317,7 @@ class FusedFirstOrderStep:
         model = self.model
         for index in self.groups:
             model.flat_groups[index].grad.zero_()
-        losses = self._compute(batch, lam)
+        losses = self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
         total = losses[0]
         for loss in losses[1:]:
             total = total + loss
@@ -321,18 +330,6 @@ class FusedFirstOrderStep:
         if not self.spec.actor_only and self.spec.critic_l2:
             model.flat_critics.grad.add_(model.flat_critics, alpha=2 * self.spec.critic_l2)
         return tuple(loss.detach() for loss in losses)
-
-    def _compute(self, batch: SeedBatch, lam: Tensor) -> tuple[Tensor, ...]:
-        try:
-            return self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
-        except Exception as error:  # noqa: BLE001 -- compiling failed: say so once, go on eagerly
-            if self._losses == self._eager_losses:
-                raise
-            self.compile_error = f"{type(error).__name__}: {error}".splitlines()[0]
-            warnings.warn(f"FusedFirstOrderStep: torch.compile failed, running eagerly ({self.compile_error})",
-                          stacklevel=3)
-            self._losses = self._eager_losses
-            return self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
 
     def update(self, active: Tensor | None = None) -> Tensor | None:
         """The optimiser step on this objective's groups; returns each seed's gradient norm (or ``None``)."""

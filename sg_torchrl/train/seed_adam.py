@@ -16,13 +16,14 @@ fifteen per group, whatever the group's size; on the flat buffers of
 
 from __future__ import annotations
 
-import warnings
+import functools
 from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
 
 from sg_torchrl.train.checkpoint import host_copy
+from sg_torchrl.train.compiling import CompileFallback
 
 __all__ = ["SeedMaskedAdam", "clip_grad_norm_per_seed_"]
 
@@ -165,10 +166,19 @@ class SeedMaskedAdam:
         ]
         self._lr = [torch.zeros((), dtype=torch.float64, device=device) for _ in self.param_groups]
         self._lr_seen: list[float | None] = [None] * len(self.param_groups)
-        self._update = _masked_adam_
-        self.compile_error: str | None = None
-        if compile:
-            self._update = torch.compile(_masked_adam_, dynamic=False)
+        # inductor fuses the masked first moment written as sub, mul, add (see _masked_adam_)
+        self._update = CompileFallback(_masked_adam_, owner="SeedMaskedAdam", compile=compile,
+                                       compiled_form=functools.partial(_masked_adam_, decompose_lerp=True))
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the update runs through ``torch.compile`` (asked for, and not fallen back to eager)."""
+        return self._update.compiled
+
+    @property
+    def compile_error(self) -> str | None:
+        """Why compiling the update failed (it then runs eagerly); ``None`` when it did not."""
+        return self._update.compile_error
 
     def _lr_tensor(self, index: int) -> Tensor:
         lr = self.param_groups[index]["lr"]
@@ -201,19 +211,7 @@ class SeedMaskedAdam:
             packed.append((params, [p.grad for p in params], state["exp_avg"], state["exp_avg_sq"], state["step"],
                            self._lr_tensor(index)))
         beta1, beta2 = self.betas
-        try:
-            return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm,
-                                self._update is not _masked_adam_)
-        except Exception as error:  # noqa: BLE001 -- compiling failed: say so once, go on eagerly
-            if self._update is _masked_adam_:
-                raise
-            self._fall_back(error)
-            return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm)
-
-    def _fall_back(self, error: Exception) -> None:
-        self.compile_error = f"{type(error).__name__}: {error}".splitlines()[0]
-        warnings.warn(f"SeedMaskedAdam: torch.compile failed, running eagerly ({self.compile_error})", stacklevel=3)
-        self._update = _masked_adam_
+        return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm)
 
     def state_dict(self) -> dict:
         """Moments and step counts of every group (the groups' tensors are the model's to save)."""
