@@ -1,8 +1,7 @@
 """``--compile``'s one mechanism: a function run through ``torch.compile``, or eagerly where compiling fails.
 
-Every compiled piece of the on-policy engines (the single-agent group's minibatch losses,
-:class:`~sg_torchrl.train.fused.FusedFirstOrderStep`; the multi-agent round's agent losses,
-:class:`~sg_torchrl.train.multi_agent_round.SeedBatchedRound`; the masked Adam update,
+Every compiled piece of the single-agent on-policy engine (the minibatch losses,
+:class:`~sg_torchrl.train.fused.FusedFirstOrderStep`; the masked Adam update,
 :class:`~sg_torchrl.train.seed_adam.SeedMaskedAdam`) is a :class:`CompileFallback`: the compiled form is
 ``torch.compile(..., dynamic=False)`` (a graph per input shape, a handful per run), and when compiling or
 running it raises (no C++ compiler, an op inductor cannot lower) the owner warns once, records
