@@ -184,7 +184,7 @@ def fused_step(obs_dim: int, act_dim: int, minibatch: int, seeds: int, compile: 
         fused(batch.gather(next(order)), lam, active)
 
     def error():
-        return fused.compile_error or optimizer.compile_error
+        return fused.compilation.compile_error or optimizer.compilation.compile_error
 
     return step, error
 

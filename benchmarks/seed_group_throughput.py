@@ -128,8 +128,8 @@ def measure(algo: str, env_id: str, seeds: int | None, compile: bool, settings: 
         error = None
         if seeds is not None and compile and hasattr(trainer, "group_update"):  # fused steps, then the optimiser
             steps = [part for part in vars(trainer.group_update).values() if isinstance(part, FusedFirstOrderStep)]
-            errors = [step.compile_error for step in steps if step.compile_error]
-            error = (errors or [trainer.optimizer.compile_error])[0]
+            errors = [step.compilation.compile_error for step in steps if step.compilation.compile_error]
+            error = (errors or [trainer.optimizer.compilation.compile_error])[0]
     return Row(label, count, steps, cpu, sum(r["Time/Rollout"] for r in rows),
                sum(r["Time/Rollout"] + r["Time/Update"] for r in rows),
                sum(r.get("Train/StopIter", float("nan")) for r in rows) / epochs, error,

@@ -246,7 +246,7 @@ def test_a_compiled_group_compiles_its_critic_passes_once(tmp_path):
             progress=False, output_dir=str(tmp_path / name), seeds=[0, 1], compile=compile))
 
     compiled, eager = group("compiled", True), group("eager", False)
-    assert compiled.group_update.critic_step.compiled and not eager.group_update.critic_step.compiled
+    assert compiled.group_update.critic_step.compilation.compiled and not eager.group_update.critic_step.compilation.compiled
     compiled.train_epoch()
     eager.train_epoch()
     first = [dict(run.last_row) for run in compiled.runs]
@@ -254,7 +254,7 @@ def test_a_compiled_group_compiles_its_critic_passes_once(tmp_path):
     for _ in range(2):
         compiled.train_epoch()
     assert counters["stats"]["unique_graphs"] == graphs, "a later epoch recompiled"
-    assert compiled.group_update.critic_step.compile_error is None and compiled.optimizer.compile_error is None
+    assert compiled.group_update.critic_step.compilation.compile_error is None and compiled.optimizer.compilation.compile_error is None
     for row, reference in zip(first, (run.last_row for run in eager.runs)):
         for name, value in reference.items():
             if name.startswith(("Misc/", "Train/KL", "Loss/Loss_actor")):

@@ -264,7 +264,7 @@ class FusedFirstOrderStep:
             ``model.flat_critics`` (:meth:`make_optimizer` builds it).
         spec: what to compute: the loss's :class:`SeedBatchedObjective` (:func:`objective_of`).
         compile: run the losses (forward and their backward) through ``torch.compile``; when that
-            fails (e.g. no C++ compiler) the step warns once, records :attr:`compile_error` and runs
+            fails (e.g. no C++ compiler) the step warns once, records ``compilation.compile_error`` and runs
             eagerly.
     """
 
@@ -279,18 +279,9 @@ class FusedFirstOrderStep:
         self.optimizer = optimizer
         self.spec = spec
         self.groups = spec.groups
-        self._losses = CompileFallback(self._eager_losses, owner="FusedFirstOrderStep", compile=compile)
+        #: The losses, compiled or eager (its ``compiled`` and ``compile_error`` say which, and why).
+        self.compilation = CompileFallback(self._eager_losses, owner="FusedFirstOrderStep", compile=compile)
         self._backward_seen = False
-
-    @property
-    def compiled(self) -> bool:
-        """Whether the losses run through ``torch.compile`` (asked for, and not fallen back to eager)."""
-        return self._losses.compiled
-
-    @property
-    def compile_error(self) -> str | None:
-        """Why compiling the losses failed (the step then runs eagerly); ``None`` when it did not."""
-        return self._losses.compile_error
 
     @staticmethod
     def make_optimizer(model: StackedActorCritic, actor_lr: float, critic_lr: float, *,
@@ -317,7 +308,7 @@ class FusedFirstOrderStep:
         model = self.model
         for index in self.groups:
             model.flat_groups[index].grad.zero_()
-        losses = self._losses(batch.data, lam, batch.names, batch.widths, batch.apart)
+        losses = self.compilation(batch.data, lam, batch.names, batch.widths, batch.apart)
         total = losses[0]
         for loss in losses[1:]:
             total = total + loss

@@ -167,18 +167,9 @@ class SeedMaskedAdam:
         self._lr = [torch.zeros((), dtype=torch.float64, device=device) for _ in self.param_groups]
         self._lr_seen: list[float | None] = [None] * len(self.param_groups)
         # inductor fuses the masked first moment written as sub, mul, add (see _masked_adam_)
-        self._update = CompileFallback(_masked_adam_, owner="SeedMaskedAdam", compile=compile,
-                                       compiled_form=functools.partial(_masked_adam_, decompose_lerp=True))
-
-    @property
-    def compiled(self) -> bool:
-        """Whether the update runs through ``torch.compile`` (asked for, and not fallen back to eager)."""
-        return self._update.compiled
-
-    @property
-    def compile_error(self) -> str | None:
-        """Why compiling the update failed (it then runs eagerly); ``None`` when it did not."""
-        return self._update.compile_error
+        #: The update, compiled or eager (its ``compiled`` and ``compile_error`` say which, and why).
+        self.compilation = CompileFallback(_masked_adam_, owner="SeedMaskedAdam", compile=compile,
+                                           compiled_form=functools.partial(_masked_adam_, decompose_lerp=True))
 
     def _lr_tensor(self, index: int) -> Tensor:
         lr = self.param_groups[index]["lr"]
@@ -211,7 +202,7 @@ class SeedMaskedAdam:
             packed.append((params, [p.grad for p in params], state["exp_avg"], state["exp_avg_sq"], state["step"],
                            self._lr_tensor(index)))
         beta1, beta2 = self.betas
-        return self._update(packed, active, beta1, beta2, self.eps, self.max_grad_norm)
+        return self.compilation(packed, active, beta1, beta2, self.eps, self.max_grad_norm)
 
     def state_dict(self) -> dict:
         """Moments and step counts of every group (the groups' tensors are the model's to save)."""
