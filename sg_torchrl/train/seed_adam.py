@@ -166,8 +166,8 @@ class SeedMaskedAdam:
         ]
         self._lr = [torch.zeros((), dtype=torch.float64, device=device) for _ in self.param_groups]
         self._lr_seen: list[float | None] = [None] * len(self.param_groups)
-        # inductor fuses the masked first moment written as sub, mul, add (see _masked_adam_)
-        #: The update, compiled or eager (its ``compiled`` and ``compile_error`` say which, and why).
+        #: The update, compiled or eager (its ``compiled`` and ``compile_error`` say which, and why); the compiled
+        #: form writes the masked first moment as sub, mul, add, which inductor fuses (see ``_masked_adam_``).
         self.compilation = CompileFallback(_masked_adam_, owner="SeedMaskedAdam", compile=compile,
                                            compiled_form=functools.partial(_masked_adam_, decompose_lerp=True))
 
