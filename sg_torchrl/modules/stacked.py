@@ -190,6 +190,8 @@ class StackedActorCritic(nn.Module):
         self.flat_critics = self._flatten_group(
             [(net, name) for net in (self.critic, self.cost_critic) for name in net.parameter_names()]
         )
+        #: The reward critic's columns of ``flat_critics`` (they come first; the cost critic's follow).
+        self.reward_critic_width = sum(p[0].numel() for p in _net_params(self.critic))
 
     @staticmethod
     def _flatten_group(slots: list[tuple[nn.Module, str]]) -> Tensor:
@@ -228,8 +230,7 @@ class StackedActorCritic(nn.Module):
     @torch.no_grad()
     def critic_squared_norms(self) -> tuple[Tensor, Tensor]:
         """Per seed, the sum of squares of the reward critic's and of the cost critic's parameters, ``(S,)`` each."""
-        width = sum(p[0].numel() for p in _net_params(self.critic))  # the reward critic's columns come first
-        flat = self.flat_critics
+        width, flat = self.reward_critic_width, self.flat_critics
         return flat[:, :width].pow(2).sum(1), flat[:, width:].pow(2).sum(1)
 
     # ------------------------------------------------------------------ networks
