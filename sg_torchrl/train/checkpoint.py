@@ -68,19 +68,6 @@ __all__ = [
 ]
 
 
-def host_copy(value: Any) -> Any:
-    """``value`` (a tensor, or nested dicts, lists, tuples of them) with every tensor a detached CPU copy.
-
-    What a trainer puts in a checkpoint whatever its device: the file loads, and the run continues, anywhere.
-    """
-    if isinstance(value, torch.Tensor):
-        return value.detach().to("cpu", copy=True)
-    if isinstance(value, dict):
-        return type(value)((key, host_copy(item)) for key, item in value.items())
-    if isinstance(value, (list, tuple)):
-        return type(value)(host_copy(item) for item in value)
-    return value
-
 #: File name of a run's checkpoint inside its run directory.
 CHECKPOINT_NAME = "checkpoint.pt"
 #: What a run writes into its directory; a new run with ``--overwrite`` removes these, and nothing else.
@@ -109,6 +96,20 @@ class RunDirectoryError(ValueError):
 
 
 # ---------------------------------------------------------------------- encoding
+def host_copy(value: Any) -> Any:
+    """``value`` (a tensor, or nested dicts, lists, tuples of them) with every tensor a detached CPU copy.
+
+    What a trainer puts in a checkpoint whatever its device: the file loads, and the run continues, anywhere.
+    """
+    if isinstance(value, torch.Tensor):
+        return value.detach().to("cpu", copy=True)
+    if isinstance(value, dict):
+        return type(value)((key, host_copy(item)) for key, item in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(value)(host_copy(item) for item in value)
+    return value
+
+
 def encode_state(tree: Any, where: str = "state") -> Any:
     """``tree`` with numpy arrays / scalars and TensorDicts replaced by tagged plain dicts.
 
