@@ -56,9 +56,9 @@ SECOND_ORDER = ("npg", "trpo", "trpo_lag", "rcpo", "cpo", "pcpo")
 DISCRETE = ("Misc/AcceptanceStep", "Misc/CPOCase", "Train/StopIter")
 
 
-def config(algo: str) -> TrainConfig:
+def config(algo: str, **options) -> TrainConfig:
     return TrainConfig(algo=algo, update_iters=3, minibatch_size=128, eval_episodes=0, wandb="disabled",
-                       progress=False)
+                       progress=False, **options)
 
 
 def networks(seed: int):
@@ -86,14 +86,14 @@ def flat(modules) -> torch.Tensor:
     return torch.cat([p.detach().reshape(-1) for module in modules for p in module.parameters()])
 
 
-def single_update(algo: str, index: int, nets, data: TensorDict):
+def single_update(algo: str, index: int, nets, data: TensorDict, **options):
     """Seed ``index`` through SafePO's single-seed second-order epoch: (metrics, networks).
 
     The row's trust-region step (the algorithm table's step class and options) on the TorchRL actor with
     the multiplier's advantage, then ``update_iters`` shuffled passes of ``loss.critic_losses`` with Adam
     over the critics, their gradients clipped together (SafePO's critic loop, no early stop).
     """
-    cfg, row = config(algo), ALGORITHMS[algo]
+    cfg, row = config(algo, **options), ALGORITHMS[algo]
     actor, critic, cost_critic = copy.deepcopy(nets)
     multiplier = row.make_multiplier(cfg)
     for cost in (WARM_UP_COST, COSTS[index]):
@@ -101,8 +101,10 @@ def single_update(algo: str, index: int, nets, data: TensorDict):
     loss = row.make_loss(actor, critic, cost_critic, multiplier, cfg)
     optimizer = torch.optim.Adam([{"params": [*critic.parameters(), *cost_critic.parameters()],
                                    "lr": cfg.critic_lr}], fused=True)
-    kind = manifest.get(algo).update
-    step = TRUST_REGION_STEPS[kind](actor, **_trust_region_options(cfg, kind not in _NO_LINE_SEARCH))
+    entry = manifest.get(algo)
+    step_options = {keyword: getattr(cfg, name) for keyword, name in entry.step_options.items()}
+    step = TRUST_REGION_STEPS[entry.update](actor, **_trust_region_options(cfg, entry.update not in _NO_LINE_SEARCH),
+                                            **step_options)
     data = data.clone()
     advantage = multiplier.combine(data["advantage"], data["cost_advantage"])
     metrics = dict(step.step(data, advantage, data["cost_advantage"], multiplier.violation(COSTS[index])))
@@ -126,9 +128,9 @@ def single_update(algo: str, index: int, nets, data: TensorDict):
     return metrics, (actor, critic, cost_critic)
 
 
-def group_update(algo: str, nets, costs=COSTS, seeds=SEEDS):
+def group_update(algo: str, nets, costs=COSTS, seeds=SEEDS, **options):
     """The group's update, built as ``OnPolicyGroupTrainer`` builds it; returns (update, stacked data, lam, violation)."""
-    cfg, row = config(algo), ALGORITHMS[algo]
+    cfg, row = config(algo, **options), ALGORITHMS[algo]
     model = StackedActorCritic.from_single([copy.deepcopy(triple) for triple in nets])
     optimizer = FusedFirstOrderStep.make_optimizer(model, 0.0, cfg.critic_lr, max_grad_norm=cfg.max_grad_norm)
     parts = GroupParts(model, optimizer, SeedShuffler(seeds), passes=cfg.update_iters,
@@ -156,16 +158,21 @@ def seed_rows(update, seed: int) -> list[torch.Tensor]:
     return out
 
 
-@pytest.mark.parametrize("algo", SECOND_ORDER)
-def test_each_seed_of_the_group_update_is_its_single_seed_update(algo):
+#: Rows with a step option set away from its default (``--pcpo-hx-direction true``: SafePO's PCPO reward step).
+STEP_OPTIONS = [(algo, {}) for algo in SECOND_ORDER] + [("pcpo", {"pcpo_hx_direction": True})]
+
+
+@pytest.mark.parametrize("algo, options", STEP_OPTIONS,
+                         ids=[algo + "".join(f"-{name}" for name in options) for algo, options in STEP_OPTIONS])
+def test_each_seed_of_the_group_update_is_its_single_seed_update(algo, options):
     nets = [networks(seed) for seed in SEEDS]
     batches = [batch(seed, triple[0]) for seed, triple in zip(SEEDS, nets)]
-    update, lam, violation = group_update(algo, nets)
+    update, lam, violation = group_update(algo, nets, **options)
     result = update(stacked(batches), lam, violation, torch.ones(len(SEEDS), dtype=torch.bool))
     assert not result.diverged.any()
     model = update.parts.model
     for index in range(len(SEEDS)):
-        expected, single_nets = single_update(algo, index, nets[index], batches[index])
+        expected, single_nets = single_update(algo, index, nets[index], batches[index], **options)
         assert list(result.metrics) == list(expected)  # the single-seed names, in its order
         for name, value in expected.items():
             got = result.metrics[name][index].item()
@@ -181,6 +188,19 @@ def test_each_seed_of_the_group_update_is_its_single_seed_update(algo):
         assert lam[0] > lam[1] > 0
     if algo == "cpo":  # one seed infeasible, one feasible: each its own CPO case from its own violation
         assert result.metrics["Misc/CPOCase"][0] != result.metrics["Misc/CPOCase"][1]
+
+
+def test_pcpo_hx_direction_takes_another_step_and_only_pcpo_reads_it():
+    nets = [networks(seed) for seed in SEEDS]
+    data = stacked([batch(seed, triple[0]) for seed, triple in zip(SEEDS, nets)])
+    actors = []
+    for options in ({}, {"pcpo_hx_direction": True}):
+        update, lam, violation = group_update("pcpo", nets, **options)
+        update(data, lam, violation, torch.ones(len(SEEDS), dtype=torch.bool))
+        actors.append(update.parts.model.flat_actor.clone())
+    assert not torch.allclose(actors[0], actors[1], rtol=1e-3, atol=1e-5)
+    with pytest.raises(ValueError, match="pcpo_hx_direction is an option of pcpo, not of 'cpo'"):
+        config("cpo", pcpo_hx_direction=True).validate()
 
 
 def test_a_frozen_seed_is_not_touched_and_the_live_ones_move_as_in_a_full_group():

@@ -128,6 +128,9 @@ class AlgorithmEntry:
         loss_options: the loss's keyword arguments taken from the run's config, as ``{keyword: TrainConfig
             field}`` (``{"clip_epsilon": "clip_ratio"}``): the trainer builds every loss from its row alone.
         defaults: ``TrainConfig`` field values the paper gives this algorithm (read-only).
+        step_options: second-order rows: the trust-region step's keyword arguments taken from the run's config,
+            as ``{keyword: TrainConfig field}`` (PCPO's ``{"use_hx_direction": "pcpo_hx_direction"}``); the
+            config refuses such a field, set away from its default, for a row that does not read it.
         round: multi-agent rows: the round class (``"module:Name"``) that updates the agents one at a time.
         paper_name: the row's name in the paper's results tables (``paper_results.csv``) when not ``title``.
     """
@@ -141,6 +144,7 @@ class AlgorithmEntry:
     loss: str
     defaults: Mapping[str, Any] = field(default_factory=dict, hash=False)
     loss_options: Mapping[str, str] = field(default_factory=dict, hash=False)
+    step_options: Mapping[str, str] = field(default_factory=dict, hash=False)
     round: str | None = None
     paper_name: str | None = None
 
@@ -153,7 +157,10 @@ class AlgorithmEntry:
         if (self.round is None) == (self.agents == "multi"):
             raise ValueError(f"algorithm {self.name!r}: a round class is given for multi-agent rows only, and always")
         object.__setattr__(self, "defaults", MappingProxyType(dict(self.defaults)))
-        object.__setattr__(self, "loss_options", MappingProxyType(dict(self.loss_options)))
+        if self.step_options and not self.second_order:
+            raise ValueError(f"algorithm {self.name!r}: step options are for the trust-region (second-order) rows")
+        for name in ("loss_options", "step_options"):
+            object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
 
     @property
     def multi_agent(self) -> bool:
@@ -237,9 +244,11 @@ _PPO_OPTIONS = {"clip_epsilon": "clip_ratio", "critic_l2_coeff": "critic_l2"}
 
 
 def _single(name: str, title: str, family: str, update: str, multiplier: str, loss: str,
-            defaults: Mapping[str, Any], **loss_options: str) -> AlgorithmEntry:
+            defaults: Mapping[str, Any], step_options: Mapping[str, str] | None = None,
+            **loss_options: str) -> AlgorithmEntry:
     options = {**_PPO_OPTIONS, **loss_options} if loss != _PG_LOSS else {"critic_l2_coeff": "critic_l2"}
-    return AlgorithmEntry(name, title, "single", family, update, multiplier, loss, defaults, options)
+    return AlgorithmEntry(name, title, "single", family, update, multiplier, loss, defaults, options,
+                          step_options or {})
 
 
 def _multi(name: str, title: str, family: str, update: str, multiplier: str, round_name: str,
@@ -278,8 +287,9 @@ ENTRIES: tuple[AlgorithmEntry, ...] = (
     _single("trpo_lag", "TRPO-Lag", _SECOND, "trpo", "lagrange", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
     _single("rcpo", "RCPO", _SECOND, "natural", "lagrange", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
     _single("cpo", "CPO", _SECOND, "cpo", "none", _PPO_LAG_LOSS, _SECOND_ORDER_DEFAULTS),
+    # PCPO: the paper's reward step H^-1 g by default; ``--pcpo-hx-direction true`` takes SafePO's H x.
     _single("pcpo", "PCPO", _SECOND, "pcpo", "none", _PPO_LAG_LOSS,
-            dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200)),
+            dict(_SECOND_ORDER_DEFAULTS, line_search_steps=200), {"use_hx_direction": "pcpo_hx_direction"}),
     # Beyond the paper: PPO-Lag with the cost term clipped apart and pessimistically (README, "Add an
     # algorithm": one Surrogate, one loss subclass and this row).
     _single("ppo_lag_pessimistic", "PPO-Lag-Pessimistic", _FIRST, "first_order", "lagrange",

@@ -24,13 +24,14 @@ code (the loss object's :meth:`~sg_torchrl.objectives.PPOLagLoss.seed_batched_ob
 :func:`~sg_torchrl.train.fused.objective_of`, which refuses a loss without one) and, for the
 second-order rows, from the row's step class through
 :data:`~sg_torchrl.objectives.trust_region.STACKED_STEPS` with the config's options
-(:func:`_trust_region_options`).
+(:func:`_trust_region_options`) and the row's ``step_options`` (PCPO's reward direction).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 from torch import nn
 from torchrl.objectives import LossModule
@@ -116,10 +117,16 @@ def _trust_region_options(cfg: TrainConfig, line_search: bool) -> dict:
     return options
 
 
-def _trust_region_group(step_class: type, *, line_search: bool = True) -> MakeGroupUpdate:
-    """The seed-group update of a second-order row: ``step_class``'s stacked step, critics-only passes."""
+def _trust_region_group(step_class: type, *, line_search: bool = True,
+                        step_options: Mapping[str, str] = MappingProxyType({})) -> MakeGroupUpdate:
+    """The seed-group update of a second-order row: ``step_class``'s stacked step, critics-only passes.
+
+    ``step_options`` are the row's own step keywords, read from the config (``{keyword: TrainConfig field}``).
+    """
     def make(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
-        step = STACKED_STEPS[step_class](parts.model, **_trust_region_options(cfg, line_search))
+        options = _trust_region_options(cfg, line_search)
+        options.update({keyword: getattr(cfg, name) for keyword, name in step_options.items()})
+        step = STACKED_STEPS[step_class](parts.model, **options)
         return TrustRegionGroupUpdate(parts, step, objective_of(loss, critics_only=True))
 
     return make
@@ -142,12 +149,15 @@ _NO_LINE_SEARCH = frozenset({"natural"})
 # ---------------------------------------------------------------------------- the rows
 #: Builders by multiplier kind and update kind; the loss is the row's own.
 _MULTIPLIERS: dict[str, Callable[[TrainConfig], Multiplier]] = {"none": _none, "lagrange": _lagrange, "pid": _pid}
-_UPDATES: dict[str, MakeGroupUpdate] = {
-    "first_order": _first_order_group,
-    "two_stage": _two_stage_group,
-    **{kind: _trust_region_group(step, line_search=kind not in _NO_LINE_SEARCH)
-       for kind, step in TRUST_REGION_STEPS.items()},
-}
+_FIRST_ORDER_UPDATES: dict[str, MakeGroupUpdate] = {"first_order": _first_order_group, "two_stage": _two_stage_group}
+
+
+def _update_builder(entry: AlgorithmEntry) -> MakeGroupUpdate:
+    """The row's update loop: a first-order kind's, or its trust-region step with the row's step options."""
+    if entry.update in _FIRST_ORDER_UPDATES:
+        return _FIRST_ORDER_UPDATES[entry.update]
+    return _trust_region_group(TRUST_REGION_STEPS[entry.update], line_search=entry.update not in _NO_LINE_SEARCH,
+                               step_options=entry.step_options)
 
 
 def make_multiplier(kind: str, cfg: TrainConfig) -> Multiplier:
@@ -157,7 +167,7 @@ def make_multiplier(kind: str, cfg: TrainConfig) -> Multiplier:
 
 def _algorithm(entry: AlgorithmEntry) -> Algorithm:
     """A manifest row's builders, chosen by its multiplier kind and update kind, and its loss class."""
-    return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _loss_builder(entry), _UPDATES[entry.update])
+    return Algorithm(entry.title, _MULTIPLIERS[entry.multiplier], _loss_builder(entry), _update_builder(entry))
 
 
 #: The single-agent on-policy algorithms by ``--algo`` name, in the manifest's order (the off-policy rows are

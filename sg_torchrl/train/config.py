@@ -50,7 +50,7 @@ from sg_torchrl.validation import describe, fits
 
 __all__ = [
     "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "OFF_POLICY_ALGORITHM_NAMES",
-    "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER",
+    "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER", "STEP_OPTION_FIELDS",
     "TrainConfig", "PRESETS",
 ]
 
@@ -67,6 +67,9 @@ OFF_POLICY_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(family="off_policy"
 OFF_POLICY_FIELDS: tuple[str, ...] = ("replay_size", "warmup_steps", "polyak", "policy_delay", "utd_ratio",
                                       "exploration_noise", "policy_noise", "noise_clip", "alpha",
                                       "cost_critic_reduction")
+#: Fields a trust-region step reads through a manifest row's ``step_options`` (refused, set, for other rows).
+STEP_OPTION_FIELDS: tuple[str, ...] = tuple(sorted({name for entry in manifest.rows()
+                                                   for name in entry.step_options.values()}))
 #: The multi-agent algorithms (rows of :data:`sg_torchrl.train.multi_agent.MULTI_AGENT_ALGORITHMS`).
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="multi")
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
@@ -146,6 +149,9 @@ class TrainConfig:
     cg_damping: float = _opt(0.1, "second order: damping added to the Fisher-vector product")
     line_search_steps: int | None = _opt(
         None, "second order: backtracking steps (15; PCPO 200; MACPO 10; NPG/RCPO none)")
+    pcpo_hx_direction: bool = _opt(
+        False, "PCPO: take SafePO's reward step, the Fisher product H x of the natural gradient x (about the plain "
+        "gradient) at the natural step's length, instead of the PCPO paper's x = H^-1 g")
     step_fraction: float | None = _opt(None, "second order: backtracking shrink factor (0.8; MACPO 0.5)")
     normalize_obs: bool | None = _opt(
         None, "running mean/std observation normalisation (default on; of the flat vector only, images are scaled "
@@ -225,6 +231,7 @@ class TrainConfig:
         self._validate_env_kind()
         self._validate_seeds()
         self._validate_off_policy()
+        self._validate_step_options()
         self._validate_device()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
@@ -324,6 +331,14 @@ class TrainConfig:
                              "default; a running normaliser would shift the replayed observations)")
         if self.compile:
             raise ValueError("config: --compile applies to the on-policy algorithms; the off-policy steps run eagerly")
+
+    def _validate_step_options(self) -> None:
+        """A trust-region step option (a manifest row's ``step_options`` field) set for a row that does not read it."""
+        entry = manifest.get(self.algo)
+        for name in STEP_OPTION_FIELDS:
+            if name not in entry.step_options.values() and getattr(self, name) != self.__dataclass_fields__[name].default:
+                readers = [row.name for row in manifest.ENTRIES if name in row.step_options.values()]
+                raise ValueError(f"config: {name} is an option of {', '.join(readers)}, not of {self.algo!r}")
 
     def _validate_device(self) -> None:
         """``device``'s form (:func:`~sg_torchrl.train.devices.check_device_name`), for every family. Whether this
