@@ -95,3 +95,32 @@ def test_off_policy_speed_rows(tmp_path):
     assert [row["row"] for row in rows] == ["plain torch", "engine S=1", "engine S=3"]
     assert rows[0]["cpu_s_per_1k_gradient_steps"] > 0 and all(row["cpu_s_per_1k_steps_per_seed"] > 0 for row in rows[1:])
     assert "| engine S=3 |" in result.stdout
+
+
+def _seed_group(root: Path, returns_per_seed: list[list[float]], steps_per_epoch: int = 100) -> Path:
+    """A seed-group run directory whose seeds log the given per-epoch returns (cost: a tenth of the return)."""
+    for seed, returns in enumerate(returns_per_seed):
+        lines = ["Metrics/EpRet,Metrics/EpCost,Train/Epoch,Train/TotalSteps"]
+        lines += [f"{ret},{ret / 10},{epoch},{(epoch + 1) * steps_per_epoch}" for epoch, ret in enumerate(returns)]
+        lines.append(f"{999.0},{999.0},,")  # an evaluation row: no step count, not a curve point
+        (root / f"seed-{seed:03d}").mkdir(parents=True)
+        (root / f"seed-{seed:03d}" / "progress.csv").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_curve_points_reads_each_run_at_the_given_steps(tmp_path):
+    full = _seed_group(tmp_path / "full", [[10, 20, 30, 40], [30, 40, 50, 60]])
+    short = _seed_group(tmp_path / "short", [[1, 3], [3, 5]])
+    result = _run("curve_points.py", str(full), str(short), "--labels", "A", "B", "--steps", "200", "400",
+                  "--window", "2")
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0] == "| env steps per seed | A J^R / J^C | B J^R / J^C |"
+    # at 200 steps: A's seeds average (10, 20) and (30, 40) -> 25; B's (1, 3) and (3, 5) -> 3
+    assert lines[2] == "| 0.0002M | 25 / 2.5 | 3 / 0.3 |"
+    assert lines[3] == "| 0.0004M | 45 / 4.5 | - |"  # B never reached 400 steps
+
+
+def test_curve_points_refuses_a_directory_without_seed_logs(tmp_path):
+    result = _run("curve_points.py", str(tmp_path), "--steps", "100")
+    assert result.returncode != 0 and "no seed-XXX/progress.csv" in result.stderr
