@@ -102,9 +102,8 @@ def single_update(algo: str, index: int, nets, data: TensorDict, **options):
     optimizer = torch.optim.Adam([{"params": [*critic.parameters(), *cost_critic.parameters()],
                                    "lr": cfg.critic_lr}], fused=True)
     entry = manifest.get(algo)
-    step_options = {keyword: getattr(cfg, name) for keyword, name in entry.step_options.items()}
     step = TRUST_REGION_STEPS[entry.update](actor, **_trust_region_options(cfg, entry.update not in _NO_LINE_SEARCH),
-                                            **step_options)
+                                            **cfg.keyword_options(entry.step_options))
     data = data.clone()
     advantage = multiplier.combine(data["advantage"], data["cost_advantage"])
     metrics = dict(step.step(data, advantage, data["cost_advantage"], multiplier.violation(COSTS[index])))

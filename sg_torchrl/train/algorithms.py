@@ -102,7 +102,7 @@ def _loss_builder(entry: AlgorithmEntry) -> MakeLoss:
     meta-RL), and calling the modules directly saves ~0.35 ms per minibatch step on CPU.
     """
     def make(actor, critic, cost_critic, multiplier, cfg: TrainConfig) -> LossModule:
-        options = {keyword: getattr(cfg, name) for keyword, name in entry.loss_options.items()}
+        options = cfg.keyword_options(entry.loss_options)
         return entry.loss_class()(actor, critic, cost_critic, multiplier, functional=False, **options)
 
     return make
@@ -125,7 +125,7 @@ def _trust_region_group(step_class: type, *, line_search: bool = True,
     """
     def make(parts: GroupParts, loss: LossModule, cfg: TrainConfig) -> GroupUpdate:
         options = _trust_region_options(cfg, line_search)
-        options.update({keyword: getattr(cfg, name) for keyword, name in step_options.items()})
+        options.update(cfg.keyword_options(step_options))
         step = STACKED_STEPS[step_class](parts.model, **options)
         return TrustRegionGroupUpdate(parts, step, objective_of(loss, critics_only=True))
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_type_hints
@@ -206,6 +207,10 @@ class TrainConfig:
             seeds = self.seeds
             self.seed = seeds[0] if isinstance(seeds, list) and seeds and type(seeds[0]) is int else 0
         self.validate()
+
+    def keyword_options(self, fields: Mapping[str, str]) -> dict[str, Any]:
+        """A manifest row's ``loss_options`` or ``step_options`` (``{keyword: field}``) read from this config."""
+        return {keyword: getattr(self, name) for keyword, name in fields.items()}
 
     @property
     def second_order(self) -> bool:

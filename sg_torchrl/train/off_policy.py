@@ -101,7 +101,7 @@ def make_loss(cfg: TrainConfig, networks, multiplier, action_spec):
     (TD3 also takes the action bounds, for its target smoothing)."""
     entry = manifest.get(cfg.algo)
     actor, critics, costs = networks
-    options = {keyword: getattr(cfg, name) for keyword, name in entry.loss_options.items()}
+    options = cfg.keyword_options(entry.loss_options)
     if "policy_noise" in options:
         options["action_spec"] = action_spec
     single = len(critics) == 1  # DDPG: one critic of each kind, given as a module
