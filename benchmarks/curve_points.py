@@ -16,7 +16,7 @@ import argparse
 import math
 from pathlib import Path
 
-from sg_torchrl.sweep.records import read_progress
+from sg_torchrl.sweep.records import finite_mean, read_progress
 
 RETURN, COST, STEPS = "Metrics/EpRet", "Metrics/EpCost", "Train/TotalSteps"
 
@@ -37,13 +37,8 @@ def point(curves: list[list[dict[str, float]]], steps: float, window: int) -> tu
         if not reached or reached[-1][STEPS] < steps:
             return None
         last = reached[-window:]
-        means.append(tuple(_nanmean([row[key] for row in last]) for key in (RETURN, COST)))
+        means.append(tuple(finite_mean([row[key] for row in last]) for key in (RETURN, COST)))
     return tuple(sum(values) / len(values) for values in zip(*means))
-
-
-def _nanmean(values: list[float]) -> float:
-    finite = [value for value in values if math.isfinite(value)]
-    return sum(finite) / len(finite) if finite else math.nan
 
 
 def main() -> None:

@@ -38,6 +38,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from sg_torchrl.sweep.records import finite_ratio, is_finite_number
 from sg_torchrl.sweep.report import (
     MULTI_AGENT, PAPER_NAMES, CellResult, cell_histories, markdown_table, paper_rows, pool_cells, write_csv,
 )
@@ -106,8 +107,9 @@ def counted_costs(cell: CellResult, warmup_share: float = WARMUP_SHARE) -> list[
     """
     histories = cell_histories(cell)
     rows = [row for rows in histories.values() for row in rows
-            if _finite(row.get("Train/Epoch")) and _finite(row.get("Metrics/EpCost"))]
-    budget = cell.total_steps or max((row["Train/TotalSteps"] for row in rows if _finite(row.get("Train/TotalSteps"))),
+            if is_finite_number(row.get("Train/Epoch")) and is_finite_number(row.get("Metrics/EpCost"))]
+    budget = cell.total_steps or max((row["Train/TotalSteps"] for row in rows
+                                      if is_finite_number(row.get("Train/TotalSteps"))),
                                      default=0.0)
     return [row["Metrics/EpCost"] for row in rows if row.get("Train/TotalSteps", NAN) > warmup_share * budget]
 
@@ -138,14 +140,14 @@ def analysis_rows(results: Sequence[CellResult], cost_regions: Sequence[float] =
         base = table.get((env_id, base_name, tag, budget, limit))
         counts = region_counts((cost for cell in cells for cost in counted_costs(cell, warmup_share)),
                                limit, cost_regions)
-        ratio = _ratio(row["J^R"], base["J^R"]) if base else NAN
+        ratio = finite_ratio(row["J^R"], base["J^R"]) if base else NAN
         notes = [] if base else [f"no {base_name} cell on this env with these options, budget and cost limit"]
         notes += [] if sum(counts) else ["no training evaluation after the warm-up"]
         per_env.append(_row("env", env_id, algo, tag, budget, limit, row["seeds"], 1, row["J^R"], base_name,
                             base["J^R"] if base else NAN, ratio, counts, "; ".join(notes)))
         entry = pooled.setdefault((algo, tag, budget, limit), {"envs": [], "ratios": [], "counts": [0] * 4, "seeds": 0})
         entry["envs"].append(env_id)
-        entry["ratios"] += [ratio] if _finite(ratio) else []
+        entry["ratios"] += [ratio] if is_finite_number(ratio) else []
         entry["counts"] = [a + b for a, b in zip(entry["counts"], counts)]
         entry["seeds"] += row["seeds"]
     overall = []
@@ -218,17 +220,18 @@ def plot_analysis(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike, ti
 def _reward_panel(ax, group, env_rows, labels, envs) -> None:
     x = range(len(group))
     heights = [row["J^R / baseline"] for row in group]
-    bars = ax.bar(x, [h if _finite(h) else 0.0 for h in heights], color="tab:blue", alpha=0.8, width=0.6)
-    top = max([h for h in heights if _finite(h)] + [r["J^R / baseline"] for r in env_rows
-                                                     if _finite(r["J^R / baseline"])] + [1.0])
+    bars = ax.bar(x, [h if is_finite_number(h) else 0.0 for h in heights], color="tab:blue", alpha=0.8, width=0.6)
+    top = max([h for h in heights if is_finite_number(h)] + [r["J^R / baseline"] for r in env_rows
+                                                     if is_finite_number(r["J^R / baseline"])] + [1.0])
     for index, (bar, row, height) in enumerate(zip(bars, group, heights)):
-        if _finite(height):
+        if is_finite_number(height):
             ax.annotate(f"{height:.2f}", (bar.get_x() + bar.get_width() / 2, height), xytext=(0, 2),
                         textcoords="offset points", ha="center", va="bottom", fontsize=9)
         else:
             ax.text(index, 0.02 * top, f"no {row['baseline']}", rotation=90, ha="center", va="bottom", fontsize=8)
         if envs > 1:  # each env's own ratio
-            ratios = [r["J^R / baseline"] for r in env_rows if _same_experiment(r, row) and _finite(r["J^R / baseline"])]
+            ratios = [r["J^R / baseline"] for r in env_rows
+                      if _same_experiment(r, row) and is_finite_number(r["J^R / baseline"])]
             ax.scatter([index] * len(ratios), ratios, color="black", s=12, zorder=3,
                        label="one env" if index == 0 else None)
     ax.axhline(1.0, color="black", linestyle="--", linewidth=1, label=f"{group[0]['baseline']} = 1")
@@ -244,7 +247,7 @@ def _cost_panel(ax, group, labels, regions: str, warmup_share: float) -> None:
     bottom = [0.0] * len(group)
     texts = _region_texts([float(b) for b in regions.split(",")], tex=True)
     for name, text, colour in zip(REGION_NAMES, texts, _COLOURS):
-        shares = [row[name] if _finite(row[name]) else 0.0 for row in group]
+        shares = [row[name] if is_finite_number(row[name]) else 0.0 for row in group]
         ax.bar(x, shares, bottom=bottom, color=colour, width=0.6, label=f"{name}: {text}")
         for index, share in enumerate(shares):
             if share >= 0.06:
@@ -316,11 +319,3 @@ def write_analysis(results: Sequence[CellResult], report_dir: str | os.PathLike,
              "analysis.csv": write_csv(rows, report / "analysis.csv"),
              "analysis.png": plot_analysis(rows, report / "analysis.png", title)}
     return paths
-
-
-def _ratio(numerator: float, denominator: float) -> float:
-    return numerator / denominator if _finite(numerator) and _finite(denominator) and denominator else NAN
-
-
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

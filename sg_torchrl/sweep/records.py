@@ -13,11 +13,14 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 from sg_torchrl.train.writes import write_atomic
 
-__all__ = ["AttemptLog", "SWEEP_RECORD", "epochs_logged", "latest", "parse_float", "read_progress"]
+__all__ = [
+    "AttemptLog", "SWEEP_RECORD", "epochs_logged", "finite_mean", "finite_ratio", "is_finite_number", "latest",
+    "parse_float", "read_progress",
+]
 
 #: The sweep's record at the root of its output directory (grid, shared options, cells, storage token).
 SWEEP_RECORD = "sweep.json"
@@ -30,6 +33,24 @@ def parse_float(value: Any) -> float:
         return float(value) if value not in (None, "") else NAN
     except (TypeError, ValueError):
         return NAN
+
+
+def is_finite_number(value: Any) -> bool:
+    """Whether ``value`` is a finite int or float (a bool, NaN, infinity or anything else is not)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def finite_mean(values: Iterable[Any]) -> float:
+    """Mean of the finite numbers among ``values`` (NaN if none): a seed or epoch without a figure is left out."""
+    finite = [float(value) for value in values if is_finite_number(value)]
+    return sum(finite) / len(finite) if finite else NAN
+
+
+def finite_ratio(numerator: Any, denominator: Any) -> float:
+    """``numerator / denominator`` when both are finite numbers and the denominator is not 0, else NaN."""
+    if is_finite_number(numerator) and is_finite_number(denominator) and denominator:
+        return numerator / denominator
+    return NAN
 
 
 def read_progress(path: Path) -> list[dict[str, float]]:

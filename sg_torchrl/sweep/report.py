@@ -40,7 +40,9 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from sg_torchrl.algorithms import manifest
-from sg_torchrl.sweep.records import AttemptLog, latest, parse_float, read_progress
+from sg_torchrl.sweep.records import (
+    AttemptLog, finite_mean, finite_ratio, is_finite_number, latest, parse_float, read_progress,
+)
 from sg_torchrl.train.writes import make_dirs, write_atomic
 
 __all__ = [
@@ -198,20 +200,20 @@ def _read_cell(root: Path, path: Path) -> CellResult:
         figures["Final/EpRetLast50"] = latest(histories.get(seed, []), "Metrics/EpRet")
         figures["Final/EpCostLast50"] = latest(histories.get(seed, []), "Metrics/EpCost")
     rows = [row for rows in histories.values() for row in rows]
-    steps = [row["Train/TotalSteps"] for row in rows if _finite(row.get("Train/TotalSteps"))]
-    steps += [summary["Train/TotalSteps"]] if _finite(summary.get("Train/TotalSteps")) else []
+    steps = [row["Train/TotalSteps"] for row in rows if is_finite_number(row.get("Train/TotalSteps"))]
+    steps += [summary["Train/TotalSteps"]] if is_finite_number(summary.get("Train/TotalSteps")) else []
     cell.steps = int(max(steps, default=0))
-    cell.update_s = _mean(row.get("Time/Update", NAN) for row in rows)
-    logged_s = summary.get("Time/Total") if _finite(summary.get("Time/Total")) else max(
-        (row["Time/Total"] for row in rows if _finite(row.get("Time/Total"))), default=NAN)
+    cell.update_s = finite_mean(row.get("Time/Update", NAN) for row in rows)
+    logged_s = summary.get("Time/Total") if is_finite_number(summary.get("Time/Total")) else max(
+        (row["Time/Total"] for row in rows if is_finite_number(row.get("Time/Total"))), default=NAN)
     attempts = AttemptLog(path).read()
     if attempts:
         cell.attempts, cell.status = len(attempts), str(attempts[-1].get("status", ""))
         ended = sum(float(a["end"]) - float(a["start"]) for a in attempts
-                    if _finite(a.get("end")) and _finite(a.get("start")))
+                    if is_finite_number(a.get("end")) and is_finite_number(a.get("start")))
         # An attempt lost with its worker has no end: its time is then only in the training time sg-train logged
         # (accumulated over resumes), which in turn leaves out start-ups. The larger is the closer to the truth.
-        cell.wall_s = max(ended, logged_s) if _finite(logged_s) else ended
+        cell.wall_s = max(ended, logged_s) if is_finite_number(logged_s) else ended
     else:  # no runner log (an older benchmark cell): one attempt as far as we know, its logged training time
         cell.attempts, cell.wall_s = int(cell.finished or bool(rows)), logged_s
     return cell
@@ -274,15 +276,17 @@ def paper_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
             "seeds": sum(len(cell.per_seed) for cell in cells),
             "compiled": sum(len(cell.per_seed) for cell in cells if cell.compiled),
             "diverged": sum(len(cell.diverged) for cell in cells),
-            "J^R": reward, "J^C": cost, "J^R / base": _ratio(reward, _seed_mean(base, "Final/EpRetLast10")),
-            "J^C / limit": _ratio(cost, limit), "cost limit": limit,
+            "J^R": reward, "J^C": cost, "J^R / base": finite_ratio(reward, _seed_mean(base, "Final/EpRetLast10")),
+            "J^C / limit": finite_ratio(cost, limit), "cost limit": limit,
             "J^R (50)": _seed_mean(cells, "Final/EpRetLast50"), "J^C (50)": _seed_mean(cells, "Final/EpCostLast50"),
-            "update s / epoch": _mean(cell.update_s for cell in cells),
-            "wall h": _mean(cell.wall_s / 3600 for cell in cells), "attempts": sum(cell.attempts for cell in cells),
-            "paper J^R": paper_reward, "paper J^C": paper_cost, "paper J^R / base": _ratio(paper_reward, paper_base),
-            "paper J^C / limit": _ratio(paper_cost, limit),
+            "update s / epoch": finite_mean(cell.update_s for cell in cells),
+            "wall h": finite_mean(cell.wall_s / 3600 for cell in cells),
+            "attempts": sum(cell.attempts for cell in cells),
+            "paper J^R": paper_reward, "paper J^C": paper_cost,
+            "paper J^R / base": finite_ratio(paper_reward, paper_base),
+            "paper J^C / limit": finite_ratio(paper_cost, limit),
             "meets_limit": bool(cost <= limit),
-            "paper_meets_limit": bool(paper_cost <= limit) if _finite(paper_cost) else None,
+            "paper_meets_limit": bool(paper_cost <= limit) if is_finite_number(paper_cost) else None,
         })
     return rows
 
@@ -302,7 +306,8 @@ def seed_rows(results: Iterable[CellResult]) -> list[dict[str, Any]]:
                 "eval EpRet": parse_float(figures.get("Metrics/EvalEpRet")),
                 "eval EpCost": parse_float(figures.get("Metrics/EvalEpCost")),
                 "diverged": seed in cell.diverged,
-                "steps": int(figures["Train/TotalSteps"]) if _finite(figures.get("Train/TotalSteps")) else cell.steps,
+                "steps": (int(figures["Train/TotalSteps"]) if is_finite_number(figures.get("Train/TotalSteps"))
+                          else cell.steps),
                 "compiled": cell.compiled, "directory": cell.directory.as_posix(),
             })
     return rows
@@ -373,7 +378,7 @@ def plot_env_curves(results: Iterable[CellResult], env_id: str, path: str | os.P
             by_step: dict[float, list[float]] = {}
             for rows in runs:
                 for row in rows:
-                    if _finite(row.get(metric)):
+                    if is_finite_number(row.get(metric)):
                         by_step.setdefault(row["Train/TotalSteps"], []).append(row[metric])
             steps = sorted(by_step)
             color = palette(index % palette.N)
@@ -433,7 +438,7 @@ def _progress_line(cell: CellResult) -> str:
     """``- `dir`: env algorithm [options], seeds 0 1 2: steps / budget (percent), attempts, wall h, status``."""
     budget = f" / {cell.total_steps:,} ({100 * cell.steps / cell.total_steps:.0f}%)" if cell.total_steps else ""
     tag = f" [{cell.tag}]" if cell.tag else ""
-    wall = f", {cell.wall_s / 3600:.2f} h" if _finite(cell.wall_s) else ""
+    wall = f", {cell.wall_s / 3600:.2f} h" if is_finite_number(cell.wall_s) else ""
     status = f", last attempt {cell.status}" if cell.status else ""
     return (f"- `{cell.directory.as_posix()}`: {cell.env_id} {cell.name}{tag}, seeds {' '.join(map(str, cell.seeds))}: "
             f"{cell.steps:,}{budget} steps, {cell.attempts} attempt(s){wall}{status}")
@@ -454,21 +459,7 @@ def _order(cell: CellResult) -> tuple:
 
 
 def _seed_mean(cells: Iterable[CellResult], metric: str) -> float:
-    return _mean(figures.get(metric, NAN) for cell in cells for figures in cell.per_seed.values())
-
-
-def _mean(values: Iterable[float]) -> float:
-    """Mean of the finite ``values`` (NaN if none)."""
-    finite = [float(value) for value in values if _finite(value)]
-    return sum(finite) / len(finite) if finite else NAN
-
-
-def _ratio(numerator: float, denominator: float) -> float:
-    return numerator / denominator if _finite(numerator) and _finite(denominator) and denominator else NAN
-
-
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return finite_mean(figures.get(metric, NAN) for cell in cells for figures in cell.per_seed.values())
 
 
 def _read_json(path: Path) -> dict[str, Any]:
