@@ -221,8 +221,8 @@ def _reward_panel(ax, group, env_rows, labels, envs) -> None:
     x = range(len(group))
     heights = [row["J^R / baseline"] for row in group]
     bars = ax.bar(x, [h if is_finite_number(h) else 0.0 for h in heights], color="tab:blue", alpha=0.8, width=0.6)
-    top = max([h for h in heights if is_finite_number(h)] + [r["J^R / baseline"] for r in env_rows
-                                                     if is_finite_number(r["J^R / baseline"])] + [1.0])
+    top = max([h for h in heights if is_finite_number(h)]
+              + [r["J^R / baseline"] for r in env_rows if is_finite_number(r["J^R / baseline"])] + [1.0])
     for index, (bar, row, height) in enumerate(zip(bars, group, heights)):
         if is_finite_number(height):
             ax.annotate(f"{height:.2f}", (bar.get_x() + bar.get_width() / 2, height), xytext=(0, 2),
