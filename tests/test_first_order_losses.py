@@ -280,6 +280,17 @@ class TestFOCOPSLoss:
         )
         assert not torch.allclose(quirk["loss_objective"], paper["loss_objective"])
 
+    def test_safepo_broadcast_is_a_config_switch_of_focops_alone(self):
+        from sg_torchrl.train import ALGORITHMS, TrainConfig
+
+        actor, critic, cost_critic = make_modules()
+        for switch in (False, True):  # the engine builds the loss (and its seed-batched surrogate) from the row
+            cfg = TrainConfig(algo="focops", focops_safepo_broadcast=switch)
+            loss = ALGORITHMS["focops"].make_loss(actor, critic, cost_critic, LagrangeMultiplier(init=0.5), cfg)
+            assert loss.safepo_broadcast is switch and loss.surrogate.safepo_broadcast is switch
+        with pytest.raises(ValueError, match="focops_safepo_broadcast is an option of focops, not of 'ppo_lag'"):
+            TrainConfig(algo="ppo_lag", focops_safepo_broadcast=True)
+
     def test_gradient_at_the_old_policy_is_the_scaled_policy_gradient(self):
         actor, critic, cost_critic = make_modules()
         multiplier = LagrangeMultiplier(init=0.5)

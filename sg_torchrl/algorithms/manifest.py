@@ -277,7 +277,8 @@ ENTRIES: tuple[AlgorithmEntry, ...] = (
     _single("ppo_lag", "PPO-Lag", _FIRST, "first_order", "lagrange", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
     _single("cppo_pid", "CPPO-PID", _FIRST, "first_order", "pid", _PPO_LAG_LOSS, _FIRST_ORDER_DEFAULTS),
     _single("focops", "FOCOPS", _FIRST, "first_order", "lagrange", "sg_torchrl.objectives:FOCOPSLoss",
-            _BOUNDED_NU_DEFAULTS, temperature="focops_temperature", target_kl="target_kl"),
+            _BOUNDED_NU_DEFAULTS, temperature="focops_temperature", target_kl="target_kl",
+            safepo_broadcast="focops_safepo_broadcast"),
     _single("cup", "CUP", _FIRST, "two_stage", "lagrange", "sg_torchrl.objectives:CUPLoss", _BOUNDED_NU_DEFAULTS,
             gamma="gamma", cup_lambda="cup_lambda"),
     # Second order: PPO-Lag's critic losses, a trust-region step for the actor. RCPO, as SafePO

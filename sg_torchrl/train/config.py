@@ -51,7 +51,7 @@ from sg_torchrl.validation import describe, fits
 
 __all__ = [
     "ALGORITHM_DEFAULTS", "ALGORITHM_NAMES", "MULTI_AGENT_ALGORITHM_NAMES", "OFF_POLICY_ALGORITHM_NAMES",
-    "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER", "STEP_OPTION_FIELDS",
+    "OFF_POLICY_FIELDS", "RETIRED_FIELDS", "SECOND_ORDER", "STEP_OPTION_FIELDS", "VARIANT_FIELDS",
     "TrainConfig", "PRESETS",
 ]
 
@@ -71,6 +71,8 @@ OFF_POLICY_FIELDS: tuple[str, ...] = ("replay_size", "warmup_steps", "polyak", "
 #: Fields a trust-region step reads through a manifest row's ``step_options`` (refused, set, for other rows).
 STEP_OPTION_FIELDS: tuple[str, ...] = tuple(sorted({name for entry in manifest.rows()
                                                    for name in entry.step_options.values()}))
+#: Switches to one row's SafePO variant: its step options and loss switches (refused, set, for other rows).
+VARIANT_FIELDS: tuple[str, ...] = STEP_OPTION_FIELDS + ("focops_safepo_broadcast",)
 #: The multi-agent algorithms (rows of :data:`sg_torchrl.train.multi_agent.MULTI_AGENT_ALGORITHMS`).
 MULTI_AGENT_ALGORITHM_NAMES: tuple[str, ...] = manifest.names(agents="multi")
 #: Algorithms whose actor moves by a trust-region step (no actor learning rate).
@@ -145,6 +147,9 @@ class TrainConfig:
     pid_d_delay: int = _opt(10, "CPPO-PID derivative delay (epochs)")
     multiplier_upper_bound: float | None = _opt(None, "cap of the Lagrange multiplier (FOCOPS and CUP: 2.0)")
     focops_temperature: float = _opt(1.5, "FOCOPS temperature lambda")
+    focops_safepo_broadcast: bool = _opt(
+        False, "FOCOPS: SafePO's loss, whose trust-region indicator scales the advantage term by the batch's "
+        "in-region fraction, instead of the FOCOPS paper's per-sample mask")
     cup_lambda: float = _opt(0.95, "CUP's GAE-style lambda in the projection factor (1 - gamma lambda) / (1 - gamma)")
     cg_iters: int | None = _opt(None, "second order: conjugate-gradient iterations (15; MACPO 10)")
     cg_damping: float = _opt(0.1, "second order: damping added to the Fisher-vector product")
@@ -236,7 +241,7 @@ class TrainConfig:
         self._validate_env_kind()
         self._validate_seeds()
         self._validate_off_policy()
-        self._validate_step_options()
+        self._validate_variant_options()
         self._validate_device()
         positive = ("total_steps", "num_envs", "steps_per_epoch", "update_iters", "minibatch_size", "pid_d_delay",
                     "cg_iters", "line_search_steps", "threads")
@@ -337,12 +342,15 @@ class TrainConfig:
         if self.compile:
             raise ValueError("config: --compile applies to the on-policy algorithms; the off-policy steps run eagerly")
 
-    def _validate_step_options(self) -> None:
-        """A trust-region step option (a manifest row's ``step_options`` field) set for a row that does not read it."""
-        entry = manifest.get(self.algo)
-        for name in STEP_OPTION_FIELDS:
-            if name not in entry.step_options.values() and getattr(self, name) != self.__dataclass_fields__[name].default:
-                readers = [row.name for row in manifest.ENTRIES if name in row.step_options.values()]
+    def _validate_variant_options(self) -> None:
+        """A variant switch (:data:`VARIANT_FIELDS`) set for a row that does not read it: refused, never ignored."""
+        def reads(row) -> set[str]:
+            return {*row.step_options.values(), *row.loss_options.values()}
+
+        for name in VARIANT_FIELDS:
+            changed = getattr(self, name) != self.__dataclass_fields__[name].default
+            if changed and name not in reads(manifest.get(self.algo)):
+                readers = [row.name for row in manifest.ENTRIES if name in reads(row)]
                 raise ValueError(f"config: {name} is an option of {', '.join(readers)}, not of {self.algo!r}")
 
     def _validate_device(self) -> None:
